@@ -1,0 +1,124 @@
+"""Per-rotor actuation (SPEC §2): action -> command -> motor lag -> motor noise -> thrusts -> wrench.
+
+Rotor layout (body frame: x forward, y left, z up; X configuration, seen from above)::
+
+          front (+x)
+      3 (FL, +1)   0 (FR, -1)
+             \\     /
+              [COM]          +y <- left
+             /     \\
+      2 (BL, -1)   1 (BR, +1)
+
+Rotor ``i`` sits at ``ROTOR_SIGNS[i] * (arm/sqrt 2, arm/sqrt 2)`` in xy, ``rotor_z`` below the
+COM; ``SPIN[i]`` is the sign of its yaw reaction torque about body z.
+
+All functions are pure, take arrays with any leading batch dims (``(N, 4)``, ``(B, N, 4)``) and
+run unchanged on NumPy and ``jax.numpy``. Normalized thrust ``f_norm`` is in [0, 1] of
+``thrust_max``; forces are in N, torques in N m.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from quadswarm_mj._xp import array_namespace
+from quadswarm_mj.config import QuadParams
+from quadswarm_mj.random_draws import DrawSpec, Normal
+
+#: xy signs of rotors 0..3: front-right, back-right, back-left, front-left.
+ROTOR_SIGNS = np.array([[1.0, -1.0], [-1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]])
+#: yaw reaction torque sign of rotors 0..3.
+SPIN = np.array([-1.0, 1.0, -1.0, 1.0])
+
+
+def rotor_positions(quad: QuadParams) -> np.ndarray:
+    """(4, 3) rotor positions relative to the COM in the body frame (m)."""
+    xy = quad.arm / np.sqrt(2.0)
+    pos = np.zeros((4, 3))
+    pos[:, :2] = ROTOR_SIGNS * xy
+    pos[:, 2] = quad.rotor_z
+    return pos
+
+
+def motor_alpha(dt: Any, settling_time: Any) -> Any:
+    """First-order motor filter gain for a 2 % settling time (4 time constants)."""
+    xp = array_namespace(settling_time)
+    return xp.minimum(1.0, 4.0 * dt / (settling_time + 1e-6))
+
+
+def action_to_command(action: Any) -> Any:
+    """Raw action in [-1, 1] (clipped) -> normalized thrust command in [0, 1]."""
+    xp = array_namespace(action)
+    return 0.5 * (xp.clip(action, -1.0, 1.0) + 1.0)
+
+
+def motor_noise_draw_spec(num_quads: int) -> DrawSpec:
+    """One standard normal per rotor per control step."""
+    return {"motor": Normal(0.0, 1.0, (num_quads, 4))}
+
+
+def motor_noise_step(eps: Any, sigma: Any, theta: float, normal: Any) -> Any:
+    """Ornstein-Uhlenbeck update of the per-rotor motor noise (once per control step).
+
+    ``sigma`` is (..., N) (0.2 * noise ratio); ``normal`` is a standard normal draw (..., N, 4).
+    """
+    return eps + theta * (0.0 - eps) + sigma[..., None] * normal
+
+
+def motor_lag(u: Any, cmd: Any, alpha: Any) -> Any:
+    """One sub-step of the motor lag on the normalized rotor speed ``u`` (..., N, 4)."""
+    xp = array_namespace(u, cmd)
+    return u + alpha[..., None] * (xp.sqrt(cmd) - u)
+
+
+def rotor_thrust(u: Any, cmd: Any, noise: Any) -> Any:
+    """Normalized rotor thrust f_norm = clip(u^2 + cmd * noise, 0, 1)."""
+    xp = array_namespace(u, cmd)
+    return xp.clip(u * u + cmd * noise, 0.0, 1.0)
+
+
+def body_wrench(f_norm: Any, thrust_max: Any, torque_max: Any, rotor_pos: Any) -> tuple[Any, Any]:
+    """Rotor thrusts -> (force, torque) in the body frame about the COM.
+
+    ``thrust_max`` and ``torque_max`` are per rotor (..., N, 4) in N and N m; ``rotor_pos`` (4, 3).
+    """
+    xp = array_namespace(f_norm)
+    thrust = thrust_max * f_norm  # N per rotor
+    fz = xp.sum(thrust, axis=-1)
+    zero = xp.zeros_like(fz)
+    tx = xp.sum(rotor_pos[:, 1] * thrust, axis=-1)
+    ty = -xp.sum(rotor_pos[:, 0] * thrust, axis=-1)
+    tz = xp.sum(torque_max * SPIN * f_norm, axis=-1)
+    return xp.stack([zero, zero, fz], axis=-1), xp.stack([tx, ty, tz], axis=-1)
+
+
+def world_wrench(R: Any, force_b: Any, torque_b: Any) -> tuple[Any, Any]:
+    """Rotate body-frame force and torque to the world frame with ``R`` (body to world)."""
+    xp = array_namespace(R)
+    force_w = force_b[..., 2:3] * R[..., :, 2]  # body force is along body z only
+    torque_w = xp.sum(R * torque_b[..., None, :], axis=-1)
+    return force_w, torque_w
+
+
+def hover_motor_state(params: dict[str, Any]) -> Any:
+    """Per-rotor normalized speed u (..., N, 4) whose thrust balances gravity."""
+    xp = array_namespace(params["thrust_max"])
+    total = xp.sum(params["thrust_max"], axis=-1, keepdims=True)
+    f = xp.clip(params["mass"][..., None] * params["gravity"] / total, 0.0, 1.0)
+    return xp.sqrt(f) * xp.ones_like(params["thrust_max"])
+
+
+def substep_wrench(u: Any, cmd: Any, noise: Any, params: dict[str, Any], R: Any,
+                   rotor_pos: Any) -> tuple[Any, Any, Any, Any]:
+    """One physics sub-step of the actuation chain.
+
+    Returns the new motor state ``u``, ``f_norm`` (..., N, 4) and the world-frame force
+    and torque (..., N, 3) to write into ``xfrc_applied``.
+    """
+    u = motor_lag(u, cmd, params["alpha"])
+    f_norm = rotor_thrust(u, cmd, noise)
+    force_b, torque_b = body_wrench(f_norm, params["thrust_max"], params["torque_max"], rotor_pos)
+    force_w, torque_w = world_wrench(R, force_b, torque_b)
+    return u, f_norm, force_w, torque_w

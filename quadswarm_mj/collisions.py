@@ -1,0 +1,224 @@
+"""The paper's velocity-based collision model (SPEC §4-5): floor, walls, ceiling, quad-quad.
+
+Pure functions over arrays with leading batch dims (``(N, ...)`` or ``(B, N, ...)``), NumPy or
+``jax.numpy``; random draws come in as arrays (see :mod:`quadswarm_mj.random_draws`; with
+``MeanSampler`` every draw takes its mean, which is the noise-free model). World frame, SI units;
+angular velocity ``omega`` is in the body frame.
+
+* Floor: every physics sub-step. :func:`floor_wrench` (before the step) adds the normal and
+  friction forces of a grounded quad; :func:`floor_impact` (after the step) detects a landing.
+* Walls, ceiling, quad-quad: once per control step, after the physics.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from quadswarm_mj._xp import array_namespace, safe_normalize
+from quadswarm_mj.random_draws import DrawSpec, Normal, Uniform
+from quadswarm_mj.spatial import yaw_of, yaw_quat, yaw_rotmat
+
+# ---------------------------------------------------------------------------------------- floor
+
+#: z tolerance (m) above the floor height within which a grounded quad stays grounded.
+FLOOR_TOL = 1e-6
+
+
+def floor_draw_spec(num_quads: int) -> DrawSpec:
+    """Yaw offset given to a quad that lands upside down (mean 0: it keeps its yaw)."""
+    return {"yaw": Uniform(-3.141592653589793, 3.141592653589793, (num_quads,))}
+
+
+def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any, gravity: float,
+                 friction: float, dt: float) -> tuple[Any, Any]:
+    """Add the floor's normal and friction force to a grounded quad's world wrench.
+
+    Normal force N = max(0, m g - F_z), so the vertical acceleration is not negative.
+    Horizontal: static friction cancels the horizontal force while it is below mu N and the quad
+    is at rest; otherwise kinetic friction mu N opposes the velocity (never reversing it within
+    one sub-step). Roll and pitch torques are removed (the quad stays flat, yaw-only).
+    """
+    xp = array_namespace(force_w, vel)
+    weight = mass * gravity
+    normal = xp.maximum(0.0, weight - force_w[..., 2])
+    cap = friction * normal
+    f_h = force_w[..., :2]
+    f_mag = xp.sqrt(xp.sum(f_h * f_h, axis=-1))
+    v_h = vel[..., :2]
+    speed = xp.sqrt(xp.sum(v_h * v_h, axis=-1))
+    moving = speed > 1e-9
+    static_h = f_h * (xp.maximum(0.0, f_mag - cap) / xp.where(f_mag > 0, f_mag, 1.0))[..., None]
+    kinetic_mag = xp.minimum(cap, mass * speed / dt)
+    kinetic_h = f_h - (kinetic_mag / xp.where(moving, speed, 1.0))[..., None] * v_h
+    new_h = xp.where(moving[..., None], kinetic_h, static_h)
+    new_force = xp.concatenate([new_h, (force_w[..., 2] + normal)[..., None]], axis=-1)
+    zero = xp.zeros_like(torque_w[..., 0])
+    new_torque = xp.stack([zero, zero, torque_w[..., 2]], axis=-1)
+    g = on_floor[..., None]
+    return xp.where(g, new_force, force_w), xp.where(g, new_torque, torque_w)
+
+
+def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_floor: Any,
+                 floor_z: float, yaw_draw: Any) -> dict[str, Any]:
+    """Floor contact after a physics sub-step (SPEC §4).
+
+    A quad at or below ``floor_z`` that was airborne *hits* the floor: z is set to ``floor_z``,
+    linear and angular velocity become 0, the rotation keeps only its yaw (plus ``yaw_draw`` if it
+    was upside down), the motor state ``u`` resets to 0. A grounded quad stays grounded (flat,
+    z = floor_z, no downward velocity, no roll/pitch rate) until its thrust lifts it above the
+    height. Returns a dict with the new ``pos, vel, omega, quat, R, u, on_floor, hit_floor``.
+    """
+    xp = array_namespace(pos, vel)
+    z = pos[..., 2]
+    hit = (z <= floor_z) & ~on_floor
+    staying = on_floor & (z <= floor_z + FLOOR_TOL)
+    grounded = hit | staying
+    upside_down = R[..., 2, 2] < 0
+    yaw = yaw_of(R) + xp.where(hit & upside_down, yaw_draw, 0.0)
+    g3 = grounded[..., None]
+    new_pos = xp.where(g3, xp.concatenate([pos[..., :2], xp.full_like(z, floor_z)[..., None]], -1), pos)
+    zero = xp.zeros_like(z)
+    vel_stay = xp.stack([vel[..., 0], vel[..., 1], zero], axis=-1)
+    new_vel = xp.where(hit[..., None], 0.0 * vel, xp.where(staying[..., None], vel_stay, vel))
+    omega_stay = xp.stack([zero, zero, omega[..., 2]], axis=-1)
+    new_omega = xp.where(hit[..., None], 0.0 * omega, xp.where(staying[..., None], omega_stay, omega))
+    new_quat = xp.where(grounded[..., None], yaw_quat(yaw), quat)
+    new_R = xp.where(grounded[..., None, None], yaw_rotmat(yaw), R)
+    new_u = xp.where(hit[..., None], 0.0 * u, u)
+    return {"pos": new_pos, "vel": new_vel, "omega": new_omega, "quat": new_quat, "R": new_R,
+            "u": new_u, "on_floor": grounded, "hit_floor": hit}
+
+
+# ------------------------------------------------------------------------------ walls, ceiling
+
+
+def wall_draw_spec(num_quads: int, decay: tuple[float, float], kick_omega: tuple[float, float]) -> DrawSpec:
+    """Draws of the wall/ceiling bounce for every quad (used only where a quad hits)."""
+    n = num_quads
+    return {
+        "dir": Uniform(-1.0, 1.0, (n, 3)),  # free direction components
+        "away": Uniform(0.1, 1.0, (n, 2)),  # |component| along the normal of a wall hit (x, y)
+        "down": Uniform(-1.0, -0.5, (n,)),  # vertical component (always downward)
+        "decay": Uniform(decay[0], decay[1], (n,)),
+        "kick_dir": Normal(0.0, 1.0, (n, 3)),
+        "kick_mag": Uniform(kick_omega[0], kick_omega[1], (n,)),
+    }
+
+
+def wall_collisions(pos: Any, vel: Any, omega: Any, prev_wall: Any, prev_ceiling: Any, room_low: Any,
+                    room_high: Any, draws: dict[str, Any], speed_limits: tuple[float, float]) -> dict[str, Any]:
+    """Clip positions into the room and bounce quads that newly hit a wall or the ceiling.
+
+    The bounce speed is ``decay * |v|`` clipped to ``speed_limits``; its direction points away
+    from each wall hit, with a downward z component, and omega gets a random kick. The floor is
+    not handled here (see :func:`floor_impact`). Returns a dict with ``pos, vel, omega,
+    at_wall, at_ceiling, hit_wall, hit_ceiling``.
+    """
+    xp = array_namespace(pos, vel)
+    lo = xp.asarray(room_low, dtype=pos.dtype)
+    hi = xp.asarray(room_high, dtype=pos.dtype)
+    low_hit = pos[..., :2] <= lo[:2]
+    high_hit = pos[..., :2] >= hi[:2]
+    at_wall = xp.any(low_hit | high_hit, axis=-1)
+    at_ceiling = pos[..., 2] >= hi[2]
+    new_pos = xp.concatenate([xp.clip(pos[..., :2], lo[:2], hi[:2]),
+                              xp.minimum(pos[..., 2], hi[2])[..., None]], axis=-1)
+    hit_wall = at_wall & ~prev_wall
+    hit_ceiling = at_ceiling & ~prev_ceiling
+    bounce = hit_wall | hit_ceiling
+
+    away = draws["away"]
+    d_xy = xp.where(low_hit, away, xp.where(high_hit, -away, draws["dir"][..., :2]))
+    direction = xp.concatenate([d_xy, draws["down"][..., None]], axis=-1)
+    direction = safe_normalize(xp, direction)
+    speed = xp.sqrt(xp.sum(vel * vel, axis=-1))
+    new_speed = xp.clip(draws["decay"] * speed, speed_limits[0], speed_limits[1])
+    kick = safe_normalize(xp, draws["kick_dir"]) * draws["kick_mag"][..., None]
+    b = bounce[..., None]
+    return {
+        "pos": new_pos,
+        "vel": xp.where(b, new_speed[..., None] * direction, vel),
+        "omega": xp.where(b, omega + kick, omega),
+        "at_wall": at_wall, "at_ceiling": at_ceiling, "hit_wall": hit_wall, "hit_ceiling": hit_ceiling,
+    }
+
+
+# ------------------------------------------------------------------------------------ quad-quad
+
+
+def quad_collision_draw_spec(num_quads: int, tries: int, shared_std: float, own_std: float,
+                             decay: tuple[float, float], kick_omega: tuple[float, float]) -> DrawSpec:
+    """Pairwise draws: ``tries`` candidate noises per ordered pair, decay per quad, kicks per pair."""
+    n = num_quads
+    return {
+        "shared": Normal(0.0, shared_std, (tries, n, n, 3)),  # antisymmetrized: +c for i, -c for j
+        "own": Normal(0.0, own_std, (tries, n, n, 3)),
+        "decay": Uniform(decay[0], decay[1], (n,)),
+        "kick_dir": Normal(0.0, 1.0, (n, n, 3)),
+        "kick_mag": Uniform(kick_omega[0], kick_omega[1], (n, n)),
+    }
+
+
+def pairwise_contacts(pos: Any, hitbox: float) -> tuple[Any, Any]:
+    """(..., N, N) contact mask (||p_i - p_j|| <= hitbox, i != j) and distances."""
+    xp = array_namespace(pos)
+    rel = pos[..., :, None, :] - pos[..., None, :, :]
+    dist = xp.sqrt(xp.sum(rel * rel, axis=-1))
+    n = pos.shape[-2]
+    eye = xp.eye(n, dtype=bool)
+    return (dist <= hitbox) & ~eye, dist
+
+
+def _antisymmetric(xp: Any, x: Any) -> Any:
+    """From (..., N, N, 3) keep the upper triangle (i < j) and mirror it with a minus sign."""
+    n = x.shape[-2]
+    upper = xp.triu(xp.ones((n, n), dtype=bool), k=1)[..., None]
+    u = xp.where(upper, x, 0.0)
+    return u - xp.swapaxes(u, -2, -3)
+
+
+def quad_collisions(pos: Any, vel: Any, omega: Any, prev_contact: Any, hitbox: float,
+                    draws: dict[str, Any]) -> dict[str, Any]:
+    """Velocity response of pairs that newly entered each other's hitbox (SPEC §5).
+
+    For a new pair (i, j) with n = unit(p_i - p_j): dv = ((v_j.n) - (v_i.n)) n; i gets
+    dv + c + e_i, j gets -dv - c + e_j, with the first of the candidate noises that separates the
+    pair (the last one if none does). Each involved quad's new speed is scaled by its ``decay``
+    draw and capped at the larger pre-collision speed of its pairs; omega gets +w / -w. A quad in
+    several new pairs at once receives the sum of their changes. Returns ``vel, omega, contact,
+    new_contact`` (contact masks are (..., N, N), symmetric).
+    """
+    xp = array_namespace(pos, vel)
+    contact, dist = pairwise_contacts(pos, hitbox)
+    new = contact & ~prev_contact
+    rel = pos[..., :, None, :] - pos[..., None, :, :]
+    n = rel / xp.where(dist > 0, dist, 1.0)[..., None]
+    v_i = vel[..., :, None, :]
+    v_j = vel[..., None, :, :]
+    vin = xp.sum(v_i * n, axis=-1)
+    vjn = xp.sum(v_j * n, axis=-1)
+    change = (vjn - vin)[..., None] * n  # (..., N, N, 3), antisymmetric
+    shared = _antisymmetric(xp, draws["shared"])  # (..., T, N, N, 3)
+    shift = change[..., None, :, :, :] + shared + draws["own"]
+    sep = xp.sum((v_i[..., None, :, :, :] + shift) * n[..., None, :, :, :], axis=-1)  # (..., T, N, N)
+    ok = (sep > 0) & (xp.swapaxes(sep, -1, -2) > 0)
+    tries = ok.shape[-3]
+    choice = xp.full(ok.shape[:-3] + ok.shape[-2:], tries - 1)
+    for t in range(tries - 2, -1, -1):  # first try that separates (static, tiny loop)
+        choice = xp.where(ok[..., t, :, :], t, choice)
+    sel = xp.take_along_axis(shift, choice[..., None, :, :, None], axis=-4)[..., 0, :, :, :]
+    newf = new[..., None]
+    dv = xp.sum(xp.where(newf, sel, 0.0), axis=-2)
+    involved = xp.any(new, axis=-1)
+    speed = xp.sqrt(xp.sum(vel * vel, axis=-1))
+    pair_max = xp.maximum(speed[..., :, None], speed[..., None, :])
+    vmax = xp.max(xp.where(new, pair_max, 0.0), axis=-1)
+    v_new = (vel + dv) * draws["decay"][..., None]
+    s_new = xp.sqrt(xp.sum(v_new * v_new, axis=-1))
+    scale = xp.minimum(1.0, vmax / xp.where(s_new > 0, s_new, 1.0))
+    v_new = v_new * scale[..., None]
+    kick = _antisymmetric(xp, safe_normalize(xp, draws["kick_dir"]) * draws["kick_mag"][..., None])
+    d_omega = xp.sum(xp.where(newf, kick, 0.0), axis=-2)
+    inv = involved[..., None]
+    return {"vel": xp.where(inv, v_new, vel), "omega": xp.where(inv, omega + d_omega, omega),
+            "contact": contact, "new_contact": new}

@@ -1,0 +1,339 @@
+"""Typed, frozen, validated configuration (SPEC §1-11 defaults).
+
+Every config error is a ``ValueError`` naming the field and the allowed values.
+Nested configs may be given as dicts, e.g. ``EnvConfig(noise={"sensor_pos_std": 0.0})``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+COLLISION_MODELS = ("paper", "mujoco", "blend")
+MOTOR_STARTS = ("zero", "hover")
+OBS_SELF_VARIANTS = ("base", "floor", "wall")
+NEIGHBOR_SORTS = ("distance", "original")
+
+
+def _check_range(name: str, value: float, lo: float | None = None, hi: float | None = None,
+                 lo_open: bool = False) -> None:
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    if lo is not None and (value < lo or (lo_open and value == lo)):
+        op = ">" if lo_open else ">="
+        raise ValueError(f"{name} must be {op} {lo}, got {value!r}")
+    if hi is not None and value > hi:
+        raise ValueError(f"{name} must be <= {hi}, got {value!r}")
+
+
+def _check_pair(name: str, pair: Any, lo: float | None = None, hi: float | None = None) -> tuple:
+    try:
+        a, b = (float(x) for x in pair)
+    except Exception as e:  # noqa: BLE001
+        raise ValueError(f"{name} must be a (low, high) pair of numbers, got {pair!r}") from e
+    _check_range(f"{name}[0]", a, lo, hi)
+    _check_range(f"{name}[1]", b, lo, hi)
+    if a > b:
+        raise ValueError(f"{name} must satisfy low <= high, got {pair!r}")
+    return (a, b)
+
+
+@dataclass(frozen=True)
+class QuadParams:
+    """Nominal Crazyflie 2.x airframe (SPEC §1). SI units; body frame x forward, y left, z up."""
+
+    mass: float = 0.028  # kg
+    inertia: tuple[float, float, float] = (1.3669232142857e-05, 1.4356732142857e-05, 2.6561583333333e-05)
+    arm: float = 0.04596194  # m, COM to rotor in xy
+    rotor_z: float = -0.0034286  # m, rotor plane below the COM
+    thrust_to_weight: float = 1.9  # all four rotors
+    torque_to_thrust: float = 0.006  # N m per N
+    motor_settling_time: float = 0.15  # s, 2 % settling (4 time constants)
+    max_omega: float = 40.0  # rad/s, per body axis
+    gravity: float = 9.81  # m/s^2
+
+    def __post_init__(self) -> None:
+        for n in ("mass", "arm", "thrust_to_weight", "torque_to_thrust", "motor_settling_time",
+                  "max_omega", "gravity"):
+            _check_range(f"quad.{n}", getattr(self, n), 0.0, lo_open=True)
+        if len(self.inertia) != 3 or any(not (float(i) > 0) for i in self.inertia):
+            raise ValueError(f"quad.inertia must be 3 positive numbers, got {self.inertia!r}")
+        object.__setattr__(self, "inertia", tuple(float(i) for i in self.inertia))
+
+    @property
+    def thrust_max(self) -> float:
+        """Max thrust per rotor (N), from the nominal mass and thrust-to-weight."""
+        return self.gravity * self.mass * self.thrust_to_weight / 4.0
+
+    @property
+    def torque_max(self) -> float:
+        """Max yaw reaction torque per rotor (N m)."""
+        return self.torque_to_thrust * self.thrust_max
+
+    @property
+    def hover_command(self) -> float:
+        """Normalized per-rotor thrust that balances gravity (0.5263158 nominal)."""
+        return 1.0 / self.thrust_to_weight
+
+    @property
+    def hover_action(self) -> float:
+        """Raw action in [-1, 1] whose command is the hover thrust."""
+        return 2.0 * self.hover_command - 1.0
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """Noise sources (SPEC §2, §5-7). ``EnvConfig.without_noise()`` turns all of them off."""
+
+    motor_noise_ratio: float = 0.05  # OU sigma = 0.2 * ratio
+    motor_noise_theta: float = 0.15
+    sensor_pos_std: float = 0.005  # m
+    sensor_vel_std: float = 0.01  # m/s
+    sensor_omega_std: float = 1.75e-4  # rad/s
+    neighbor_obs_noise: bool = False  # the original leaves neighbour observations noise-free
+    stochastic_collisions: bool = True  # False: every collision draw takes its mean
+    stochastic_downwash: bool = True  # False: downwash draws take their means
+
+    def __post_init__(self) -> None:
+        for n in ("motor_noise_ratio", "sensor_pos_std", "sensor_vel_std", "sensor_omega_std"):
+            _check_range(f"noise.{n}", getattr(self, n), 0.0)
+        _check_range("noise.motor_noise_theta", self.motor_noise_theta, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class RandomizationConfig:
+    """Per-reset, per-quad ranges (SPEC §11); used when ``EnvConfig.randomize`` is True."""
+
+    mass_scale: tuple[float, float] = (0.8, 1.2)
+    inertia_scale: tuple[float, float] = (0.8, 1.2)
+    thrust_to_weight: tuple[float, float] = (1.7, 2.1)
+    torque_to_thrust_scale: tuple[float, float] = (0.8, 1.2)
+    motor_settling_time: tuple[float, float] = (0.15, 0.2)
+    rotor_thrust_scale: tuple[float, float] = (0.9, 1.1)
+    motor_noise_ratio: tuple[float, float] = (0.01, 0.05)
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            lo = 0.0
+            object.__setattr__(self, f.name, _check_pair(f"randomization.{f.name}",
+                                                         getattr(self, f.name), lo))
+        for n in ("mass_scale", "inertia_scale", "thrust_to_weight", "motor_settling_time",
+                  "rotor_thrust_scale"):
+            if getattr(self, n)[0] <= 0:
+                raise ValueError(f"randomization.{n} must be > 0, got {getattr(self, n)!r}")
+
+
+@dataclass(frozen=True)
+class RewardScales:
+    """Reward-term scales (SPEC §8, paper baseline). r_term = -control_dt * scale * cost."""
+
+    pos: float = 1.0
+    effort: float = 0.05
+    spin: float = 0.1
+    crash: float = 1.0
+    orient: float = 1.0
+    vel: float = 0.0
+    action_change: float = 0.0
+    yaw: float = 0.0
+    rot: float = 0.0
+    quad_collision: float = 5.0
+    proximity: float = 10.0
+    floor_hit: float = 0.0
+    wall_hit: float = 0.0
+    ceiling_hit: float = 0.0
+    proximity_falloff_arms: float = 4.0  # falloff = this * arm
+    anneal_steps: int = 0  # control steps over which collision terms ramp from 0 (0: no annealing)
+
+    TERMS = ("pos", "effort", "spin", "crash", "orient", "vel", "action_change", "yaw", "rot",
+             "quad_collision", "proximity", "floor_hit", "wall_hit", "ceiling_hit")
+
+    def __post_init__(self) -> None:
+        for n in self.TERMS:
+            _check_range(f"rewards.{n}", getattr(self, n), 0.0)
+        _check_range("rewards.proximity_falloff_arms", self.proximity_falloff_arms, 0.0, lo_open=True)
+        if not isinstance(self.anneal_steps, int) or self.anneal_steps < 0:
+            raise ValueError(f"rewards.anneal_steps must be an int >= 0, got {self.anneal_steps!r}")
+
+    @classmethod
+    def paper_baseline(cls) -> RewardScales:
+        """The scales of the paper's baseline (the defaults)."""
+        return cls()
+
+
+
+
+@dataclass(frozen=True)
+class CollisionParams:
+    """Constants of the paper's collision model (SPEC §4-5)."""
+
+    hitbox_arms: float = 2.0  # hitbox = hitbox_arms * arm
+    tries: int = 3
+    shared_noise_std: float = 0.8
+    own_noise_std: float = 0.15
+    kick_omega: tuple[float, float] = (10 * math.pi, 20 * math.pi)  # rad/s
+    wall_speed_limits: tuple[float, float] = (0.1, 6.0)  # m/s
+    floor_friction: float = 0.6
+
+    def __post_init__(self) -> None:
+        _check_range("collision.hitbox_arms", self.hitbox_arms, 0.0, lo_open=True)
+        if not isinstance(self.tries, int) or self.tries < 1:
+            raise ValueError(f"collision.tries must be an int >= 1, got {self.tries!r}")
+        _check_range("collision.shared_noise_std", self.shared_noise_std, 0.0)
+        _check_range("collision.own_noise_std", self.own_noise_std, 0.0)
+        object.__setattr__(self, "kick_omega", _check_pair("collision.kick_omega", self.kick_omega, 0.0))
+        object.__setattr__(self, "wall_speed_limits",
+                           _check_pair("collision.wall_speed_limits", self.wall_speed_limits, 0.0))
+        _check_range("collision.floor_friction", self.floor_friction, 0.0)
+
+
+_NESTED = {"quad": QuadParams, "noise": NoiseConfig, "randomization": RandomizationConfig,
+           "rewards": RewardScales, "collision": CollisionParams}
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Everything that defines a quadswarm_mj environment.
+
+    Units: SI. ``room_size`` is (length x, width y, height z) in m; the room is the box
+    [-L/2, L/2] x [-W/2, W/2] x [0, H].
+    """
+
+    num_quads: int = 8
+    scenario: str = "static_same_goal"
+    room_size: tuple[float, float, float] = (10.0, 10.0, 10.0)
+    control_hz: int = 100
+    sim_hz: int = 200
+    episode_seconds: float = 15.0
+    downwash: bool = False
+    collision_model: str = "paper"
+    collision_decay: tuple[float, float] = (0.2, 0.8)
+    num_neighbors: int | None = None  # None: min(6, num_quads - 1)
+    motor_start: str = "zero"
+    randomize: bool = False
+    obs_self: str = "base"  # "base" (18), "floor" (19: + z), "wall" (24: + wall distances)
+    neighbor_sort: str = "distance"  # "distance" or "original" (d + unit(r).dv, d >= 0.01)
+    neighbor_vel_clip: float = 6.0  # m/s, clip of neighbour relative velocity
+    normalize_obs: bool = False
+    formation_center: tuple[float, float, float] = (0.0, 0.0, 2.0)
+    grace_period_s: float = 1.5  # s, collisions before this are not counted/penalized
+    quad: QuadParams = field(default_factory=QuadParams)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
+    rewards: RewardScales = field(default_factory=RewardScales)
+    collision: CollisionParams = field(default_factory=CollisionParams)
+
+    def __post_init__(self) -> None:
+        for name, cls in _NESTED.items():
+            v = getattr(self, name)
+            if isinstance(v, dict):
+                try:
+                    v = cls(**v)
+                except TypeError as e:
+                    raise ValueError(f"{name}: {e}") from e
+                object.__setattr__(self, name, v)
+            elif not isinstance(v, cls):
+                raise ValueError(f"{name} must be a {cls.__name__} or a dict, got {type(v).__name__}")
+        if not isinstance(self.num_quads, int) or isinstance(self.num_quads, bool) or self.num_quads < 1:
+            raise ValueError(f"num_quads must be an int >= 1, got {self.num_quads!r}")
+        try:
+            room = tuple(float(x) for x in self.room_size)
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"room_size must be 3 positive numbers (m), got {self.room_size!r}") from e
+        if len(room) != 3 or not all(math.isfinite(x) and x > 0 for x in room):
+            raise ValueError(f"room_size must be 3 positive finite numbers (m), got {self.room_size!r}")
+        object.__setattr__(self, "room_size", room)
+        for n in ("control_hz", "sim_hz"):
+            v = getattr(self, n)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"{n} must be a positive int (hz), got {v!r}")
+        if self.sim_hz % self.control_hz != 0:
+            raise ValueError(f"sim_hz must be a multiple of control_hz, got sim_hz={self.sim_hz}, "
+                             f"control_hz={self.control_hz}")
+        _check_range("episode_seconds", self.episode_seconds, 0.0, lo_open=True)
+        if self.collision_model not in COLLISION_MODELS:
+            raise ValueError(f"collision_model must be one of {COLLISION_MODELS}, got {self.collision_model!r}")
+        if self.motor_start not in MOTOR_STARTS:
+            raise ValueError(f"motor_start must be one of {MOTOR_STARTS}, got {self.motor_start!r}")
+        if self.obs_self not in OBS_SELF_VARIANTS:
+            raise ValueError(f"obs_self must be one of {OBS_SELF_VARIANTS}, got {self.obs_self!r}")
+        if self.neighbor_sort not in NEIGHBOR_SORTS:
+            raise ValueError(f"neighbor_sort must be one of {NEIGHBOR_SORTS}, got {self.neighbor_sort!r}")
+        object.__setattr__(self, "collision_decay", _check_pair("collision_decay", self.collision_decay, 0.0))
+        if self.num_neighbors is not None:
+            k = self.num_neighbors
+            if not isinstance(k, int) or isinstance(k, bool) or k < 0 or k > self.num_quads - 1:
+                raise ValueError(f"num_neighbors must be an int in [0, num_quads - 1] = [0, {self.num_quads - 1}] "
+                                 f"(each quad has num_quads - 1 neighbors), got {k!r}")
+        _check_range("neighbor_vel_clip", self.neighbor_vel_clip, 0.0, lo_open=True)
+        _check_range("grace_period_s", self.grace_period_s, 0.0)
+        fc = tuple(float(x) for x in self.formation_center)
+        if len(fc) != 3:
+            raise ValueError(f"formation_center must be 3 numbers, got {self.formation_center!r}")
+        object.__setattr__(self, "formation_center", fc)
+        for n in ("downwash", "randomize", "normalize_obs"):
+            if not isinstance(getattr(self, n), bool):
+                raise ValueError(f"{n} must be a bool, got {getattr(self, n)!r}")
+        from quadswarm_mj.scenarios import get_scenario  # late import: registry validates the name
+
+        get_scenario(self.scenario)
+
+    # ---- derived quantities ----
+    @property
+    def sim_dt(self) -> float:
+        return 1.0 / self.sim_hz
+
+    @property
+    def control_dt(self) -> float:
+        return 1.0 / self.control_hz
+
+    @property
+    def substeps(self) -> int:
+        return self.sim_hz // self.control_hz
+
+    @property
+    def episode_steps(self) -> int:
+        return int(round(self.episode_seconds * self.control_hz))
+
+    @property
+    def neighbors(self) -> int:
+        """Resolved K: ``num_neighbors`` or min(6, num_quads - 1)."""
+        return min(6, self.num_quads - 1) if self.num_neighbors is None else self.num_neighbors
+
+    @property
+    def self_obs_dim(self) -> int:
+        return {"base": 18, "floor": 19, "wall": 24}[self.obs_self]
+
+    @property
+    def obs_dim(self) -> int:
+        return self.self_obs_dim + 6 * self.neighbors
+
+    @property
+    def hitbox(self) -> float:
+        return self.collision.hitbox_arms * self.quad.arm
+
+    @property
+    def room_low(self) -> tuple[float, float, float]:
+        L, W, _ = self.room_size
+        return (-L / 2, -W / 2, 0.0)
+
+    @property
+    def room_high(self) -> tuple[float, float, float]:
+        L, W, H = self.room_size
+        return (L / 2, W / 2, H)
+
+    def replace(self, **changes: Any) -> EnvConfig:
+        """Copy with fields changed (validated again)."""
+        return replace(self, **changes)
+
+    def without_noise(self) -> EnvConfig:
+        """Copy with every noise source and randomization off, and the collision and
+        downwash draws replaced by their means (SPEC §5, §6)."""
+        noise = replace(self.noise, motor_noise_ratio=0.0, sensor_pos_std=0.0, sensor_vel_std=0.0,
+                        sensor_omega_std=0.0, neighbor_obs_noise=False, stochastic_collisions=False,
+                        stochastic_downwash=False)
+        return replace(self, noise=noise, randomize=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)

@@ -1,0 +1,1 @@
+"""Front ends: Gymnasium (CPU), vector (CPU), PettingZoo (CPU) and MJX (JAX)."""

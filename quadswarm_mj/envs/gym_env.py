@@ -1,0 +1,125 @@
+"""``QuadSwarmEnv``: a Gymnasium env of one world of N quads on CPU MuJoCo.
+
+Spaces: observation (N, obs_dim) float32 and action (N, 4) in [-1, 1]; flattened to (obs_dim,)
+and (4,) when N = 1. ``step`` returns the team reward (mean over quads, a float) so any
+single-agent library works; per-quad rewards are in ``info["rewards"]``. Episodes end by
+truncation after ``episode_seconds`` (1500 control steps by default), never by termination.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.envs.cpu_core import CpuSwarm
+from quadswarm_mj.envs.validation import check_action, check_state
+from quadswarm_mj.observations import obs_bounds
+
+
+def make_config(cfg: EnvConfig | None, kwargs: dict[str, Any]) -> EnvConfig:
+    """``cfg`` with keyword overrides (EnvConfig field names), validated."""
+    if cfg is None:
+        return EnvConfig(**kwargs)
+    if not isinstance(cfg, EnvConfig):
+        raise ValueError(f"cfg must be an EnvConfig, got {type(cfg).__name__}")
+    return cfg.replace(**kwargs) if kwargs else cfg
+
+
+class QuadSwarmEnv(gym.Env):
+    """One world of ``cfg.num_quads`` Crazyflies under per-rotor thrust control."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
+
+    def __init__(self, cfg: EnvConfig | None = None, render_mode: str | None = None, **kwargs: Any):
+        self.cfg = make_config(cfg, kwargs)
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
+        self.render_mode = render_mode
+        self.core = CpuSwarm(self.cfg, num_worlds=1)
+        n, d = self.cfg.num_quads, self.cfg.obs_dim
+        low, high = obs_bounds(self.cfg)
+        if self.cfg.normalize_obs:
+            scale = np.maximum(np.abs(low), np.abs(high))
+            low, high = low / scale, high / scale
+        self.single = n == 1
+        obs_shape = (d,) if self.single else (n, d)
+        act_shape = (4,) if self.single else (n, 4)
+        self.observation_space = spaces.Box(np.broadcast_to(low, obs_shape).astype(np.float32),
+                                            np.broadcast_to(high, obs_shape).astype(np.float32), dtype=np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, act_shape, dtype=np.float32)
+        self._renderer: Any = None
+        self._needs_reset = True
+
+    # ------------------------------------------------------------------ helpers
+    def _obs(self, obs: np.ndarray) -> np.ndarray:
+        o = obs[0].astype(np.float32)
+        return o[0] if self.single else o
+
+    def _info(self) -> dict[str, Any]:
+        c = self.core
+        return {
+            "state": {k: v[0] for k, v in c.state_dict().items()},
+            "goals": c.sstate.goals[0].copy(),
+            "goal_vel": c.sstate.goal_vel[0].copy(),
+            "params": {k: v[0] for k, v in c.params_dict().items()},
+            "on_floor": c.on_floor[0].copy(),
+            "time": float(c.steps[0] * self.cfg.control_dt),
+        }
+
+    # ------------------------------------------------------------------ API
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        """Start an episode. ``options={"state": {...}}`` starts from exactly that state: keys
+        ``pos`` (N, 3), ``vel`` (N, 3), ``rot`` (N, 3, 3), ``omega`` (N, 3), ``motors`` ("zero",
+        "hover" or (N, 4) normalized thrusts), ``goals`` (N, 3); missing keys take the defaults."""
+        state = None
+        if options is not None:
+            if not isinstance(options, dict):
+                raise ValueError(f"options must be a dict, got {type(options).__name__}")
+            if options.get("state") is not None:
+                state = check_state(options["state"], self.cfg.num_quads)
+        super().reset(seed=seed)
+        if seed is not None:
+            self.core.seed(seed)
+        elif self._needs_reset and not hasattr(self, "_seeded"):
+            self.core.seed(int(self.np_random.integers(2**63 - 1)))
+        self._seeded = True
+        if state is not None:
+            state = {k: (v if isinstance(v, str) else v[None]) for k, v in state.items()}
+        self.core.reset(state=state)
+        self._needs_reset = False
+        return self._obs(self.core.observe()), self._info()
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self._needs_reset:
+            raise RuntimeError("call reset() before step() (and after an episode ends)")
+        a = check_action(action, self.action_space.shape)
+        out = self.core.step(a.reshape(1, self.cfg.num_quads, 4))
+        truncated = bool(out["truncated"][0])
+        info = self._info()
+        info["rewards"] = out["rewards"][0].copy()
+        info["reward_terms"] = {k: v[0].copy() for k, v in out["terms"].items()}
+        info["new_collisions"] = out["kin"]["new_contact"][0].any(-1)
+        if truncated:
+            info["episode_metrics"] = {k: float(v[0]) for k, v in self.core.episode_metrics().items()}
+            self._needs_reset = True
+        reward = float(np.mean(out["rewards"][0]))
+        return self._obs(out["obs"]), reward, False, truncated, info
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
+            return None
+        from quadswarm_mj.render import SwarmRenderer
+
+        if self._renderer is None:
+            self._renderer = SwarmRenderer(self.core)
+        return self._renderer.render()
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None

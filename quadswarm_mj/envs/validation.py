@@ -1,0 +1,57 @@
+"""Input checks shared by the front ends: they run before any work, so a rejected call leaves
+the environment exactly as it was."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+
+def check_action(action: Any, expected_shape: tuple[int, ...]) -> np.ndarray:
+    """Return ``action`` as float64 of ``expected_shape``; raise ValueError on a wrong shape,
+    NaN or inf. Out-of-range values are clipped later, as in the paper."""
+    try:
+        a = np.asarray(action, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"action must be a numeric array of shape {expected_shape}, got {type(action).__name__}") from e
+    if a.shape != tuple(expected_shape):
+        raise ValueError(f"action has the wrong shape: expected shape {tuple(expected_shape)}, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        if np.isnan(a).any():
+            raise ValueError(f"action contains NaN at indices {np.argwhere(np.isnan(a)).tolist()[:8]}")
+        raise ValueError(f"action contains inf at indices {np.argwhere(np.isinf(a)).tolist()[:8]}")
+    return a
+
+
+def check_state(state: Any, num_quads: int, lead: tuple[int, ...] = ()) -> dict[str, Any]:
+    """Validate a ``reset(options={"state": ...})`` dict; arrays are (*lead, N, ...)."""
+    if not isinstance(state, dict):
+        raise ValueError(f"options['state'] must be a dict, got {type(state).__name__}")
+    allowed = {"pos": (3,), "vel": (3,), "rot": (3, 3), "omega": (3,), "goals": (3,), "motors": (4,)}
+    unknown = set(state) - set(allowed)
+    if unknown:
+        raise ValueError(f"options['state'] has unknown keys {sorted(unknown)}; allowed: {sorted(allowed)}")
+    out: dict[str, Any] = {}
+    for key, tail in allowed.items():
+        if key not in state or state[key] is None:
+            continue
+        v = state[key]
+        if key == "motors" and isinstance(v, str):
+            if v not in ("zero", "hover"):
+                raise ValueError(f"options['state']['motors'] must be 'zero', 'hover' or an array, got {v!r}")
+            out[key] = v
+            continue
+        a = np.asarray(v, dtype=np.float64)
+        shape = tuple(lead) + (num_quads,) + tail
+        if a.shape != shape:
+            raise ValueError(f"options['state']['{key}'] has the wrong shape: expected shape {shape}, got shape {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"options['state']['{key}'] contains NaN or inf")
+        out[key] = a.copy()
+    if "rot" in out:
+        R = out["rot"]
+        err = np.abs(np.einsum("...ij,...kj->...ik", R, R) - np.eye(3)).max()
+        if err > 1e-4 or (np.linalg.det(R) < 0).any():
+            raise ValueError("options['state']['rot'] must hold proper rotation matrices (orthonormal, det +1)")
+    return out

@@ -1,0 +1,109 @@
+"""Random draws for the pure model functions.
+
+Every stochastic model function (collisions, downwash, actuation noise, scenarios,
+randomization) declares the draws it needs as a *draw spec*: a dict mapping a name to
+:class:`Uniform` or :class:`Normal` with a per-item shape. A front end turns a spec into
+arrays with one of three samplers:
+
+* :class:`NumpySampler` – a seeded ``numpy.random.Generator`` (CPU envs),
+* :class:`JaxSampler` – a ``jax.random`` key, split per entry (MJX env, under ``jit``),
+* :class:`MeanSampler` – every draw replaced by its mean (``EnvConfig.without_noise()``).
+
+The model functions themselves only ever see arrays, so they are pure and identical
+on both backends.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Union
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Uniform:
+    """U(low, high) with per-item ``shape`` (appended to the batch shape)."""
+
+    low: float
+    high: float
+    shape: tuple[int, ...] = ()
+
+    @property
+    def mean(self) -> float:
+        return 0.5 * (self.low + self.high)
+
+
+@dataclass(frozen=True)
+class Normal:
+    """N(mean, std^2) with per-item ``shape``."""
+
+    mean: float = 0.0
+    std: float = 1.0
+    shape: tuple[int, ...] = ()
+
+
+Dist = Union[Uniform, Normal]
+DrawSpec = dict[str, Dist]
+
+
+class NumpySampler:
+    """Draw a spec with a NumPy Generator (float64). Deterministic for a seeded Generator."""
+
+    def __init__(self, rng: np.random.Generator):
+        self.rng = rng
+
+    def draw(self, spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> dict[str, np.ndarray]:
+        out = {}
+        for name, d in spec.items():
+            shape = tuple(batch_shape) + tuple(d.shape)
+            if isinstance(d, Uniform):
+                out[name] = self.rng.uniform(d.low, d.high, size=shape)
+            else:
+                out[name] = self.rng.normal(d.mean, d.std, size=shape)
+        return out
+
+
+class MeanSampler:
+    """Every draw takes its mean: the noise-free model of SPEC §5-6."""
+
+    def __init__(self, dtype: Any = np.float64, xp: Any = np):
+        self.dtype = dtype
+        self.xp = xp
+
+    def draw(self, spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
+        out = {}
+        for name, d in spec.items():
+            shape = tuple(batch_shape) + tuple(d.shape)
+            out[name] = self.xp.full(shape, d.mean, dtype=self.dtype)
+        return out
+
+
+class JaxSampler:
+    """Draw a spec from a ``jax.random`` key; the key is split once per entry.
+
+    Use inside ``jit``: the Python object only lives at trace time.
+    """
+
+    def __init__(self, key: Any, dtype: Any = None):
+        import jax.numpy as jnp
+
+        self.key = key
+        self.dtype = dtype or jnp.float32
+
+    def draw(self, spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
+        import jax
+
+        out = {}
+        keys = jax.random.split(self.key, len(spec) + 1)
+        self.key = keys[0]
+        for k, (name, d) in zip(keys[1:], spec.items()):
+            shape = tuple(batch_shape) + tuple(d.shape)
+            if isinstance(d, Uniform):
+                out[name] = jax.random.uniform(k, shape, self.dtype, d.low, d.high)
+            else:
+                out[name] = d.mean + d.std * jax.random.normal(k, shape, self.dtype)
+        return out
+
+
+Sampler = Union[NumpySampler, MeanSampler, JaxSampler]

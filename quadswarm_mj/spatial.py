@@ -1,0 +1,76 @@
+"""Rotation helpers over arrays with leading batch dims (NumPy or jax.numpy).
+
+Quaternions are MuJoCo's (w, x, y, z); rotation matrices map body to world.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from quadswarm_mj._xp import array_namespace
+
+
+def quat_to_rotmat(q: Any) -> Any:
+    """(..., 4) unit quaternion (w, x, y, z) -> (..., 3, 3) body-to-world rotation."""
+    xp = array_namespace(q)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    rows = [
+        1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
+        2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
+        2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
+    ]
+    return xp.stack(rows, axis=-1).reshape(q.shape[:-1] + (3, 3))
+
+
+def rotmat_to_quat(R: Any) -> Any:
+    """(..., 3, 3) rotation -> (..., 4) unit quaternion (w, x, y, z), w >= 0 (branch-free)."""
+    xp = array_namespace(R)
+    m00, m01, m02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
+    m10, m11, m12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
+    m20, m21, m22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    # Four candidate solutions; pick the numerically largest pivot.
+    tw = 1 + m00 + m11 + m22
+    tx = 1 + m00 - m11 - m22
+    ty = 1 - m00 + m11 - m22
+    tz = 1 - m00 - m11 + m22
+    qw = xp.stack([tw, m21 - m12, m02 - m20, m10 - m01], axis=-1)
+    qx = xp.stack([m21 - m12, tx, m01 + m10, m02 + m20], axis=-1)
+    qy = xp.stack([m02 - m20, m01 + m10, ty, m12 + m21], axis=-1)
+    qz = xp.stack([m10 - m01, m02 + m20, m12 + m21, tz], axis=-1)
+    t = xp.stack([tw, tx, ty, tz], axis=-1)
+    best = xp.argmax(t, axis=-1)[..., None, None]
+    cands = xp.stack([qw, qx, qy, qz], axis=-2)  # (..., 4 candidates, 4)
+    q = xp.take_along_axis(cands, best, axis=-2)[..., 0, :]
+    q = q / xp.sqrt(xp.sum(q * q, axis=-1, keepdims=True))
+    return q * xp.where(q[..., :1] < 0, -1.0, 1.0)
+
+
+def yaw_of(R: Any) -> Any:
+    """Heading (rad) of the body x axis projected on the world xy plane."""
+    xp = array_namespace(R)
+    return xp.arctan2(R[..., 1, 0], R[..., 0, 0])
+
+
+def yaw_quat(yaw: Any) -> Any:
+    """(...,) yaw angle (rad) -> (..., 4) quaternion of a pure rotation about world z."""
+    xp = array_namespace(yaw)
+    h = 0.5 * yaw
+    z = xp.zeros_like(h)
+    return xp.stack([xp.cos(h), z, z, xp.sin(h)], axis=-1)
+
+
+def yaw_rotmat(yaw: Any) -> Any:
+    """(...,) yaw angle (rad) -> (..., 3, 3) rotation about world z."""
+    xp = array_namespace(yaw)
+    c, s = xp.cos(yaw), xp.sin(yaw)
+    z, o = xp.zeros_like(c), xp.ones_like(c)
+    return xp.stack([c, -s, z, s, c, z, z, z, o], axis=-1).reshape(yaw.shape + (3, 3))
+
+
+def rotate(R: Any, v: Any) -> Any:
+    """Apply (..., 3, 3) rotations to (..., 3) vectors."""
+    xp = array_namespace(R, v)
+    return xp.sum(R * v[..., None, :], axis=-1)
