@@ -53,6 +53,7 @@ class QuadSwarmEnv(gym.Env):
         self.action_space = spaces.Box(-1.0, 1.0, act_shape, dtype=np.float32)
         self._renderer: Any = None
         self._needs_reset = True
+        self._seeded = False
 
     # ------------------------------------------------------------------ helpers
     def _obs(self, obs: np.ndarray) -> np.ndarray:
@@ -84,7 +85,7 @@ class QuadSwarmEnv(gym.Env):
         super().reset(seed=seed)
         if seed is not None:
             self.core.seed(seed)
-        elif self._needs_reset and not hasattr(self, "_seeded"):
+        elif not self._seeded:
             self.core.seed(int(self.np_random.integers(2**63 - 1)))
         self._seeded = True
         if state is not None:

@@ -1,0 +1,112 @@
+"""``QuadSwarmParallelEnv``: the swarm as a PettingZoo ``ParallelEnv``.
+
+Agents ``quad_0`` ... ``quad_{N-1}``; each has its own observation (obs_dim,), action (4,) in
+[-1, 1] and reward (its per-quad reward). ``state()`` is the global state: for every quad
+[p (3), v (3), R row-major (9), omega (3), goal (3)] concatenated, (21 N,). All agents are
+truncated together at the time limit; there is no termination. Built on ``QuadSwarmEnv``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.envs.gym_env import QuadSwarmEnv, make_config
+
+STATE_PER_QUAD = 21
+
+
+class QuadSwarmParallelEnv(ParallelEnv):
+    """PettingZoo parallel API over one world of N quads."""
+
+    metadata = {"render_modes": ["rgb_array"], "name": "quadswarm_v0", "render_fps": 30, "is_parallelizable": True}
+
+    def __init__(self, cfg: EnvConfig | None = None, render_mode: str | None = None, **kwargs: Any):
+        self.cfg = make_config(cfg, kwargs)
+        self.env = QuadSwarmEnv(self.cfg, render_mode=render_mode)
+        self.render_mode = render_mode
+        n = self.cfg.num_quads
+        self.possible_agents = [f"quad_{i}" for i in range(n)]
+        self.agents: list[str] = []
+        box = self.env.observation_space
+        low = box.low.reshape(-1, self.cfg.obs_dim)[0]
+        high = box.high.reshape(-1, self.cfg.obs_dim)[0]
+        self.observation_spaces = {a: spaces.Box(low, high, dtype=np.float32) for a in self.possible_agents}
+        self.action_spaces = {a: spaces.Box(-1.0, 1.0, (4,), dtype=np.float32) for a in self.possible_agents}
+        L, W, H = self.cfg.room_size
+        per = np.array([L, W, H] + [20.0] * 3 + [1.0] * 9 + [self.cfg.quad.max_omega] * 3 + [L, W, H], np.float32)
+        self.state_space = spaces.Box(-np.tile(per, n), np.tile(per, n), dtype=np.float32)
+        self._last_info: dict[str, Any] = {}
+
+    def observation_space(self, agent: str) -> spaces.Box:
+        return self.observation_spaces[agent]
+
+    def action_space(self, agent: str) -> spaces.Box:
+        return self.action_spaces[agent]
+
+    def _split_obs(self, obs: np.ndarray) -> dict[str, np.ndarray]:
+        obs = obs.reshape(self.cfg.num_quads, self.cfg.obs_dim)
+        return {a: obs[i] for i, a in enumerate(self.possible_agents)}
+
+    def _agent_infos(self, info: dict[str, Any]) -> dict[str, dict[str, Any]]:
+        out = {}
+        for i, a in enumerate(self.possible_agents):
+            d = {"state": {k: v[i].copy() for k, v in info["state"].items()}, "goal": info["goals"][i].copy(),
+                 "goal_vel": info["goal_vel"][i].copy()}
+            if "reward_terms" in info:
+                d["reward_terms"] = {k: float(v[i]) for k, v in info["reward_terms"].items()}
+            if "episode_metrics" in info:
+                d["episode_metrics"] = dict(info["episode_metrics"])
+            out[a] = d
+        return out
+
+    def reset(self, seed: int | None = None, options: dict[str, Any] | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        self.agents = list(self.possible_agents)
+        self._last_info = info
+        return self._split_obs(obs), self._agent_infos(info)
+
+    def step(self, actions: dict[str, Any]):
+        if not self.agents:
+            raise RuntimeError("call reset() before step() (and after the episode ends)")
+        missing = [a for a in self.agents if a not in actions]
+        unknown = [a for a in actions if a not in self.possible_agents]
+        if missing or unknown:
+            raise ValueError(f"actions must have one entry per live agent; missing {missing}, unknown {unknown}")
+        act = np.stack([np.asarray(actions[a], dtype=np.float64).reshape(-1) if np.ndim(actions[a]) <= 1
+                        else np.asarray(actions[a], dtype=np.float64) for a in self.possible_agents])
+        if act.shape != (self.cfg.num_quads, 4):
+            raise ValueError(f"each agent's action must have shape (4,); stacked shape {act.shape}, "
+                             f"expected shape {(self.cfg.num_quads, 4)}")
+        obs, _, terminated, truncated, info = self.env.step(act[0] if self.cfg.num_quads == 1 else act)
+        self._last_info = info
+        rewards = {a: float(info["rewards"][i]) for i, a in enumerate(self.possible_agents)}
+        terminations = {a: bool(terminated) for a in self.possible_agents}
+        truncations = {a: bool(truncated) for a in self.possible_agents}
+        infos = self._agent_infos(info)
+        if terminated or truncated:
+            self.agents = []
+        return self._split_obs(obs), rewards, terminations, truncations, infos
+
+    def state(self) -> np.ndarray:
+        """Global state (21 N,) float32: per quad p, v, R (row-major), omega (body), goal."""
+        info = self._last_info
+        s = info["state"]
+        n = self.cfg.num_quads
+        per = np.concatenate([s["pos"], s["vel"], s["rot"].reshape(n, 9), s["omega"], info["goals"]], axis=-1)
+        return np.clip(per.reshape(-1), self.state_space.low, self.state_space.high).astype(np.float32)
+
+    def render(self) -> np.ndarray | None:
+        return self.env.render()
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def parallel_env(**kwargs: Any) -> QuadSwarmParallelEnv:
+    """PettingZoo-style constructor: ``parallel_env(num_quads=8, scenario="swap_goals")``."""
+    return QuadSwarmParallelEnv(**kwargs)
