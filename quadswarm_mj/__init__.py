@@ -20,6 +20,7 @@ from quadswarm_mj.config import (  # noqa: E402
     RewardScales,
 )
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv  # noqa: E402
+from quadswarm_mj.envs.parallel_env import QuadSwarmParallelEnv  # noqa: E402
 from quadswarm_mj.scenarios import get_scenario, list_scenarios  # noqa: E402
 
 __all__ = [
@@ -28,6 +29,7 @@ __all__ = [
     "NoiseConfig",
     "QuadParams",
     "QuadSwarmEnv",
+    "QuadSwarmParallelEnv",
     "RandomizationConfig",
     "RewardScales",
     "get_scenario",
@@ -42,6 +44,13 @@ def _register() -> None:
     if "QuadSwarm-v0" not in gymnasium.registry:
         gymnasium.register(id="QuadSwarm-v0", entry_point="quadswarm_mj.envs.gym_env:QuadSwarmEnv",
                            disable_env_checker=False)
+    try:  # PettingZoo >= 1.26 has a registry
+        import pettingzoo
+
+        if hasattr(pettingzoo, "register") and "quadswarm_v0" not in getattr(pettingzoo, "parallel_registry", {}):
+            pettingzoo.register("parallel", "quadswarm_v0", "quadswarm_mj.envs.parallel_env:QuadSwarmParallelEnv")
+    except Exception:  # noqa: BLE001 - registration is a convenience, never fatal
+        pass
 
 
 _register()
