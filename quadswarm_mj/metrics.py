@@ -24,8 +24,9 @@ def init(like: Any, batch_shape: tuple[int, ...], n: int) -> dict[str, Any]:
     xp = array_namespace(like)
     f = like.dtype
     z = xp.zeros(tuple(batch_shape) + (n,), dtype=f)
+    b = tuple(batch_shape)
     return {"collisions": z, "floor_hits": z, "wall_hits": z, "ceiling_hits": z, "dist_sum": z,
-            "steps": xp.zeros(tuple(batch_shape), dtype=f), "last_dist": xp.zeros(tuple(batch_shape) + (LAST_STEPS, n), dtype=f),
+            "steps": xp.zeros(b, dtype=f), "last_dist": xp.zeros(b + (LAST_STEPS, n), dtype=f),
             "seg_start": z, "seg_reached": xp.zeros(z.shape, dtype=bool), "seg_count": z, "seg_success": z}
 
 

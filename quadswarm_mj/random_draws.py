@@ -16,7 +16,7 @@ on both backends.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Union
+from typing import Any
 
 import numpy as np
 
@@ -43,7 +43,7 @@ class Normal:
     shape: tuple[int, ...] = ()
 
 
-Dist = Union[Uniform, Normal]
+Dist = Uniform | Normal
 DrawSpec = dict[str, Dist]
 
 
@@ -106,4 +106,4 @@ class JaxSampler:
         return out
 
 
-Sampler = Union[NumpySampler, MeanSampler, JaxSampler]
+Sampler = NumpySampler | MeanSampler | JaxSampler

@@ -7,8 +7,15 @@ import pytest
 
 from quadswarm_mj import EnvConfig
 from quadswarm_mj.actuation import action_to_command, motor_noise_step, rotor_positions, substep_wrench
-from quadswarm_mj.collisions import (floor_draw_spec, floor_impact, floor_wrench, quad_collision_draw_spec,
-                                     quad_collisions, wall_collisions, wall_draw_spec)
+from quadswarm_mj.collisions import (
+    floor_draw_spec,
+    floor_impact,
+    floor_wrench,
+    quad_collision_draw_spec,
+    quad_collisions,
+    wall_collisions,
+    wall_draw_spec,
+)
 from quadswarm_mj.downwash import apply_downwash, downwash_draw_spec
 from quadswarm_mj.observations import build_obs, obs_bounds, sensor_noise_spec
 from quadswarm_mj.random_draws import NumpySampler

@@ -15,7 +15,8 @@ def test_parallel_api(n):
 
 
 def test_parallel_seed():
-    parallel_seed_test(lambda: QuadSwarmParallelEnv(EnvConfig(num_quads=3, scenario="static_diff_goal")), num_cycles=100)
+    cfg = EnvConfig(num_quads=3, scenario="static_diff_goal")
+    parallel_seed_test(lambda: QuadSwarmParallelEnv(cfg), num_cycles=100)
 
 
 def test_agents_rewards_state():

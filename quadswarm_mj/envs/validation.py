@@ -14,7 +14,8 @@ def check_action(action: Any, expected_shape: tuple[int, ...]) -> np.ndarray:
     try:
         a = np.asarray(action, dtype=np.float64)
     except (TypeError, ValueError) as e:
-        raise ValueError(f"action must be a numeric array of shape {expected_shape}, got {type(action).__name__}") from e
+        raise ValueError(f"action must be a numeric array of shape {expected_shape}, "
+                         f"got {type(action).__name__}") from e
     if a.shape != tuple(expected_shape):
         raise ValueError(f"action has the wrong shape: expected shape {tuple(expected_shape)}, got shape {a.shape}")
     if not np.all(np.isfinite(a)):
@@ -45,7 +46,8 @@ def check_state(state: Any, num_quads: int, lead: tuple[int, ...] = ()) -> dict[
         a = np.asarray(v, dtype=np.float64)
         shape = tuple(lead) + (num_quads,) + tail
         if a.shape != shape:
-            raise ValueError(f"options['state']['{key}'] has the wrong shape: expected shape {shape}, got shape {a.shape}")
+            raise ValueError(f"options['state']['{key}'] has the wrong shape: expected shape {shape}, "
+                             f"got shape {a.shape}")
         if not np.all(np.isfinite(a)):
             raise ValueError(f"options['state']['{key}'] contains NaN or inf")
         out[key] = a.copy()
