@@ -26,6 +26,7 @@ import numpy as np
 from quadswarm_mj._xp import array_namespace
 from quadswarm_mj.config import QuadParams
 from quadswarm_mj.random_draws import DrawSpec, Normal
+from quadswarm_mj.spatial import sum_last
 
 #: xy signs of rotors 0..3: front-right, back-right, back-left, front-left.
 ROTOR_SIGNS = np.array([[1.0, -1.0], [-1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]])
@@ -51,7 +52,7 @@ def motor_alpha(dt: Any, settling_time: Any) -> Any:
 def action_to_command(action: Any) -> Any:
     """Raw action in [-1, 1] (clipped) -> normalized thrust command in [0, 1]."""
     xp = array_namespace(action)
-    return 0.5 * (xp.clip(action, -1.0, 1.0) + 1.0)
+    return 0.5 * (xp.minimum(xp.maximum(action, -1.0), 1.0) + 1.0)  # clip as two cheap ufuncs
 
 
 def motor_noise_draw_spec(num_quads: int) -> DrawSpec:
@@ -76,7 +77,7 @@ def motor_lag(u: Any, cmd: Any, alpha: Any) -> Any:
 def rotor_thrust(u: Any, cmd: Any, noise: Any) -> Any:
     """Normalized rotor thrust f_norm = clip(u^2 + cmd * noise, 0, 1)."""
     xp = array_namespace(u, cmd)
-    return xp.clip(u * u + cmd * noise, 0.0, 1.0)
+    return xp.minimum(xp.maximum(u * u + cmd * noise, 0.0), 1.0)  # = clip, as two cheap ufuncs
 
 
 def body_wrench(f_norm: Any, thrust_max: Any, torque_max: Any, rotor_pos: Any) -> tuple[Any, Any]:
@@ -85,21 +86,36 @@ def body_wrench(f_norm: Any, thrust_max: Any, torque_max: Any, rotor_pos: Any) -
     ``thrust_max`` and ``torque_max`` are per rotor (..., N, 4) in N and N m; ``rotor_pos`` (4, 3).
     """
     xp = array_namespace(f_norm)
+    fz, torque_b = _thrust_torque(xp, f_norm, thrust_max, torque_max * SPIN, wrench_matrix(rotor_pos))
+    zero = 0.0 * fz
+    return xp.concatenate([zero, zero, fz], axis=-1), torque_b
+
+
+def wrench_matrix(rotor_pos: Any) -> Any:
+    """(3, 4) rows mapping rotor thrusts (N) to [F_z, tau_x, tau_y] in the body frame:
+    F_z = sum F_i, tau_x = sum y_i F_i, tau_y = -sum x_i F_i (``rotor_pos`` (4, 3), m)."""
+    xp = array_namespace(rotor_pos)
+    return xp.stack([xp.ones_like(rotor_pos[:, 0]), rotor_pos[:, 1], -rotor_pos[:, 0]])
+
+
+def _thrust_torque(xp: Any, f_norm: Any, thrust_max: Any, torque_spin: Any, mix: Any) -> tuple[Any, Any]:
+    """Total thrust (..., N, 1) in N along body z and the body torque (..., N, 3) in N m.
+
+    ``torque_spin`` = torque_max * SPIN (..., N, 4), ``mix`` = :func:`wrench_matrix`."""
     thrust = thrust_max * f_norm  # N per rotor
-    fz = xp.sum(thrust, axis=-1)
-    zero = xp.zeros_like(fz)
-    tx = xp.sum(rotor_pos[:, 1] * thrust, axis=-1)
-    ty = -xp.sum(rotor_pos[:, 0] * thrust, axis=-1)
-    tz = xp.sum(torque_max * SPIN * f_norm, axis=-1)
-    return xp.stack([zero, zero, fz], axis=-1), xp.stack([tx, ty, tz], axis=-1)
+    s = sum_last(thrust[..., None, :] * mix)  # F_z, tau_x, tau_y
+    tz = sum_last(torque_spin * f_norm)  # yaw reaction torque
+    return s[..., :1], xp.concatenate([s[..., 1:], tz[..., None]], axis=-1)
 
 
 def world_wrench(R: Any, force_b: Any, torque_b: Any) -> tuple[Any, Any]:
     """Rotate body-frame force and torque to the world frame with ``R`` (body to world)."""
-    xp = array_namespace(R)
-    force_w = force_b[..., 2:3] * R[..., :, 2]  # body force is along body z only
-    torque_w = xp.sum(R * torque_b[..., None, :], axis=-1)
-    return force_w, torque_w
+    return _rotate_wrench(R, force_b[..., 2:3], torque_b)
+
+
+def _rotate_wrench(R: Any, fz: Any, torque_b: Any) -> tuple[Any, Any]:
+    """World force (thrust ``fz`` (..., N, 1) along body z) and world torque."""
+    return fz * R[..., :, 2], sum_last(R * torque_b[..., None, :])
 
 
 def hover_motor_state(params: dict[str, Any]) -> Any:
@@ -110,15 +126,19 @@ def hover_motor_state(params: dict[str, Any]) -> Any:
     return xp.sqrt(f) * xp.ones_like(params["thrust_max"])
 
 
-def substep_wrench(u: Any, cmd: Any, noise: Any, params: dict[str, Any], R: Any,
-                   rotor_pos: Any) -> tuple[Any, Any, Any, Any]:
+def substep_wrench(u: Any, cmd: Any, noise: Any, params: dict[str, Any], R: Any, rotor_pos: Any,
+                   mix: Any | None = None, torque_spin: Any | None = None) -> tuple[Any, Any, Any, Any]:
     """One physics sub-step of the actuation chain.
 
     Returns the new motor state ``u``, ``f_norm`` (..., N, 4) and the world-frame force
-    and torque (..., N, 3) to write into ``xfrc_applied``.
+    and torque (..., N, 3) to write into ``xfrc_applied``. ``mix`` (= ``wrench_matrix(rotor_pos)``)
+    and ``torque_spin`` (= ``params["torque_max"] * SPIN``) may be passed in precomputed.
     """
+    xp = array_namespace(u, cmd)
     u = motor_lag(u, cmd, params["alpha"])
     f_norm = rotor_thrust(u, cmd, noise)
-    force_b, torque_b = body_wrench(f_norm, params["thrust_max"], params["torque_max"], rotor_pos)
-    force_w, torque_w = world_wrench(R, force_b, torque_b)
+    mix = wrench_matrix(rotor_pos) if mix is None else mix
+    torque_spin = params["torque_max"] * SPIN if torque_spin is None else torque_spin
+    fz, torque_b = _thrust_torque(xp, f_norm, params["thrust_max"], torque_spin, mix)
+    force_w, torque_w = _rotate_wrench(R, fz, torque_b)
     return u, f_norm, force_w, torque_w

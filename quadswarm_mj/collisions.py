@@ -12,11 +12,14 @@ angular velocity ``omega`` is in the body frame.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
+
+import numpy as np
 
 from quadswarm_mj._xp import array_namespace, safe_normalize
 from quadswarm_mj.random_draws import DrawSpec, Normal, Uniform
-from quadswarm_mj.spatial import yaw_of, yaw_quat, yaw_rotmat
+from quadswarm_mj.spatial import norm_last, yaw_of, yaw_quat, yaw_rotmat
 
 # ---------------------------------------------------------------------------------------- floor
 
@@ -43,30 +46,30 @@ def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any
     normal = xp.maximum(0.0, weight - force_w[..., 2])
     cap = friction * normal
     f_h = force_w[..., :2]
-    f_mag = xp.sqrt(xp.sum(f_h * f_h, axis=-1))
+    f_mag = norm_last(f_h)
     v_h = vel[..., :2]
-    speed = xp.sqrt(xp.sum(v_h * v_h, axis=-1))
+    speed = norm_last(v_h)
     moving = speed > 1e-9
     static_h = f_h * (xp.maximum(0.0, f_mag - cap) / xp.where(f_mag > 0, f_mag, 1.0))[..., None]
     kinetic_mag = xp.minimum(cap, mass * speed / dt)
     kinetic_h = f_h - (kinetic_mag / xp.where(moving, speed, 1.0))[..., None] * v_h
     new_h = xp.where(moving[..., None], kinetic_h, static_h)
     new_force = xp.concatenate([new_h, (force_w[..., 2] + normal)[..., None]], axis=-1)
-    zero = xp.zeros_like(torque_w[..., 0])
-    new_torque = xp.stack([zero, zero, torque_w[..., 2]], axis=-1)
+    new_torque = xp.concatenate([xp.zeros_like(torque_w[..., :2]), torque_w[..., 2:]], axis=-1)
     g = on_floor[..., None]
     return xp.where(g, new_force, force_w), xp.where(g, new_torque, torque_w)
 
 
 def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_floor: Any,
-                 floor_z: float, yaw_draw: Any) -> dict[str, Any]:
+                 floor_z: float, yaw_draw: Any, with_rotmat: bool = True) -> dict[str, Any]:
     """Floor contact after a physics sub-step (SPEC §4).
 
     A quad at or below ``floor_z`` that was airborne *hits* the floor: z is set to ``floor_z``,
     linear and angular velocity become 0, the rotation keeps only its yaw (plus ``yaw_draw`` if it
     was upside down), the motor state ``u`` resets to 0. A grounded quad stays grounded (flat,
     z = floor_z, no downward velocity, no roll/pitch rate) until its thrust lifts it above the
-    height. Returns a dict with the new ``pos, vel, omega, quat, R, u, on_floor, hit_floor``.
+    height. Returns a dict with the new ``pos, vel, omega, quat, R, u, on_floor, hit_floor``
+    (without ``R`` when ``with_rotmat`` is False, for callers that derive it from ``quat``).
     """
     xp = array_namespace(pos, vel)
     z = pos[..., 2]
@@ -75,18 +78,19 @@ def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_f
     grounded = hit | staying
     upside_down = R[..., 2, 2] < 0
     yaw = yaw_of(R) + xp.where(hit & upside_down, yaw_draw, 0.0)
-    g3 = grounded[..., None]
-    new_pos = xp.where(g3, xp.concatenate([pos[..., :2], xp.full_like(z, floor_z)[..., None]], -1), pos)
-    zero = xp.zeros_like(z)
-    vel_stay = xp.stack([vel[..., 0], vel[..., 1], zero], axis=-1)
+    new_pos = xp.concatenate([pos[..., :2], xp.where(grounded, floor_z, z)[..., None]], axis=-1)
+    zero2 = xp.zeros_like(vel[..., :2])
+    vel_stay = xp.concatenate([vel[..., :2], zero2[..., :1]], axis=-1)
     new_vel = xp.where(hit[..., None], 0.0 * vel, xp.where(staying[..., None], vel_stay, vel))
-    omega_stay = xp.stack([zero, zero, omega[..., 2]], axis=-1)
+    omega_stay = xp.concatenate([zero2, omega[..., 2:]], axis=-1)
     new_omega = xp.where(hit[..., None], 0.0 * omega, xp.where(staying[..., None], omega_stay, omega))
     new_quat = xp.where(grounded[..., None], yaw_quat(yaw), quat)
-    new_R = xp.where(grounded[..., None, None], yaw_rotmat(yaw), R)
     new_u = xp.where(hit[..., None], 0.0 * u, u)
-    return {"pos": new_pos, "vel": new_vel, "omega": new_omega, "quat": new_quat, "R": new_R,
-            "u": new_u, "on_floor": grounded, "hit_floor": hit}
+    out = {"pos": new_pos, "vel": new_vel, "omega": new_omega, "quat": new_quat, "u": new_u, "on_floor": grounded,
+           "hit_floor": hit}
+    if with_rotmat:
+        out["R"] = xp.where(grounded[..., None, None], yaw_rotmat(yaw), R)
+    return out
 
 
 # ------------------------------------------------------------------------------ walls, ceiling
@@ -161,12 +165,17 @@ def quad_collision_draw_spec(num_quads: int, tries: int, shared_std: float, own_
 
 def pairwise_contacts(pos: Any, hitbox: float) -> tuple[Any, Any]:
     """(..., N, N) contact mask (||p_i - p_j|| <= hitbox, i != j) and distances."""
-    xp = array_namespace(pos)
     rel = pos[..., :, None, :] - pos[..., None, :, :]
-    dist = xp.sqrt(xp.sum(rel * rel, axis=-1))
-    n = pos.shape[-2]
-    eye = xp.eye(n, dtype=bool)
-    return (dist <= hitbox) & ~eye, dist
+    dist = norm_last(rel)
+    return (dist <= hitbox) & off_diagonal(pos.shape[-2]), dist
+
+
+@functools.lru_cache(maxsize=64)
+def off_diagonal(n: int) -> np.ndarray:
+    """Constant (n, n) bool mask, True off the diagonal (a NumPy constant: also fine under jit)."""
+    m = ~np.eye(n, dtype=bool)
+    m.setflags(write=False)
+    return m
 
 
 def _antisymmetric(xp: Any, x: Any) -> Any:

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from quadswarm_mj._xp import array_namespace
+from quadswarm_mj.spatial import norm_last
 
 SUCCESS_DISTANCE = 0.5  # m, mean over the last LAST_STEPS steps
 LAST_STEPS = 5
@@ -30,6 +31,14 @@ def init(like: Any, batch_shape: tuple[int, ...], n: int) -> dict[str, Any]:
             "seg_start": z, "seg_reached": xp.zeros(z.shape, dtype=bool), "seg_count": z, "seg_success": z}
 
 
+def goal_jump(prev_goals: Any, goals: Any, goal_vel: Any, dt: float) -> Any:
+    """(..., N) True where a goal moved by more than its velocity explains over one control step
+    (dt in s; goals m, goal_vel m/s): a new goal segment starts."""
+    moved = norm_last(goals - prev_goals)
+    speed = norm_last(goal_vel)
+    return moved > 1e-3 + 2.0 * speed * dt
+
+
 def update(m: dict[str, Any], t: Any, dist_to_goal: Any, new_contact: Any, hit_floor: Any, hit_wall: Any,
            hit_ceiling: Any, goal_jump: Any, grace_s: float) -> dict[str, Any]:
     """Accumulate one control step at time ``t`` (s, after the step). ``goal_jump`` (..., N) marks
@@ -37,23 +46,24 @@ def update(m: dict[str, Any], t: Any, dist_to_goal: Any, new_contact: Any, hit_f
     xp = array_namespace(dist_to_goal)
     f = dist_to_goal.dtype
     after_grace = (t >= grace_s)
-    coll = xp.sum(new_contact.astype(f), axis=-1) * after_grace
+    coll = new_contact.sum(axis=-1).astype(f) * after_grace
     seg_len = t - m["seg_start"]
     close = goal_jump & (seg_len >= MIN_SEGMENT_S - 1e-9)
     reached = m["seg_reached"]
+    near = dist_to_goal < REACH_DISTANCE
     last = xp.concatenate([m["last_dist"][..., 1:, :], dist_to_goal[..., None, :]], axis=-2)
-    return {
+    return {  # float + bool adds 0 or 1 exactly (bools promote to the float dtype)
         "collisions": m["collisions"] + coll,
-        "floor_hits": m["floor_hits"] + hit_floor.astype(f),
-        "wall_hits": m["wall_hits"] + hit_wall.astype(f),
-        "ceiling_hits": m["ceiling_hits"] + hit_ceiling.astype(f),
+        "floor_hits": m["floor_hits"] + hit_floor,
+        "wall_hits": m["wall_hits"] + hit_wall,
+        "ceiling_hits": m["ceiling_hits"] + hit_ceiling,
         "dist_sum": m["dist_sum"] + dist_to_goal,
         "steps": m["steps"] + 1.0,
         "last_dist": last,
-        "seg_count": m["seg_count"] + close.astype(f),
-        "seg_success": m["seg_success"] + (close & reached).astype(f),
+        "seg_count": m["seg_count"] + close,
+        "seg_success": m["seg_success"] + (close & reached),
         "seg_start": xp.where(goal_jump, t, m["seg_start"]),
-        "seg_reached": xp.where(goal_jump, dist_to_goal < REACH_DISTANCE, reached | (dist_to_goal < REACH_DISTANCE)),
+        "seg_reached": near | (reached & ~goal_jump),  # a jump starts a new segment: reached = near
     }
 
 

@@ -22,13 +22,17 @@ Pure functions, any leading batch dims, NumPy or ``jax.numpy``.
 
 from __future__ import annotations
 
+import functools
+import math
 from typing import Any
 
 import numpy as np
 
 from quadswarm_mj._xp import array_namespace
+from quadswarm_mj.collisions import off_diagonal
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.random_draws import DrawSpec, Normal
+from quadswarm_mj.spatial import norm_last, sum_last
 
 MAX_VEL = 20.0  # m/s, bound of own velocity
 MAX_NEIGHBOR_VEL = 40.0  # m/s, bound of neighbour relative velocity
@@ -65,6 +69,10 @@ def obs_scale(cfg: EnvConfig) -> np.ndarray:
 def self_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any) -> Any:
     """(..., N, self_obs_dim) own-state observation (no noise, no clipping)."""
     xp = array_namespace(pos, vel)
+    return xp.concatenate(_self_parts(xp, cfg, pos, vel, R, omega, goals), axis=-1)
+
+
+def _self_parts(xp: Any, cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any) -> list[Any]:
     parts = [pos - goals, vel, R.reshape(R.shape[:-2] + (9,)), omega]
     if cfg.obs_self == "floor":
         parts.append(pos[..., 2:3])
@@ -73,47 +81,60 @@ def self_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any)
         hi = xp.asarray(cfg.room_high, dtype=pos.dtype)
         d = xp.stack([pos - lo, hi - pos], axis=-1).reshape(pos.shape[:-1] + (6,))
         parts.append(xp.clip(d, 0.0, MAX_WALL_DIST))
-    return xp.concatenate(parts, axis=-1)
+    return parts
 
 
-def neighbor_obs(cfg: EnvConfig, pos: Any, vel: Any) -> Any:
-    """(..., N, 6 K): relative position and velocity of the K nearest other quads."""
+@functools.lru_cache(maxsize=64)
+def _row_starts(rows: int, n: int) -> np.ndarray:
+    """Flat index of element [r, 0] of a (rows, n) array, as a (rows, 1) constant."""
+    out = (np.arange(rows) * n)[:, None]
+    out.setflags(write=False)
+    return out
+
+
+def neighbor_obs(cfg: EnvConfig, pos: Any, vel: Any, dist: Any | None = None) -> Any:
+    """(..., N, 6 K): relative position and velocity of the K nearest other quads.
+
+    ``dist`` optionally passes the (..., N, N) distances between the ``pos`` already computed by
+    :func:`quadswarm_mj.collisions.pairwise_contacts` (the same values), to save recomputing them.
+    """
     xp = array_namespace(pos, vel)
     k, n = cfg.neighbors, pos.shape[-2]
     if k == 0:
         return xp.zeros(pos.shape[:-1] + (0,), dtype=pos.dtype)
-    rel_p = pos[..., None, :, :] - pos[..., :, None, :]  # [i, j] = p_j - p_i
-    rel_v = vel[..., None, :, :] - vel[..., :, None, :]
-    dist = xp.sqrt(xp.sum(rel_p * rel_p, axis=-1))
+    pv = xp.concatenate([pos, vel], axis=-1)
+    rel = pv[..., None, :, :] - pv[..., :, None, :]  # [i, j] = (p_j - p_i, v_j - v_i), (..., N, N, 6)
+    if dist is None:
+        dist = norm_last(rel[..., :3])
     if cfg.neighbor_sort == "original":
         d = xp.maximum(dist, 0.01)
-        key = d + xp.sum((rel_p / d[..., None]) * rel_v, axis=-1)
+        key = d + sum_last((rel[..., :3] / d[..., None]) * rel[..., 3:])
     else:
         key = dist
-    key = xp.where(xp.eye(n, dtype=bool), xp.inf, key)
+    key = xp.where(off_diagonal(n), key, xp.inf)
     idx = xp.argsort(key, axis=-1)[..., :k]  # (..., N, K)
-    rp = xp.take_along_axis(rel_p, idx[..., None], axis=-2)
-    rv = xp.take_along_axis(rel_v, idx[..., None], axis=-2)
-    room = xp.asarray(cfg.room_size, dtype=pos.dtype)
-    rp = xp.clip(rp, -room, room)
-    rv = xp.clip(rv, -cfg.neighbor_vel_clip, cfg.neighbor_vel_clip)
-    return xp.concatenate([rp, rv], axis=-1).reshape(pos.shape[:-1] + (6 * k,))
+    rows = math.prod(pos.shape[:-1])  # every (world, quad) pair: gather K rows of 6 from its N
+    flat = (idx.reshape((rows, k)) + _row_starts(rows, n)).reshape(-1)
+    g = rel.reshape((rows * n, 6))[flat]
+    bound = xp.asarray(tuple(cfg.room_size) + (cfg.neighbor_vel_clip,) * 3, dtype=pos.dtype)
+    g = xp.minimum(xp.maximum(g, -bound), bound)  # = clip into +-room (position), +-clip (velocity)
+    return g.reshape(pos.shape[:-1] + (6 * k,))
 
 
 def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any,
-              noise: dict[str, Any] | None, low: Any, high: Any, scale: Any | None = None) -> Any:
+              noise: dict[str, Any] | None, low: Any, high: Any, scale: Any | None = None,
+              dist: Any | None = None) -> Any:
     """Full observation (..., N, obs_dim): noisy own state + neighbours, clipped into [low, high]
-    and divided by ``scale`` when normalization is on."""
+    and divided by ``scale`` when normalization is on. ``dist``: optional (..., N, N) distances
+    between the true ``pos`` (see :func:`neighbor_obs`)."""
     xp = array_namespace(pos, vel)
     if noise is not None:
         m_pos, m_vel, m_omega = pos + noise["pos"], vel + noise["vel"], omega + noise["omega"]
     else:
         m_pos, m_vel, m_omega = pos, vel, omega
-    own = self_obs(cfg, m_pos, m_vel, R, m_omega, goals)
+    parts = _self_parts(xp, cfg, m_pos, m_vel, R, m_omega, goals)
     if cfg.neighbors > 0:
-        nb = neighbor_obs(cfg, m_pos, m_vel) if cfg.noise.neighbor_obs_noise else neighbor_obs(cfg, pos, vel)
-        obs = xp.concatenate([own, nb], axis=-1)
-    else:
-        obs = own
-    obs = xp.clip(obs, low, high)
+        nb = (neighbor_obs(cfg, m_pos, m_vel) if cfg.noise.neighbor_obs_noise else neighbor_obs(cfg, pos, vel, dist))
+        parts.append(nb)
+    obs = xp.minimum(xp.maximum(xp.concatenate(parts, axis=-1), low), high)  # = clip into the bounds
     return obs if scale is None else obs / scale

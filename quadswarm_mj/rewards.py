@@ -18,55 +18,76 @@ from __future__ import annotations
 from typing import Any
 
 from quadswarm_mj._xp import array_namespace
+from quadswarm_mj.collisions import off_diagonal
 from quadswarm_mj.config import EnvConfig, RewardScales
+from quadswarm_mj.spatial import norm_last
 
 TERMS = RewardScales.TERMS
 ANNEALED = ("quad_collision", "proximity")
 
 
+#: Terms whose cost is never negative: with a zero scale they are exactly -0.0 and are not computed.
+NONNEGATIVE = ("pos", "effort", "spin", "crash", "vel", "action_change", "quad_collision", "proximity",
+               "floor_hit", "wall_hit", "ceiling_hit")
+
+
 def _norm(xp: Any, x: Any) -> Any:
-    return xp.sqrt(xp.sum(x * x, axis=-1))
+    return norm_last(x)
 
 
 def reward_terms(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, action: Any,
                  f_norm: Any, prev_f_norm: Any, on_floor: Any, hit_floor: Any, hit_wall: Any,
-                 hit_ceiling: Any, new_contact: Any, dist: Any, anneal: Any = 1.0) -> dict[str, Any]:
-    """Dict term -> (..., N) rewards for one control step. ``dist`` is the (..., N, N) distance matrix."""
+                 hit_ceiling: Any, new_contact: Any, dist: Any, anneal: Any = 1.0,
+                 goal_dist: Any | None = None) -> dict[str, Any]:
+    """Dict term -> (..., N) rewards for one control step. ``dist`` is the (..., N, N) distance matrix;
+    ``goal_dist`` optionally passes ||goals - pos|| (..., N) when the caller has it already.
+
+    A term with a zero scale whose cost cannot be negative is -0.0 (= -dt * 0 * cost) without
+    computing the cost."""
     xp = array_namespace(pos, vel)
     s = cfg.rewards
     dt = cfg.control_dt
-    fl = on_floor.astype(pos.dtype)
     n = pos.shape[-2]
     falloff = s.proximity_falloff_arms * cfg.quad.arm
-    others = ~xp.eye(n, dtype=bool)
-    prox = xp.sum(xp.where(others & (dist < falloff), 1.0 - dist / falloff, 0.0), axis=-1)
-    costs = {
-        "pos": _norm(xp, goals - pos),
-        "effort": _norm(xp, action),
-        "spin": _norm(xp, omega),
-        "crash": fl,
-        "orient": xp.where(on_floor, 1.0, -R[..., 2, 2]),
-        "vel": _norm(xp, vel),
-        "action_change": _norm(xp, f_norm - prev_f_norm),
-        "yaw": -R[..., 0, 0],
-        "rot": -(R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0,
-        "quad_collision": xp.sum(new_contact.astype(pos.dtype), axis=-1),
-        "proximity": prox,
-        "floor_hit": hit_floor.astype(pos.dtype),
-        "wall_hit": hit_wall.astype(pos.dtype),
-        "ceiling_hit": hit_ceiling.astype(pos.dtype),
+    cost_fns = {
+        "pos": lambda: _norm(xp, goals - pos) if goal_dist is None else goal_dist,
+        "effort": lambda: _norm(xp, action),
+        "spin": lambda: _norm(xp, omega),
+        "crash": lambda: on_floor.astype(pos.dtype),
+        "orient": lambda: xp.where(on_floor, 1.0, -R[..., 2, 2]),
+        "vel": lambda: _norm(xp, vel),
+        "action_change": lambda: _norm(xp, f_norm - prev_f_norm),
+        "yaw": lambda: -R[..., 0, 0],
+        "rot": lambda: -(R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0,
+        "quad_collision": lambda: new_contact.sum(axis=-1).astype(pos.dtype),
+        # sum over the others within the falloff of (1 - d / falloff); max(., 0) does the masking
+        "proximity": lambda: xp.maximum(1.0 - xp.where(off_diagonal(n), dist, xp.inf) / falloff, 0.0).sum(axis=-1),
+        "floor_hit": lambda: hit_floor.astype(pos.dtype),
+        "wall_hit": lambda: hit_wall.astype(pos.dtype),
+        "ceiling_hit": lambda: hit_ceiling.astype(pos.dtype),
     }
     out = {}
     for k in TERMS:
-        scale = getattr(s, k) * (anneal if k in ANNEALED else 1.0)
-        out[k] = -dt * scale * costs[k]
+        base = getattr(s, k)
+        if base == 0 and k in NONNEGATIVE:
+            out[k] = -0.0 * on_floor  # a fresh (..., N) array of -0.0 (default float type)
+            continue
+        scale = base * (anneal if k in ANNEALED else 1.0)
+        out[k] = -dt * scale * cost_fns[k]()
     return out
 
 
-def total_reward(terms: dict[str, Any]) -> Any:
-    """Sum of the terms, in the fixed order of ``TERMS`` (so sums are reproducible)."""
-    total = terms[TERMS[0]]
-    for k in TERMS[1:]:
+def zero_terms(cfg: EnvConfig) -> tuple[str, ...]:
+    """The terms :func:`reward_terms` returns as exactly -0.0 (zero scale, cost never negative)."""
+    return tuple(k for k in TERMS if k in NONNEGATIVE and getattr(cfg.rewards, k) == 0)
+
+
+def total_reward(terms: dict[str, Any], skip: tuple[str, ...] = ()) -> Any:
+    """Sum of the terms, in the fixed order of ``TERMS`` (so sums are reproducible). ``skip`` may
+    name terms that are exactly -0.0 (:func:`zero_terms`): adding -0.0 changes nothing."""
+    keys = [k for k in TERMS if k not in skip]
+    total = terms[keys[0]]
+    for k in keys[1:]:
         total = total + terms[k]
     return total
 

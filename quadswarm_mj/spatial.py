@@ -7,12 +7,70 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 from quadswarm_mj._xp import array_namespace
+
+#: Arrays with at least this many elements take the component-wise code paths below: NumPy's
+#: per-call overhead dominates small arrays (fewest calls wins), its per-row overhead for
+#: reductions over a short last axis dominates large ones (whole-array strided ops win).
+BIG = 4096
+
+
+def sum_last(x: Any) -> Any:
+    """Sum over a short last axis (< 8) as ((x0 + x1) + x2) + ...: exactly ``x.sum(axis=-1)``
+    (NumPy adds a contiguous axis shorter than 8 left to right), in the faster form for the size."""
+    n = x.shape[-1]
+    if x.size < BIG or n >= 8:
+        return x.sum(axis=-1)
+    r = x[..., 0] + x[..., 1]
+    for i in range(2, n):
+        r = r + x[..., i]
+    return r
+
+
+def sumsq_last(x: Any) -> Any:
+    """``(x * x).sum(axis=-1)`` over a short last axis, same rounding (see :func:`sum_last`)."""
+    n = x.shape[-1]
+    if x.size < BIG or n >= 8:
+        return (x * x).sum(axis=-1)
+    r = x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1]
+    for i in range(2, n):
+        r = r + x[..., i] * x[..., i]
+    return r
+
+
+def norm_last(x: Any) -> Any:
+    """Euclidean norm over the last axis (same rounding as sqrt(sum(x * x)))."""
+    return array_namespace(x).sqrt(sumsq_last(x))
+
+
+# quat_to_rotmat for small arrays as one gather: R_k = base_k + coef_k * (P[ia_k] + sign_k * P[ib_k])
+# with P the outer product of (w, x, y, z) with itself flattened (index 4 a + b): entry by entry the
+# textbook formula (R_00 = 1 - 2 (yy + zz), R_01 = 2 (xy - wz), ...). coef = +-2 and sign = +-1 scale
+# exactly, so coef * P[ia] + coef * sign * P[ib], summed, rounds as the textbook expression (only the
+# sign of an exact zero may differ); 5 array operations instead of 30. Large arrays use the textbook
+# expression itself (gathers along a short last axis are slow there); a test checks both agree.
+_Q_IAB = np.array([10, 6, 7, 6, 5, 11, 7, 11, 5,  # yy xy xz | xy xx yz | xz yz xx
+                   15, 3, 2, 3, 15, 1, 2, 1, 10])  # zz wz wy | wz zz wx | wy wx yy
+_Q_SIGN = np.array([1.0, -1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0])
+_Q_COEF = np.array([-2.0, 2.0, 2.0, 2.0, -2.0, 2.0, 2.0, 2.0, -2.0])
+_Q_SCALE = np.concatenate([_Q_COEF, _Q_COEF * _Q_SIGN])
+_Q_BASE = np.array([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
 
 
 def quat_to_rotmat(q: Any) -> Any:
     """(..., 4) unit quaternion (w, x, y, z) -> (..., 3, 3) body-to-world rotation."""
     xp = array_namespace(q)
+    lead = q.shape[:-1]
+    if q.size >= BIG:
+        return _quat_to_rotmat_textbook(xp, q)
+    P = (q[..., :, None] * q[..., None, :]).reshape(lead + (16,))
+    t = (xp.take(P, _Q_IAB, axis=-1) * xp.asarray(_Q_SCALE, dtype=q.dtype)).reshape(lead + (2, 9)).sum(axis=-2)
+    return (xp.asarray(_Q_BASE, dtype=q.dtype) + t).reshape(lead + (3, 3))
+
+
+def _quat_to_rotmat_textbook(xp: Any, q: Any) -> Any:
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
@@ -57,9 +115,9 @@ def yaw_of(R: Any) -> Any:
 def yaw_quat(yaw: Any) -> Any:
     """(...,) yaw angle (rad) -> (..., 4) quaternion of a pure rotation about world z."""
     xp = array_namespace(yaw)
-    h = 0.5 * yaw
+    h = (0.5 * yaw)[..., None]
     z = xp.zeros_like(h)
-    return xp.stack([xp.cos(h), z, z, xp.sin(h)], axis=-1)
+    return xp.concatenate([xp.cos(h), z, z, xp.sin(h)], axis=-1)
 
 
 def yaw_rotmat(yaw: Any) -> Any:

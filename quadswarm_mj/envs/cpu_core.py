@@ -1,12 +1,29 @@
-"""The CPU engine shared by every CPU front end: B worlds x N quads in one MjModel/MjData.
+"""The CPU engine shared by every CPU front end: B worlds x N quads stepped by MuJoCo's C engine.
 
-All model math is batched over (B, N) with the pure functions of the package; MuJoCo's C
-engine integrates the rigid bodies. ``QuadSwarmEnv`` is this engine with B = 1,
-``QuadSwarmVectorEnv`` uses B worlds, ``QuadSwarmParallelEnv`` wraps ``QuadSwarmEnv``.
+All model math is batched over (B, N) with the pure functions of the package; MuJoCo integrates the
+rigid bodies. ``QuadSwarmEnv`` is this engine with B = 1, ``QuadSwarmVectorEnv`` runs several of
+them (shards of worlds), ``QuadSwarmParallelEnv`` wraps ``QuadSwarmEnv``.
 
-Random numbers come from one seeded ``numpy.random.Generator``; draws are taken in a fixed
-order, so seeded runs are bit-identical. Draws whose only use is an event that did not happen
-this step (a new contact, a wall hit) are skipped: the stream stays deterministic.
+Two physics back ends hold the B worlds (see ``backend``):
+
+* ``"mjdata"`` (default): one ``MjModel``/``MjData`` with all B worlds side by side (the Crazyflie's
+  visual geoms included, so ``model``/``data`` can be rendered). One ``mj_step`` steps every world.
+* ``"batch"``: a ``mujoco.batch.Batch`` of B one-world simulations of a model without visual geoms
+  (half the kinematics cost per body, see ``arena.build_arena(visual=False)``). Its model is compiled
+  for one world, so building it does not grow with B, and one ``Batch.step`` steps every world
+  (bit-identical to stepping each world in its own ``MjData``). ``data`` is then None.
+
+Random numbers come from one seeded ``numpy.random.Generator``; draws are taken in a fixed order,
+so seeded runs are bit-identical. Draws whose only use is an event (a new contact, a wall or floor
+hit) are made only for the worlds where the event happens, and the event model runs on those
+worlds only (with B = 1: exactly when it happens): the stream stays deterministic.
+
+Performance notes (the per-step path; see BENCHMARKS.md for the profile): the model functions are
+called once per step on whole (B, N) arrays; event models (floor, walls, quad-quad) run only where
+needed; the rotation of the last sub-step is kept for the next step's first sub-step; the
+distance matrix is computed once per step (contacts, proximity reward, neighbour observations);
+the distance to the goals once (reward and metrics); the three sensor-noise draws are one draw.
+None of this changes a value: seeded runs give the same numbers as the straightforward code.
 """
 
 from __future__ import annotations
@@ -17,48 +34,134 @@ import mujoco
 import numpy as np
 
 from quadswarm_mj import metrics as metrics_lib
-from quadswarm_mj.actuation import (action_to_command, hover_motor_state, motor_noise_step, rotor_positions,
-                                    substep_wrench)
+from quadswarm_mj.actuation import (
+    SPIN,
+    action_to_command,
+    hover_motor_state,
+    motor_noise_step,
+    rotor_positions,
+    substep_wrench,
+    wrench_matrix,
+)
 from quadswarm_mj.arena import build_arena
-from quadswarm_mj.collisions import (FLOOR_TOL, floor_draw_spec, floor_impact, floor_wrench, pairwise_contacts,
-                                     quad_collision_draw_spec, quad_collisions, wall_collisions, wall_draw_spec)
+from quadswarm_mj.collisions import (
+    FLOOR_TOL,
+    floor_draw_spec,
+    floor_impact,
+    floor_wrench,
+    pairwise_contacts,
+    quad_collision_draw_spec,
+    quad_collisions,
+    wall_collisions,
+    wall_draw_spec,
+)
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.downwash import apply_downwash, downwash_draw_spec
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.random_draws import MeanSampler, NumpySampler
 from quadswarm_mj.randomization import nominal_draws, params_from_draws, randomization_draw_spec
-from quadswarm_mj.rewards import anneal_factor, reward_terms, total_reward
+from quadswarm_mj.rewards import anneal_factor, reward_terms, total_reward, zero_terms
 from quadswarm_mj.scenarios import ScenarioState, get_scenario
 from quadswarm_mj.scenarios.base import spawn_num_uniforms, spawn_state
-from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat, yaw_rotmat
+from quadswarm_mj.spatial import norm_last, quat_to_rotmat, rotmat_to_quat, yaw_rotmat
 
 STATE_KEYS = ("pos", "vel", "rot", "omega", "motors", "goals")
+BACKENDS = ("mjdata", "batch")
+_ALL = slice(None)
 
 
-def _merge(mask: np.ndarray, new: Any, old: Any) -> Any:
-    """Select ``new`` for worlds in ``mask`` (B,), else ``old`` (arrays with leading B)."""
-    m = mask.reshape(mask.shape + (1,) * (np.ndim(new) - 1))
-    return np.where(m, new, old)
+class _MjDataPhysics:
+    """All B worlds in one MjModel/MjData (the renderable back end)."""
 
-
-class CpuSwarm:
-    """B worlds of N quads on CPU MuJoCo. State arrays are (B, N, ...), world-local frames."""
-
-    def __init__(self, cfg: EnvConfig, num_worlds: int = 1):
-        self.cfg = cfg
-        self.B, self.N = num_worlds, cfg.num_quads
+    def __init__(self, cfg: EnvConfig, num_worlds: int):
+        B, N = num_worlds, cfg.num_quads
         self.arena = build_arena(cfg, num_worlds)
         self.model = self.arena.model
         self.data = mujoco.MjData(self.model)
-        B, N = self.B, self.N
         qs, vs, fb = self.arena.qpos_start, self.arena.qvel_start, self.arena.first_body
         self.qpos = self.data.qpos[qs:qs + 7 * B * N].reshape(B, N, 7)  # views into MjData
         self.qvel = self.data.qvel[vs:vs + 6 * B * N].reshape(B, N, 6)
         self.xfrc = self.data.xfrc_applied[fb:fb + B * N].reshape(B, N, 6)
         assert np.shares_memory(self.qpos, self.data.qpos) and np.shares_memory(self.xfrc, self.data.xfrc_applied)
         self.offsets = self.arena.world_offsets[:, None, :]
-        self.body_slice = slice(fb, fb + B * N)
+
+    def step(self) -> None:
+        mujoco.mj_step(self.model, self.data)
+
+    def write_params(self, idx: Any, mass: np.ndarray, inertia: np.ndarray) -> None:
+        ids = self.arena.body_ids[idx].ravel()
+        self.model.body_mass[ids] = mass.ravel()
+        self.model.body_inertia[ids] = inertia.reshape(-1, 3)
+
+    def after_reset(self, idx: Any) -> None:
+        self.data.time = 0.0
+        mujoco.mj_forward(self.model, self.data)
+
+
+class _BatchPhysics:
+    """B one-world simulations in a ``mujoco.batch.Batch`` (no visual geoms, see the module doc)."""
+
+    def __init__(self, cfg: EnvConfig, num_worlds: int, nthread: int = 1):
+        import mujoco.batch
+
+        B, N = num_worlds, cfg.num_quads
+        self.arena = build_arena(cfg, 1, visual=False)
+        self.model = self.arena.model
+        self.data = None
+        self.batch = mujoco.batch.Batch(self.model, nsim=B, nthread=nthread)
+        qs, vs, fb = self.arena.qpos_start, self.arena.qvel_start, self.arena.first_body
+        self.qpos = self.batch.bind("qpos")[:, qs:qs + 7 * N].reshape(B, N, 7)  # live views of the state rows
+        self.qvel = self.batch.bind("qvel")[:, vs:vs + 6 * N].reshape(B, N, 6)
+        self.xfrc = self.batch.bind("xfrc_applied")[:, fb:fb + N]
+        self._time = self.batch.bind("time")
+        self._mass = self.batch.expand("body_mass")[:, fb:fb + N]  # per-simulation model fields
+        self._inertia = self.batch.expand("body_inertia")[:, fb:fb + N]
+        self.offsets = np.zeros((1, 1, 3))
+
+    def step(self) -> None:
+        self.batch.step()
+
+    def write_params(self, idx: Any, mass: np.ndarray, inertia: np.ndarray) -> None:
+        self._mass[idx] = mass
+        self._inertia[idx] = inertia
+
+    def after_reset(self, idx: Any) -> None:
+        self._time[idx] = 0.0
+
+
+def _put(arr: np.ndarray, idx: Any, value: Any) -> np.ndarray:
+    """``arr`` with rows ``idx`` replaced (a fresh array; ``value`` itself when idx is every row)."""
+    if isinstance(idx, slice):
+        return np.array(np.broadcast_to(value, arr.shape), dtype=arr.dtype)
+    out = arr.copy()
+    out[idx] = value
+    return out
+
+
+class CpuSwarm:
+    """B worlds of N quads on CPU MuJoCo. State arrays are (B, N, ...), world-local frames.
+
+    The state changes only through :meth:`reset` and :meth:`step` (the engine keeps the rotation
+    matrices of the last step for the next one).
+    """
+
+    def __init__(self, cfg: EnvConfig, num_worlds: int = 1, backend: str = "mjdata", nthread: int = 1):
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        if not isinstance(num_worlds, (int, np.integer)) or num_worlds < 1:
+            raise ValueError(f"num_worlds must be an int >= 1, got {num_worlds!r}")
+        self.cfg = cfg
+        self.B, self.N = int(num_worlds), cfg.num_quads
+        self.backend = backend
+        self.phys: Any = _MjDataPhysics(cfg, self.B) if backend == "mjdata" else _BatchPhysics(cfg, self.B, nthread)
+        self.arena, self.model, self.data = self.phys.arena, self.phys.model, self.phys.data
+        self.qpos, self.qvel, self.xfrc = self.phys.qpos, self.phys.qvel, self.phys.xfrc  # (B, N, .) views
+        self.offsets = self.phys.offsets
+        self._offsets_zero = not np.any(self.offsets)
+        B, N = self.B, self.N
         self.rotor_pos = rotor_positions(cfg.quad)
+        self._mix = wrench_matrix(self.rotor_pos)
+        self._zero_terms = zero_terms(cfg)
         self.scenario = get_scenario(cfg.scenario)
         self.paper_floor = cfg.collision_model == "paper"
         self.paper_quads = cfg.collision_model in ("paper", "blend")
@@ -68,6 +171,9 @@ class CpuSwarm:
         self.obs_scale = obs_scale(cfg) if cfg.normalize_obs else None
         self.room_low = np.asarray(cfg.room_low)
         self.room_high = np.asarray(cfg.room_high)
+        # one compare finds quads outside the walls or above the ceiling (the floor is separate)
+        self._out_lo = np.array([cfg.room_low[0], cfg.room_low[1], -np.inf])
+        self._out_hi = np.asarray(cfg.room_high, dtype=np.float64)
         self.rng = np.random.default_rng()
         self.total_steps = 0  # across episodes, for reward annealing
         # draw specs, built once
@@ -77,11 +183,16 @@ class CpuSwarm:
         self._spec_wall = wall_draw_spec(N, cfg.collision_decay, c.kick_omega)
         self._spec_floor = floor_draw_spec(N)
         self._spec_down = downwash_draw_spec(N)
-        self._spec_sensor = sensor_noise_spec(cfg)
-        self._sensor_on = any(d.std > 0 for d in self._spec_sensor.values())
+        spec_sensor = sensor_noise_spec(cfg)
+        self._sensor_on = any(d.std > 0 for d in spec_sensor.values())
+        # the three sensor-noise draws as one standard-normal draw (same stream, same values)
+        self._sensor_keys = tuple(spec_sensor)
+        self._sensor_std = np.array([spec_sensor[k].std for k in self._sensor_keys])[:, None, None, None]
+        self._motor_noise = cfg.noise.motor_noise_ratio > 0
         self._n_scn = self.scenario.num_uniforms(N)
         zeros = np.zeros((B, N))
         self.params = params_from_draws(cfg, nominal_draws(cfg, zeros, (B,)))
+        self._torque_spin = self.params["torque_max"] * SPIN
         self.u = np.zeros((B, N, 4))
         self.motor_eps = np.zeros((B, N, 4))
         self.f_norm = np.zeros((B, N, 4))
@@ -89,162 +200,237 @@ class CpuSwarm:
         self.on_floor = np.zeros((B, N), bool)
         self.at_wall = np.zeros((B, N), bool)
         self.at_ceiling = np.zeros((B, N), bool)
+        self._any_on_floor = False  # Python mirrors of on_floor.any(), (at_wall | at_ceiling).any()
+        self._any_at_wall = False
         self.contact = np.zeros((B, N, N), bool)
         self.steps = np.zeros(B, np.int64)
         self.sstate: ScenarioState | None = None
         self.metrics = metrics_lib.init(zeros, (B,), N)
         self.last_action = np.zeros((B, N, 4))
+        self._R: np.ndarray | None = None  # rotations of the current qpos (None: recompute)
 
     # ------------------------------------------------------------------ samplers
     def _sampler(self, stochastic: bool) -> Any:
         return NumpySampler(self.rng) if stochastic else MeanSampler()
 
-    def seed(self, seed: int | None) -> None:
+    def seed(self, seed: Any) -> None:
+        """Reseed the engine's generator (an int, a ``SeedSequence`` or None)."""
         self.rng = np.random.default_rng(seed)
 
     # ------------------------------------------------------------------ state access
+    def _rotations(self) -> np.ndarray:
+        if self._R is None:
+            self._R = quat_to_rotmat(self.qpos[..., 3:7])
+        return self._R
+
     def kinematics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(pos, vel, R, omega) copies in world-local frames: pos m, vel m/s world, R body->world,
         omega rad/s body."""
         pos = self.qpos[..., :3] - self.offsets
-        return pos, self.qvel[..., :3].copy(), quat_to_rotmat(self.qpos[..., 3:7]), self.qvel[..., 3:].copy()
+        return pos, self.qvel[..., :3].copy(), self._rotations().copy(), self.qvel[..., 3:].copy()
 
-    def _write_params(self, mask: np.ndarray) -> None:
-        ids = self.arena.body_ids[mask].ravel()
-        self.model.body_mass[ids] = self.params["mass"][mask].ravel()
-        self.model.body_inertia[ids] = self.params["inertia"][mask].reshape(-1, 3)
+    def _sync_flags(self) -> None:
+        self._any_on_floor = bool(self.on_floor.any())
+        self._any_at_wall = bool(self.at_wall.any() or self.at_ceiling.any())
 
     # ------------------------------------------------------------------ reset
     def reset(self, mask: np.ndarray | None = None, state: dict[str, Any] | None = None) -> None:
-        """Reset the worlds in ``mask`` (B,) bool (all if None); ``state`` holds (B, N, ...) arrays."""
+        """Reset the worlds in ``mask`` (B,) bool (all if None); ``state`` holds (B, N, ...) arrays
+        (the rows of the worlds not reset are ignored).
+
+        Draws (randomization, scenario, spawn) are made for the reset worlds only, in world order."""
         cfg, B, N = self.cfg, self.B, self.N
         mask = np.ones(B, bool) if mask is None else np.asarray(mask, bool)
+        if mask.shape != (B,):
+            raise ValueError(f"mask must have shape ({B},), got {mask.shape}")
+        if mask.all():
+            idx: Any = _ALL
+            M = B
+        else:
+            idx = np.flatnonzero(mask)
+            M = len(idx)
+            if M == 0:
+                return
+
+        def rows(key: str, tail: tuple[int, ...]) -> np.ndarray | None:
+            if state is None or state.get(key) is None:
+                return None
+            return np.asarray(state[key], dtype=np.float64).reshape((B, N) + tail)[idx]
+
         # 1. dynamics parameters
         if cfg.randomize:
-            draws = NumpySampler(self.rng).draw(randomization_draw_spec(cfg), (B,))
+            draws = NumpySampler(self.rng).draw(randomization_draw_spec(cfg), (M,))
         else:
-            draws = nominal_draws(cfg, np.zeros((B, N)), (B,))
+            draws = nominal_draws(cfg, np.zeros((M, N)), (M,))
         new_params = params_from_draws(cfg, draws)
-        self.params = {k: (v if k == "gravity" else _merge(mask, v, self.params[k])) for k, v in new_params.items()}
-        self._write_params(mask)
+        self.params = {k: (v if k == "gravity" else _put(self.params[k], idx, v)) for k, v in new_params.items()}
+        self.phys.write_params(idx, new_params["mass"], new_params["inertia"])
+        self._torque_spin = self.params["torque_max"] * SPIN
         # 2. scenario
-        u = self.rng.uniform(size=(B, self._n_scn))
-        s_new = self.scenario.init(cfg, u)
-        if state is not None and state.get("goals") is not None:
-            s_new = s_new._replace(goals=np.asarray(state["goals"], dtype=np.float64).reshape(B, N, 3))
-        self.sstate = s_new if self.sstate is None else ScenarioState(
-            *(_merge(mask, a, b) for a, b in zip(s_new, self.sstate)))
-        goals = self.sstate.goals
-        # 3. start state
-        sp = spawn_state(cfg, goals, self.rng.uniform(size=(B, spawn_num_uniforms(N))))
-        pos, R = sp["pos"], yaw_rotmat(sp["yaw"])
-        vel, omega = np.zeros((B, N, 3)), np.zeros((B, N, 3))
-        motors: Any = cfg.motor_start
-        if state is not None:
-            pos = np.asarray(state.get("pos", pos), dtype=np.float64).reshape(B, N, 3)
-            vel = np.asarray(state.get("vel", vel), dtype=np.float64).reshape(B, N, 3)
-            R = np.asarray(state.get("rot", R), dtype=np.float64).reshape(B, N, 3, 3)
-            omega = np.asarray(state.get("omega", omega), dtype=np.float64).reshape(B, N, 3)
-            motors = state.get("motors", motors)
-        if isinstance(motors, str):
-            u0 = hover_motor_state(self.params) if motors == "hover" else np.zeros((B, N, 4))
+        s_new = self.scenario.init(cfg, self.rng.uniform(size=(M, self._n_scn)))
+        goals_in = rows("goals", (3,))
+        if goals_in is not None:
+            s_new = s_new._replace(goals=goals_in)
+        if self.sstate is None or isinstance(idx, slice):
+            self.sstate = s_new if isinstance(idx, slice) else ScenarioState(
+                *(_put(np.zeros((B,) + np.shape(a)[1:], np.asarray(a).dtype), idx, a) for a in s_new))
         else:
-            u0 = np.sqrt(np.clip(np.asarray(motors, dtype=np.float64).reshape(B, N, 4), 0.0, 1.0))
-        m3 = mask[:, None, None]
-        self.qpos[..., :3] = np.where(m3, pos + self.offsets, self.qpos[..., :3])
-        self.qpos[..., 3:7] = np.where(m3, rotmat_to_quat(R), self.qpos[..., 3:7])
-        self.qvel[..., :3] = np.where(m3, vel, self.qvel[..., :3])
-        self.qvel[..., 3:] = np.where(m3, omega, self.qvel[..., 3:])
-        self.u = np.where(m3, u0, self.u)
-        self.motor_eps = np.where(m3, 0.0, self.motor_eps)
-        self.f_norm = np.where(m3, self.u**2, self.f_norm)
+            self.sstate = ScenarioState(*(_put(np.asarray(b), idx, a) for a, b in zip(s_new, self.sstate)))
+        goals = self.sstate.goals[idx]
+        # 3. start state
+        sp = spawn_state(cfg, goals, self.rng.uniform(size=(M, spawn_num_uniforms(N))))
+        pos, R = sp["pos"], yaw_rotmat(sp["yaw"])
+        vel, omega = np.zeros((M, N, 3)), np.zeros((M, N, 3))
+        pos = p if (p := rows("pos", (3,))) is not None else pos
+        vel = v if (v := rows("vel", (3,))) is not None else vel
+        R = r if (r := rows("rot", (3, 3))) is not None else R
+        omega = w if (w := rows("omega", (3,))) is not None else omega
+        motors: Any = cfg.motor_start if state is None or state.get("motors") is None else state["motors"]
+        params_idx = {k: (v if k == "gravity" else v[idx]) for k, v in self.params.items()}
+        if isinstance(motors, str):
+            u0 = hover_motor_state(params_idx) if motors == "hover" else np.zeros((M, N, 4))
+        else:
+            u0 = np.sqrt(np.clip(np.asarray(motors, dtype=np.float64).reshape(B, N, 4)[idx], 0.0, 1.0))
+        offsets = self.offsets if self.offsets.shape[0] == 1 else self.offsets[idx]
+        self.qpos[idx, :, :3] = pos + offsets
+        self.qpos[idx, :, 3:7] = rotmat_to_quat(R)
+        self.qvel[idx, :, :3] = vel
+        self.qvel[idx, :, 3:] = omega
+        self._R = None
+        self.u = _put(self.u, idx, u0)
+        self.motor_eps = _put(self.motor_eps, idx, 0.0)
+        self.f_norm = _put(self.f_norm, idx, u0**2)
         self.prev_f_norm = self.f_norm.copy()
-        self.last_action = np.where(m3, 0.0, self.last_action)
-        m2 = mask[:, None]
-        cur_pos = self.qpos[..., :3] - self.offsets
-        self.on_floor = np.where(m2, cur_pos[..., 2] <= self.floor_z + FLOOR_TOL, self.on_floor)
-        self.at_wall = np.where(m2, np.any((cur_pos[..., :2] <= self.room_low[:2]) |
-                                           (cur_pos[..., :2] >= self.room_high[:2]), -1), self.at_wall)
-        self.at_ceiling = np.where(m2, cur_pos[..., 2] >= self.room_high[2], self.at_ceiling)
+        self.last_action = _put(self.last_action, idx, 0.0)
+        cur_pos = self.qpos[idx, :, :3] - offsets
+        self.on_floor = _put(self.on_floor, idx, cur_pos[..., 2] <= self.floor_z + FLOOR_TOL)
+        self.at_wall = _put(self.at_wall, idx, np.any((cur_pos[..., :2] <= self.room_low[:2]) |
+                                                      (cur_pos[..., :2] >= self.room_high[:2]), -1))
+        self.at_ceiling = _put(self.at_ceiling, idx, cur_pos[..., 2] >= self.room_high[2])
+        self._sync_flags()
         contact, _ = pairwise_contacts(cur_pos, self.cfg.hitbox)
-        self.contact = np.where(mask[:, None, None], contact, self.contact)
-        self.steps = np.where(mask, 0, self.steps)
-        fresh = metrics_lib.init(np.zeros((B, N)), (B,), N)
-        self.metrics = {k: _merge(mask, fresh[k], v) for k, v in self.metrics.items()}
+        self.contact = _put(self.contact, idx, contact)
+        self.steps = _put(self.steps, idx, 0)
+        fresh = metrics_lib.init(np.zeros((M, N)), (M,), N)
+        self.metrics = {k: _put(v, idx, fresh[k]) for k, v in self.metrics.items()}
         self.xfrc[...] = 0.0
-        self.data.time = 0.0
-        mujoco.mj_forward(self.model, self.data)
+        self.phys.after_reset(idx)
 
     # ------------------------------------------------------------------ physics
     def _physics(self, action: np.ndarray) -> dict[str, np.ndarray]:
         cfg, B, N = self.cfg, self.B, self.N
         cmd = action_to_command(action)
-        if cfg.noise.motor_noise_ratio > 0:
+        if self._motor_noise:
             self.motor_eps = motor_noise_step(self.motor_eps, self.params["motor_sigma"],
                                               cfg.noise.motor_noise_theta, self.rng.standard_normal((B, N, 4)))
         hit_floor = np.zeros((B, N), bool)
         max_w = cfg.quad.max_omega
-        for _ in range(cfg.substeps):
-            R = quat_to_rotmat(self.qpos[..., 3:7])
+        omega_view = self.qvel[..., 3:]
+        R = self._rotations()
+        for s in range(cfg.substeps):
+            if s > 0:
+                R = quat_to_rotmat(self.qpos[..., 3:7])
             self.u, self.f_norm, force, torque = substep_wrench(self.u, cmd, self.motor_eps, self.params, R,
-                                                                self.rotor_pos)
-            if self.paper_floor and self.on_floor.any():
-                force, torque = floor_wrench(self.on_floor, force, torque, self.qvel[..., :3], self.params["mass"],
-                                             self.params["gravity"], cfg.collision.floor_friction, cfg.sim_dt)
+                                                                self.rotor_pos, self._mix, self._torque_spin)
+            if self.paper_floor and self._any_on_floor:
+                w = self._worlds(self.on_floor)
+                fw, tw = floor_wrench(self.on_floor[w], force[w], torque[w], self.qvel[w, :, :3],
+                                      self.params["mass"][w], self.params["gravity"], cfg.collision.floor_friction,
+                                      cfg.sim_dt)
+                if isinstance(w, slice):
+                    force, torque = fw, tw
+                else:
+                    force[w], torque[w] = fw, tw
             self.xfrc[..., :3] = force
             self.xfrc[..., 3:] = torque
-            mujoco.mj_step(self.model, self.data)
-            np.clip(self.qvel[..., 3:], -max_w, max_w, out=self.qvel[..., 3:])
-            if self.paper_floor and (self.on_floor.any() or (self.qpos[..., 2] <= self.floor_z).any()):
-                pos = self.qpos[..., :3] - self.offsets
-                R = quat_to_rotmat(self.qpos[..., 3:7])
-                yaw = self._sampler(cfg.noise.stochastic_collisions).draw(self._spec_floor, (B,))["yaw"]
-                r = floor_impact(pos, self.qvel[..., :3], self.qvel[..., 3:], self.qpos[..., 3:7], R, self.u,
-                                 self.on_floor, self.floor_z, yaw)
-                self.qpos[..., :3] = r["pos"] + self.offsets
-                self.qpos[..., 3:7] = r["quat"]
-                self.qvel[..., :3] = r["vel"]
-                self.qvel[..., 3:] = r["omega"]
-                self.u = r["u"]
-                self.on_floor = r["on_floor"]
-                hit_floor |= r["hit_floor"]
+            self.phys.step()
+            np.minimum(np.maximum(omega_view, -max_w, out=omega_view), max_w, out=omega_view)  # = clip
+            if self.paper_floor:
+                grounded = self.qpos[..., 2] <= self.floor_z
+                if self._any_on_floor:
+                    grounded |= self.on_floor
+                if grounded.any():
+                    self._floor_impact(self._worlds(grounded), hit_floor)
+        self._R = None
+        R = self._rotations()
         # once per control step: walls, ceiling, quad-quad, downwash (velocity-level models)
-        pos, vel, R, omega = self.kinematics()
+        pos = self.qpos[..., :3] - self.offsets if not self._offsets_zero else self.qpos[..., :3].copy()
+        vel, omega = self.qvel[..., :3].copy(), self.qvel[..., 3:].copy()
+        changed = False
         if self.paper_floor:
-            outside = ((pos[..., :2] <= self.room_low[:2]) | (pos[..., :2] >= self.room_high[:2])).any(-1) | (
-                pos[..., 2] >= self.room_high[2])
-            if outside.any() or self.at_wall.any() or self.at_ceiling.any():
-                draws = self._sampler(cfg.noise.stochastic_collisions).draw(self._spec_wall, (B,))
-                w = wall_collisions(pos, vel, omega, self.at_wall, self.at_ceiling, self.room_low, self.room_high,
-                                    draws, cfg.collision.wall_speed_limits)
-                pos, vel, omega = w["pos"], w["vel"], w["omega"]
-                self.at_wall, self.at_ceiling = w["at_wall"], w["at_ceiling"]
-                hit_wall, hit_ceiling = w["hit_wall"], w["hit_ceiling"]
+            out = (pos <= self._out_lo) | (pos >= self._out_hi)
+            if self._any_at_wall or out.any():
+                w = self._worlds(out.any(-1) | self.at_wall | self.at_ceiling)
+                draws = self._sampler(cfg.noise.stochastic_collisions).draw(self._spec_wall, (self._count(w),))
+                r = wall_collisions(pos[w], vel[w], omega[w], self.at_wall[w], self.at_ceiling[w], self.room_low,
+                                    self.room_high, draws, cfg.collision.wall_speed_limits)
+                hit_wall, hit_ceiling = np.zeros((B, N), bool), np.zeros((B, N), bool)
+                for name, arr in (("pos", pos), ("vel", vel), ("omega", omega), ("hit_wall", hit_wall),
+                                  ("hit_ceiling", hit_ceiling)):
+                    arr[w] = r[name]
+                self.at_wall = _put(self.at_wall, w, r["at_wall"])
+                self.at_ceiling = _put(self.at_ceiling, w, r["at_ceiling"])
+                self._sync_flags()
+                changed = True
             else:
                 hit_wall = hit_ceiling = np.zeros((B, N), bool)
         else:  # MuJoCo resolves floor/walls/ceiling; flags from proximity to the surfaces
             margin = cfg.quad.arm + 0.005
             on_floor = pos[..., 2] <= margin
-            at_wall = ((pos[..., :2] <= self.room_low[:2] + margin) | (pos[..., :2] >= self.room_high[:2] - margin)).any(-1)
+            at_wall = ((pos[..., :2] <= self.room_low[:2] + margin)
+                       | (pos[..., :2] >= self.room_high[:2] - margin)).any(-1)
             at_ceiling = pos[..., 2] >= self.room_high[2] - margin
             hit_floor = on_floor & ~self.on_floor
             hit_wall, hit_ceiling = at_wall & ~self.at_wall, at_ceiling & ~self.at_ceiling
             self.on_floor, self.at_wall, self.at_ceiling = on_floor, at_wall, at_ceiling
+            self._sync_flags()
         contact, dist = pairwise_contacts(pos, cfg.hitbox)
         new_contact = contact & ~self.contact
         if self.paper_quads and new_contact.any():
-            draws = self._sampler(cfg.noise.stochastic_collisions).draw(self._spec_quad, (B,))
-            q = quad_collisions(pos, vel, omega, self.contact, cfg.hitbox, draws)
-            vel, omega = q["vel"], q["omega"]
+            w = self._worlds(new_contact.any(-1))
+            draws = self._sampler(cfg.noise.stochastic_collisions).draw(self._spec_quad, (self._count(w),))
+            q = quad_collisions(pos[w], vel[w], omega[w], self.contact[w], cfg.hitbox, draws)
+            vel[w], omega[w] = q["vel"], q["omega"]
+            changed = True
         self.contact = contact
         if cfg.downwash:
             draws = self._sampler(cfg.noise.stochastic_downwash).draw(self._spec_down, (B,))
             vel, omega = apply_downwash(pos, vel, omega, R, cfg.control_dt, draws)
-        self.qpos[..., :3] = pos + self.offsets
-        self.qvel[..., :3] = vel
-        self.qvel[..., 3:] = omega
+            changed = True
+        if changed or not self._offsets_zero:  # otherwise qpos/qvel hold these values already
+            self.qpos[..., :3] = pos + self.offsets
+            self.qvel[..., :3] = vel
+            self.qvel[..., 3:] = omega
         return {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": new_contact,
                 "hit_floor": hit_floor, "hit_wall": hit_wall, "hit_ceiling": hit_ceiling}
+
+    def _worlds(self, flags: np.ndarray) -> Any:
+        """Index of the worlds with any flag set: a slice when that is every world (views, no copy)."""
+        per_world = flags.reshape(self.B, -1).any(-1)
+        return _ALL if per_world.all() else np.flatnonzero(per_world)
+
+    def _count(self, w: Any) -> int:
+        return self.B if isinstance(w, slice) else len(w)
+
+    def _floor_impact(self, w: Any, hit_floor: np.ndarray) -> None:
+        """The paper's floor model after a sub-step, on worlds ``w`` (those with a quad at or below
+        the floor height or grounded; elsewhere it changes nothing)."""
+        cfg = self.cfg
+        q, v = self.qpos[w], self.qvel[w]
+        R = quat_to_rotmat(q[..., 3:7])
+        yaw = self._sampler(cfg.noise.stochastic_collisions).draw(self._spec_floor, (self._count(w),))["yaw"]
+        r = floor_impact(q[..., :3] - (self.offsets if self.offsets.shape[0] == 1 else self.offsets[w]),
+                         v[..., :3], v[..., 3:], q[..., 3:7], R, self.u[w], self.on_floor[w], self.floor_z, yaw,
+                         with_rotmat=False)
+        offsets = self.offsets if self.offsets.shape[0] == 1 else self.offsets[w]
+        self.qpos[w, :, :3] = r["pos"] + offsets
+        self.qpos[w, :, 3:7] = r["quat"]
+        self.qvel[w, :, :3] = r["vel"]
+        self.qvel[w, :, 3:] = r["omega"]
+        self.u = _put(self.u, w, r["u"])
+        self.on_floor = _put(self.on_floor, w, r["on_floor"])
+        self._any_on_floor = bool(self.on_floor.any())
+        hit_floor[w] |= r["hit_floor"]
 
     # ------------------------------------------------------------------ step
     def step(self, action: np.ndarray) -> dict[str, Any]:
@@ -259,12 +445,15 @@ class CpuSwarm:
         u = self.rng.uniform(size=(self.B, self._n_scn))
         self.sstate = self.scenario.step(cfg, self.sstate, t, k["pos"], u)
         goals, goal_vel = self.sstate.goals, self.sstate.goal_vel
-        jump = np.linalg.norm(goals - prev_goals, axis=-1) > 1e-3 + 2.0 * np.linalg.norm(goal_vel, axis=-1) * cfg.control_dt
+        if goals is prev_goals:  # the scenario kept its goals: no jump (moved 0 <= 1e-3 + ...)
+            jump = np.zeros(goals.shape[:-1], bool)
+        else:
+            jump = metrics_lib.goal_jump(prev_goals, goals, goal_vel, cfg.control_dt)
+        dist_goal = norm_last(goals - k["pos"])
         terms = reward_terms(cfg, k["pos"], k["vel"], k["R"], k["omega"], goals, action, self.f_norm,
                              self.prev_f_norm, self.on_floor, k["hit_floor"], k["hit_wall"], k["hit_ceiling"],
-                             k["new_contact"], k["dist"], anneal_factor(cfg, self.total_steps))
-        rewards = total_reward(terms)
-        dist_goal = np.linalg.norm(goals - k["pos"], axis=-1)
+                             k["new_contact"], k["dist"], anneal_factor(cfg, self.total_steps), goal_dist=dist_goal)
+        rewards = total_reward(terms, self._zero_terms)
         self.metrics = metrics_lib.update(self.metrics, t[:, None], dist_goal, k["new_contact"], k["hit_floor"],
                                           k["hit_wall"], k["hit_ceiling"], jump, cfg.grace_period_s)
         self.last_action = action
@@ -276,11 +465,15 @@ class CpuSwarm:
         """Observations (B, N, obs_dim) float64 (sensor noise drawn now)."""
         if kin is None:
             pos, vel, R, omega = self.kinematics()
+            dist = None
         else:
-            pos, vel, R, omega = kin["pos"], kin["vel"], kin["R"], kin["omega"]
-        noise = NumpySampler(self.rng).draw(self._spec_sensor, (self.B,)) if self._sensor_on else None
+            pos, vel, R, omega, dist = kin["pos"], kin["vel"], kin["R"], kin["omega"], kin["dist"]
+        noise = None
+        if self._sensor_on:  # = NumpySampler(rng).draw(sensor_noise_spec(cfg), (B,)): 0 + std * N(0, 1)
+            z = 0.0 + self._sensor_std * self.rng.standard_normal((3, self.B, self.N, 3))
+            noise = dict(zip(self._sensor_keys, z))
         return build_obs(self.cfg, pos, vel, R, omega, self.sstate.goals, noise, self.obs_low, self.obs_high,
-                         self.obs_scale)
+                         self.obs_scale, dist=dist)
 
     def episode_metrics(self) -> dict[str, np.ndarray]:
         """Per-world episode metrics (B,) so far."""
