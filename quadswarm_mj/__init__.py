@@ -21,6 +21,7 @@ from quadswarm_mj.config import (  # noqa: E402
 )
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv  # noqa: E402
 from quadswarm_mj.envs.parallel_env import QuadSwarmParallelEnv  # noqa: E402
+from quadswarm_mj.envs.vector_env import QuadSwarmVectorEnv  # noqa: E402
 from quadswarm_mj.scenarios import get_scenario, list_scenarios  # noqa: E402
 
 __all__ = [
@@ -30,6 +31,7 @@ __all__ = [
     "QuadParams",
     "QuadSwarmEnv",
     "QuadSwarmParallelEnv",
+    "QuadSwarmVectorEnv",
     "RandomizationConfig",
     "RewardScales",
     "get_scenario",

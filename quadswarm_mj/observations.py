@@ -85,15 +85,23 @@ def _self_parts(xp: Any, cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any,
 
 
 @functools.lru_cache(maxsize=64)
-def _row_starts(rows: int, n: int) -> np.ndarray:
-    """Flat index of element [r, 0] of a (rows, n) array, as a (rows, 1) constant."""
-    out = (np.arange(rows) * n)[:, None]
-    out.setflags(write=False)
-    return out
+def _gather_index(rows: int, n: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Constants for gathering K of N quads per (world, quad) row: the flat index of quad 0 of each
+    row's world (rows, 1), and each row's own index repeated K times (rows * K,)."""
+    first = (np.arange(rows) // n * n)[:, None]
+    own = np.repeat(np.arange(rows), k)
+    first.setflags(write=False)
+    own.setflags(write=False)
+    return first, own
 
 
-def neighbor_obs(cfg: EnvConfig, pos: Any, vel: Any, dist: Any | None = None) -> Any:
-    """(..., N, 6 K): relative position and velocity of the K nearest other quads.
+def _neighbor_bounds(cfg: EnvConfig) -> np.ndarray:
+    return np.asarray(tuple(cfg.room_size) + (cfg.neighbor_vel_clip,) * 3, dtype=np.float64)
+
+
+def neighbor_obs(cfg: EnvConfig, pos: Any, vel: Any, dist: Any | None = None, clip: bool = True) -> Any:
+    """(..., N, 6 K): relative position and velocity of the K nearest other quads, clipped to
+    +-room size (position) and +-``neighbor_vel_clip`` (velocity) unless ``clip`` is False.
 
     ``dist`` optionally passes the (..., N, N) distances between the ``pos`` already computed by
     :func:`quadswarm_mj.collisions.pairwise_contacts` (the same values), to save recomputing them.
@@ -102,10 +110,11 @@ def neighbor_obs(cfg: EnvConfig, pos: Any, vel: Any, dist: Any | None = None) ->
     k, n = cfg.neighbors, pos.shape[-2]
     if k == 0:
         return xp.zeros(pos.shape[:-1] + (0,), dtype=pos.dtype)
-    pv = xp.concatenate([pos, vel], axis=-1)
-    rel = pv[..., None, :, :] - pv[..., :, None, :]  # [i, j] = (p_j - p_i, v_j - v_i), (..., N, N, 6)
-    if dist is None:
-        dist = norm_last(rel[..., :3])
+    pv = xp.concatenate([pos, vel], axis=-1)  # (..., N, 6)
+    if cfg.neighbor_sort == "original" or dist is None:
+        rel = pv[..., None, :, :] - pv[..., :, None, :]  # [i, j] = (p_j - p_i, v_j - v_i)
+        if dist is None:
+            dist = norm_last(rel[..., :3])
     if cfg.neighbor_sort == "original":
         d = xp.maximum(dist, 0.01)
         key = d + sum_last((rel[..., :3] / d[..., None]) * rel[..., 3:])
@@ -113,12 +122,25 @@ def neighbor_obs(cfg: EnvConfig, pos: Any, vel: Any, dist: Any | None = None) ->
         key = dist
     key = xp.where(off_diagonal(n), key, xp.inf)
     idx = xp.argsort(key, axis=-1)[..., :k]  # (..., N, K)
-    rows = math.prod(pos.shape[:-1])  # every (world, quad) pair: gather K rows of 6 from its N
-    flat = (idx.reshape((rows, k)) + _row_starts(rows, n)).reshape(-1)
-    g = rel.reshape((rows * n, 6))[flat]
-    bound = xp.asarray(tuple(cfg.room_size) + (cfg.neighbor_vel_clip,) * 3, dtype=pos.dtype)
-    g = xp.minimum(xp.maximum(g, -bound), bound)  # = clip into +-room (position), +-clip (velocity)
+    # gather rows of (p, v): the K neighbours j of every (world, quad) row i, and i itself K times;
+    # p_j - p_i is computed on the gathered rows (one contiguous subtraction)
+    rows = math.prod(pos.shape[:-1])
+    first, own = _gather_index(rows, n, k)
+    pv2 = pv.reshape((rows, 6))
+    g = xp.take(pv2, (idx.reshape((rows, k)) + first).reshape(-1), axis=0) - xp.take(pv2, own, axis=0)
+    if clip:
+        bound = xp.asarray(_neighbor_bounds(cfg), dtype=pos.dtype)
+        g = xp.minimum(xp.maximum(g, -bound), bound)
     return g.reshape(pos.shape[:-1] + (6 * k,))
+
+
+@functools.lru_cache(maxsize=16)
+def _obs_neighbor_bounds(self_dim: int, k: int, bound: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    hi = np.concatenate([np.full(self_dim, np.inf), np.tile(np.asarray(bound), k)])
+    lo = -hi
+    lo.setflags(write=False)
+    hi.setflags(write=False)
+    return lo, hi
 
 
 def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any,
@@ -126,7 +148,10 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
               dist: Any | None = None) -> Any:
     """Full observation (..., N, obs_dim): noisy own state + neighbours, clipped into [low, high]
     and divided by ``scale`` when normalization is on. ``dist``: optional (..., N, N) distances
-    between the true ``pos`` (see :func:`neighbor_obs`)."""
+    between the true ``pos`` (see :func:`neighbor_obs`).
+
+    The neighbour clip of :func:`neighbor_obs` is folded into the final clip: clipping into one
+    interval and then into another equals clipping into their intersection."""
     xp = array_namespace(pos, vel)
     if noise is not None:
         m_pos, m_vel, m_omega = pos + noise["pos"], vel + noise["vel"], omega + noise["omega"]
@@ -134,7 +159,12 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
         m_pos, m_vel, m_omega = pos, vel, omega
     parts = _self_parts(xp, cfg, m_pos, m_vel, R, m_omega, goals)
     if cfg.neighbors > 0:
-        nb = (neighbor_obs(cfg, m_pos, m_vel) if cfg.noise.neighbor_obs_noise else neighbor_obs(cfg, pos, vel, dist))
-        parts.append(nb)
+        if cfg.noise.neighbor_obs_noise:
+            parts.append(neighbor_obs(cfg, m_pos, m_vel, clip=False))
+        else:
+            parts.append(neighbor_obs(cfg, pos, vel, dist, clip=False))
+        nb_lo, nb_hi = _obs_neighbor_bounds(cfg.self_obs_dim, cfg.neighbors, tuple(_neighbor_bounds(cfg)))
+        low = xp.maximum(xp.asarray(low), xp.asarray(nb_lo, dtype=pos.dtype))
+        high = xp.minimum(xp.asarray(high), xp.asarray(nb_hi, dtype=pos.dtype))
     obs = xp.minimum(xp.maximum(xp.concatenate(parts, axis=-1), low), high)  # = clip into the bounds
     return obs if scale is None else obs / scale

@@ -42,7 +42,8 @@ def sumsq_last(x: Any) -> Any:
 
 def norm_last(x: Any) -> Any:
     """Euclidean norm over the last axis (same rounding as sqrt(sum(x * x)))."""
-    return array_namespace(x).sqrt(sumsq_last(x))
+    sqrt = np.sqrt if type(x) is np.ndarray else array_namespace(x).sqrt
+    return sqrt(sumsq_last(x))
 
 
 # quat_to_rotmat for small arrays as one gather: R_k = base_k + coef_k * (P[ia_k] + sign_k * P[ib_k])

@@ -4,14 +4,20 @@ All model math is batched over (B, N) with the pure functions of the package; Mu
 rigid bodies. ``QuadSwarmEnv`` is this engine with B = 1, ``QuadSwarmVectorEnv`` runs several of
 them (shards of worlds), ``QuadSwarmParallelEnv`` wraps ``QuadSwarmEnv``.
 
-Two physics back ends hold the B worlds (see ``backend``):
+Two physics back ends hold the B worlds (``backend``); they give bit-identical results (with MuJoCo
+contacts, "mujoco"/"blend", only up to round-off: a world's offset in its model differs):
 
-* ``"mjdata"`` (default): one ``MjModel``/``MjData`` with all B worlds side by side (the Crazyflie's
-  visual geoms included, so ``model``/``data`` can be rendered). One ``mj_step`` steps every world.
-* ``"batch"``: a ``mujoco.batch.Batch`` of B one-world simulations of a model without visual geoms
-  (half the kinematics cost per body, see ``arena.build_arena(visual=False)``). Its model is compiled
-  for one world, so building it does not grow with B, and one ``Batch.step`` steps every world
-  (bit-identical to stepping each world in its own ``MjData``). ``data`` is then None.
+* ``"mjdata"`` (default): one ``MjModel``/``MjData`` with all B worlds side by side, ``qpos``/``qvel``/
+  ``xfrc`` are views into it, one ``mj_step`` steps every world. ``visual=True`` keeps the
+  Crazyflie's visual geoms so ``model``/``data`` can be rendered (``QuadSwarmEnv``); ``visual=False``
+  drops them, which halves MuJoCo's kinematics cost per body.
+* ``"batch"``: ``mujoco.batch.Batch`` of ceil(B / C) simulations of a C-world model without visual
+  geoms (``chunk_worlds`` = C, 64 by default), one call steps them all; the engine's state arrays
+  are copied into the simulations' state rows when it changed them and back after every sub-step.
+  Used by the vector env for large shards: building one MjSpec model grows quadratically with its
+  bodies (a 1024-world model takes minutes), a 64-world model builds in 0.2 s and steps as fast per
+  body; one-world simulations (C = 1) step at half the speed (MuJoCo's per-call overhead every 8
+  bodies). ``data`` is None with this back end.
 
 Random numbers come from one seeded ``numpy.random.Generator``; draws are taken in a fixed order,
 so seeded runs are bit-identical. Draws whose only use is an event (a new contact, a wall or floor
@@ -23,7 +29,8 @@ called once per step on whole (B, N) arrays; event models (floor, walls, quad-qu
 needed; the rotation of the last sub-step is kept for the next step's first sub-step; the
 distance matrix is computed once per step (contacts, proximity reward, neighbour observations);
 the distance to the goals once (reward and metrics); the three sensor-noise draws are one draw.
-None of this changes a value: seeded runs give the same numbers as the straightforward code.
+None of this changes a value: with B = 1 seeded runs give the same numbers as the straightforward
+code (up to the sign of an exact zero); with B > 1 only the event draws are fewer (see above).
 """
 
 from __future__ import annotations
@@ -71,11 +78,11 @@ _ALL = slice(None)
 
 
 class _MjDataPhysics:
-    """All B worlds in one MjModel/MjData (the renderable back end)."""
+    """All B worlds in one MjModel/MjData; qpos/qvel/xfrc are views into it (no copies)."""
 
-    def __init__(self, cfg: EnvConfig, num_worlds: int):
+    def __init__(self, cfg: EnvConfig, num_worlds: int, visual: bool = True):
         B, N = num_worlds, cfg.num_quads
-        self.arena = build_arena(cfg, num_worlds)
+        self.arena = build_arena(cfg, num_worlds) if visual else build_arena(cfg, num_worlds, visual=False)
         self.model = self.arena.model
         self.data = mujoco.MjData(self.model)
         qs, vs, fb = self.arena.qpos_start, self.arena.qvel_start, self.arena.first_body
@@ -84,9 +91,13 @@ class _MjDataPhysics:
         self.xfrc = self.data.xfrc_applied[fb:fb + B * N].reshape(B, N, 6)
         assert np.shares_memory(self.qpos, self.data.qpos) and np.shares_memory(self.xfrc, self.data.xfrc_applied)
         self.offsets = self.arena.world_offsets[:, None, :]
+        self.dirty = False  # unused: qpos/qvel are MjData itself
 
-    def step(self) -> None:
+    def step(self, max_omega: float) -> None:
+        """One physics sub-step, then angular velocity clipped to +-max_omega per body axis."""
         mujoco.mj_step(self.model, self.data)
+        w = self.qvel[..., 3:]
+        np.minimum(np.maximum(w, -max_omega, out=w), max_omega, out=w)  # = clip
 
     def write_params(self, idx: Any, mass: np.ndarray, inertia: np.ndarray) -> None:
         ids = self.arena.body_ids[idx].ravel()
@@ -98,41 +109,91 @@ class _MjDataPhysics:
         mujoco.mj_forward(self.model, self.data)
 
 
-class _BatchPhysics:
-    """B one-world simulations in a ``mujoco.batch.Batch`` (no visual geoms, see the module doc)."""
+_CHUNK_MODELS: dict[Any, Any] = {}  # (cfg, worlds) -> lean arena, compiled once per process
 
-    def __init__(self, cfg: EnvConfig, num_worlds: int, nthread: int = 1):
+
+class _BatchPhysics:
+    """B worlds as K = ceil(B / C) simulations of a C-world model (no visual geoms) in one
+    ``mujoco.batch.Batch``: one call steps them all. The engine's qpos/qvel/xfrc are (B, N, .)
+    arrays copied into the simulations' state rows before each step and back after it.
+
+    Why chunks: ``MjSpec`` assembly grows quadratically with the bodies in one model (a 1024-world
+    model takes minutes to build), while a C = 64-world model builds in a fraction of a second and
+    steps as fast per body as any larger one; one-world simulations (C = 1) pay MuJoCo's per-call
+    overhead for every 8 bodies and step about half as fast (measured in BENCHMARKS.md).
+    """
+
+    def __init__(self, cfg: EnvConfig, num_worlds: int, chunk_worlds: int = 64, nthread: int = 1):
         import mujoco.batch
 
         B, N = num_worlds, cfg.num_quads
-        self.arena = build_arena(cfg, 1, visual=False)
+        C = max(1, min(int(chunk_worlds), B))
+        K = -(-B // C)
+        key = (cfg, C)
+        if key not in _CHUNK_MODELS:
+            _CHUNK_MODELS[key] = build_arena(cfg, C, visual=False)
+        self.arena = _CHUNK_MODELS[key]
         self.model = self.arena.model
         self.data = None
-        self.batch = mujoco.batch.Batch(self.model, nsim=B, nthread=nthread)
+        self.batch = mujoco.batch.Batch(self.model, nsim=K, nthread=nthread)
+        self.B, self.C, self.K = B, C, K
         qs, vs, fb = self.arena.qpos_start, self.arena.qvel_start, self.arena.first_body
-        self.qpos = self.batch.bind("qpos")[:, qs:qs + 7 * N].reshape(B, N, 7)  # live views of the state rows
-        self.qvel = self.batch.bind("qvel")[:, vs:vs + 6 * N].reshape(B, N, 6)
-        self.xfrc = self.batch.bind("xfrc_applied")[:, fb:fb + N]
+        self._rq = self.batch.bind("qpos")[:, qs:qs + 7 * C * N]  # (K, 7 C N) live views of the state rows
+        self._rv = self.batch.bind("qvel")[:, vs:vs + 6 * C * N]
+        self._rx = self.batch.bind("xfrc_applied")[:, fb:fb + C * N]
+        self._rw = self._rv.reshape(K, C * N, 6)[..., 3:]  # angular velocities in the rows (a view)
+        self.dirty = True  # the engine's qpos/qvel differ from the rows
         self._time = self.batch.bind("time")
-        self._mass = self.batch.expand("body_mass")[:, fb:fb + N]  # per-simulation model fields
-        self._inertia = self.batch.expand("body_inertia")[:, fb:fb + N]
-        self.offsets = np.zeros((1, 1, 3))
+        self._rmass = self.batch.expand("body_mass")[:, fb:fb + C * N]  # per-simulation model fields
+        self._rinertia = self.batch.expand("body_inertia")[:, fb:fb + C * N]
+        self._qpos = self._rq.reshape(K * C, N, 7).copy()  # padded to K * C worlds
+        self._qvel = np.zeros((K * C, N, 6))
+        self._xfrc = np.zeros((K * C, N, 6))
+        self._mass = self._rmass.reshape(K * C, N).copy()
+        self._inertia = self._rinertia.reshape(K * C, N, 3).copy()
+        self._pad = K * C - B  # padding worlds stay at the model's rest pose
+        self._pad_qpos = self._qpos[B:].copy()
+        self.qpos, self.qvel, self.xfrc = self._qpos[:B], self._qvel[:B], self._xfrc[:B]
+        self.offsets = np.tile(self.arena.world_offsets, (K, 1))[:B, None, :]
 
-    def step(self) -> None:
+    def step(self, max_omega: float) -> None:
+        """One physics sub-step, angular velocity clipped to +-max_omega (in the state rows, so the
+        copy back brings it); qpos/qvel are copied in only when the engine changed them."""
+        K = self.K
+        if self.dirty:
+            self._rq[...] = self._qpos.reshape(K, -1)
+            self._rv[...] = self._qvel.reshape(K, -1)
+            self.dirty = False
+        self._rx[...] = self._xfrc.reshape(self._rx.shape)
         self.batch.step()
+        w = self._rw
+        np.minimum(np.maximum(w, -max_omega, out=w), max_omega, out=w)  # = clip
+        self._qpos.reshape(K, -1)[...] = self._rq
+        self._qvel.reshape(K, -1)[...] = self._rv
+        if self._pad:  # padding worlds restart from rest at every sub-step
+            self._qpos[self.B:] = self._pad_qpos
+            self._qvel[self.B:] = 0.0
+            self.dirty = True
 
     def write_params(self, idx: Any, mass: np.ndarray, inertia: np.ndarray) -> None:
-        self._mass[idx] = mass
-        self._inertia[idx] = inertia
+        self._mass[:self.B][idx] = mass
+        self._inertia[:self.B][idx] = inertia
+        self._rmass[...] = self._mass.reshape(self.K, -1)
+        self._rinertia[...] = self._inertia.reshape(self._rinertia.shape)
 
     def after_reset(self, idx: Any) -> None:
-        self._time[idx] = 0.0
+        sims = np.arange(self.B)[idx] // self.C
+        self._time[np.unique(sims)] = 0.0
 
 
 def _put(arr: np.ndarray, idx: Any, value: Any) -> np.ndarray:
     """``arr`` with rows ``idx`` replaced (a fresh array; ``value`` itself when idx is every row)."""
     if isinstance(idx, slice):
-        return np.array(np.broadcast_to(value, arr.shape), dtype=arr.dtype)
+        if type(value) is np.ndarray and value.shape == arr.shape and value.dtype == arr.dtype:
+            return value  # a fresh result of a model function: take it as it is
+        out = np.empty_like(arr)
+        out[...] = value
+        return out
     out = arr.copy()
     out[idx] = value
     return out
@@ -142,10 +203,13 @@ class CpuSwarm:
     """B worlds of N quads on CPU MuJoCo. State arrays are (B, N, ...), world-local frames.
 
     The state changes only through :meth:`reset` and :meth:`step` (the engine keeps the rotation
-    matrices of the last step for the next one).
+    matrices of the last step for the next one, and the "batch" back end copies qpos/qvel into
+    MuJoCo only after the engine changed them: code that writes ``qpos``/``qvel`` directly must
+    call :meth:`state_changed`).
     """
 
-    def __init__(self, cfg: EnvConfig, num_worlds: int = 1, backend: str = "mjdata", nthread: int = 1):
+    def __init__(self, cfg: EnvConfig, num_worlds: int = 1, backend: str = "mjdata", visual: bool = True,
+                 chunk_worlds: int = 64, nthread: int = 1):
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         if not isinstance(num_worlds, (int, np.integer)) or num_worlds < 1:
@@ -153,7 +217,8 @@ class CpuSwarm:
         self.cfg = cfg
         self.B, self.N = int(num_worlds), cfg.num_quads
         self.backend = backend
-        self.phys: Any = _MjDataPhysics(cfg, self.B) if backend == "mjdata" else _BatchPhysics(cfg, self.B, nthread)
+        self.phys: Any = (_MjDataPhysics(cfg, self.B, visual) if backend == "mjdata"
+                          else _BatchPhysics(cfg, self.B, chunk_worlds, nthread))
         self.arena, self.model, self.data = self.phys.arena, self.phys.model, self.phys.data
         self.qpos, self.qvel, self.xfrc = self.phys.qpos, self.phys.qvel, self.phys.xfrc  # (B, N, .) views
         self.offsets = self.phys.offsets
@@ -216,6 +281,11 @@ class CpuSwarm:
     def seed(self, seed: Any) -> None:
         """Reseed the engine's generator (an int, a ``SeedSequence`` or None)."""
         self.rng = np.random.default_rng(seed)
+
+    def state_changed(self) -> None:
+        """Tell the engine that ``qpos``/``qvel`` were written from outside."""
+        self._R = None
+        self.phys.dirty = True
 
     # ------------------------------------------------------------------ state access
     def _rotations(self) -> np.ndarray:
@@ -296,6 +366,7 @@ class CpuSwarm:
         self.qpos[idx, :, 3:7] = rotmat_to_quat(R)
         self.qvel[idx, :, :3] = vel
         self.qvel[idx, :, 3:] = omega
+        self.phys.dirty = True
         self._R = None
         self.u = _put(self.u, idx, u0)
         self.motor_eps = _put(self.motor_eps, idx, 0.0)
@@ -325,7 +396,6 @@ class CpuSwarm:
                                               cfg.noise.motor_noise_theta, self.rng.standard_normal((B, N, 4)))
         hit_floor = np.zeros((B, N), bool)
         max_w = cfg.quad.max_omega
-        omega_view = self.qvel[..., 3:]
         R = self._rotations()
         for s in range(cfg.substeps):
             if s > 0:
@@ -343,8 +413,7 @@ class CpuSwarm:
                     force[w], torque[w] = fw, tw
             self.xfrc[..., :3] = force
             self.xfrc[..., 3:] = torque
-            self.phys.step()
-            np.minimum(np.maximum(omega_view, -max_w, out=omega_view), max_w, out=omega_view)  # = clip
+            self.phys.step(max_w)  # also clips omega to +-max_w per body axis
             if self.paper_floor:
                 grounded = self.qpos[..., 2] <= self.floor_z
                 if self._any_on_floor:
@@ -401,11 +470,14 @@ class CpuSwarm:
             self.qpos[..., :3] = pos + self.offsets
             self.qvel[..., :3] = vel
             self.qvel[..., 3:] = omega
+            self.phys.dirty = True
         return {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": new_contact,
                 "hit_floor": hit_floor, "hit_wall": hit_wall, "hit_ceiling": hit_ceiling}
 
     def _worlds(self, flags: np.ndarray) -> Any:
         """Index of the worlds with any flag set: a slice when that is every world (views, no copy)."""
+        if self.B == 1:  # callers ask only when some flag is set
+            return _ALL
         per_world = flags.reshape(self.B, -1).any(-1)
         return _ALL if per_world.all() else np.flatnonzero(per_world)
 
@@ -418,7 +490,9 @@ class CpuSwarm:
         cfg = self.cfg
         q, v = self.qpos[w], self.qvel[w]
         R = quat_to_rotmat(q[..., 3:7])
-        yaw = self._sampler(cfg.noise.stochastic_collisions).draw(self._spec_floor, (self._count(w),))["yaw"]
+        M, d = self._count(w), self._spec_floor["yaw"]  # = self._sampler(...).draw(self._spec_floor, (M,))["yaw"]
+        yaw = (self.rng.uniform(d.low, d.high, size=(M, self.N)) if cfg.noise.stochastic_collisions
+               else np.full((M, self.N), d.mean))
         r = floor_impact(q[..., :3] - (self.offsets if self.offsets.shape[0] == 1 else self.offsets[w]),
                          v[..., :3], v[..., 3:], q[..., 3:7], R, self.u[w], self.on_floor[w], self.floor_z, yaw,
                          with_rotmat=False)
@@ -427,6 +501,7 @@ class CpuSwarm:
         self.qpos[w, :, 3:7] = r["quat"]
         self.qvel[w, :, :3] = r["vel"]
         self.qvel[w, :, 3:] = r["omega"]
+        self.phys.dirty = True
         self.u = _put(self.u, w, r["u"])
         self.on_floor = _put(self.on_floor, w, r["on_floor"])
         self._any_on_floor = bool(self.on_floor.any())
@@ -461,19 +536,31 @@ class CpuSwarm:
         return {"obs": self.observe(k), "rewards": rewards, "terms": terms, "truncated": truncated,
                 "kin": k, "t": t}
 
-    def observe(self, kin: dict[str, Any] | None = None) -> np.ndarray:
-        """Observations (B, N, obs_dim) float64 (sensor noise drawn now)."""
-        if kin is None:
-            pos, vel, R, omega = self.kinematics()
-            dist = None
-        else:
+    def observe(self, kin: dict[str, Any] | None = None, worlds: Any = None) -> np.ndarray:
+        """Observations (B, N, obs_dim) float64 (sensor noise drawn now), or (len(worlds), N,
+        obs_dim) for the worlds ``worlds`` (an index array; noise drawn for those only)."""
+        if kin is not None:
             pos, vel, R, omega, dist = kin["pos"], kin["vel"], kin["R"], kin["omega"], kin["dist"]
+            goals = self.sstate.goals
+        else:
+            pos, vel, R, omega = self.kinematics()
+            dist, goals = None, self.sstate.goals
+            if worlds is not None:
+                pos, vel, R, omega, goals = pos[worlds], vel[worlds], R[worlds], omega[worlds], goals[worlds]
         noise = None
         if self._sensor_on:  # = NumpySampler(rng).draw(sensor_noise_spec(cfg), (B,)): 0 + std * N(0, 1)
-            z = 0.0 + self._sensor_std * self.rng.standard_normal((3, self.B, self.N, 3))
+            z = 0.0 + self._sensor_std * self.rng.standard_normal((3,) + pos.shape)
             noise = dict(zip(self._sensor_keys, z))
-        return build_obs(self.cfg, pos, vel, R, omega, self.sstate.goals, noise, self.obs_low, self.obs_high,
+        return build_obs(self.cfg, pos, vel, R, omega, goals, noise, self.obs_low, self.obs_high,
                          self.obs_scale, dist=dist)
+
+    def state_into(self, out: dict[str, np.ndarray]) -> None:
+        """Write :meth:`state_dict`'s arrays into ``out`` (preallocated (B, N, ...) arrays)."""
+        np.subtract(self.qpos[..., :3], self.offsets, out=out["pos"])
+        out["vel"][...] = self.qvel[..., :3]
+        out["rot"][...] = self._rotations()
+        out["omega"][...] = self.qvel[..., 3:]
+        out["thrust"][...] = self.f_norm
 
     def episode_metrics(self) -> dict[str, np.ndarray]:
         """Per-world episode metrics (B,) so far."""

@@ -1,0 +1,344 @@
+"""Offscreen frames of a swarm with MuJoCo's renderer (EGL or OSMesa, no display needed).
+
+:class:`SwarmRenderer` draws world ``world`` of a CPU engine (:class:`quadswarm_mj.envs.cpu_core.CpuSwarm`,
+or anything with ``model``, ``data``, ``sstate.goals`` (B, N, 3), ``arena``) and returns RGB
+frames (H, W, 3) uint8:
+
+* each quad gets a colour (:func:`quad_colors`): its body plate and propellers are tinted with it,
+  and its goal is drawn as a small unlit sphere of the same colour (a user geom added to the scene
+  with ``mjv_initGeom``; no body is added to the model);
+* optional trails: a polyline of each quad's last ``trail_length`` rendered positions;
+* cameras: ``"overview"`` (default) is a free camera that frames every quad and goal of the world
+  (look-at the centre of their bounding sphere, distance from the field of view, smoothed over
+  frames: it widens at once and narrows slowly), ``"chase"`` follows quad ``chase_quad`` from
+  behind, and any fixed camera of the room by name (``"top"``; ``"fixed:overview"`` is the room's
+  own fixed overview camera) or index.
+
+Rendering never changes the simulation: the renderer keeps its own copy of the model (the tints
+live there) and its own ``MjData``; every frame copies ``qpos`` into it and runs
+``mj_kinematics`` + ``mj_camlight`` there (``data.xpos`` of the simulation is from before the last
+integration after ``mj_step``; the copy is always current). No random numbers are drawn.
+
+The GL backend is fixed when mujoco is first imported: ``import quadswarm_mj`` sets
+``MUJOCO_GL=egl`` when it is unset. If mujoco was imported first (so it chose GLFW) and no OpenGL
+was loaded yet, the renderer switches mujoco's context class to the requested backend. If the
+renderer cannot start, a ``RuntimeError`` names the fix.
+"""
+
+from __future__ import annotations
+
+import colorsys
+import copy
+import math
+import os
+import sys
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from quadswarm_mj.spatial import yaw_of
+
+#: geoms of each quad that carry its colour (suffixes of the attached geom names).
+TINTED_GEOMS = ("plate", "prop_fr", "prop_br", "prop_bl", "prop_fl")
+CAMERAS = ("overview", "chase")
+_FIX_HINT = (
+    "Fix: install Mesa's EGL driver (Debian/Ubuntu: `apt-get install libegl1 libgl1-mesa-dri libegl-mesa0`), "
+    "or use software OSMesa (`apt-get install libosmesa6` and run with MUJOCO_GL=osmesa). MUJOCO_GL must be "
+    "set before mujoco is first imported; `import quadswarm_mj` sets MUJOCO_GL=egl when it is unset, so import "
+    "quadswarm_mj (or set the variable) before importing mujoco."
+)
+
+
+def quad_colors(n: int) -> np.ndarray:
+    """(n, 4) RGBA colours in [0, 1], one per quad: saturated hues (golden-ratio steps from red),
+    full value, so they stand out from the grey floor and the pale sky."""
+    hues = (np.arange(n) * 0.6180339887498949) % 1.0
+    rgb = np.array([colorsys.hsv_to_rgb(h, 0.9, 1.0) for h in hues]).reshape(n, 3)
+    return np.concatenate([rgb, np.ones((n, 1))], axis=1)
+
+
+def _gl_backend() -> str:
+    try:
+        from mujoco.rendering.classic import gl_context
+
+        cls = getattr(gl_context, "GLContext", None)
+        return "" if cls is None else cls.__module__
+    except Exception:  # noqa: BLE001
+        return ""
+
+
+def _adopt_requested_backend() -> None:
+    """If mujoco was imported before ``MUJOCO_GL`` was set (so it picked GLFW, which needs a
+    display) and no OpenGL has been loaded yet, switch mujoco's offscreen context class to the
+    backend ``MUJOCO_GL`` now asks for (egl or osmesa). Nothing changes otherwise."""
+    gl = os.environ.get("MUJOCO_GL", "").lower()
+    if gl not in ("egl", "osmesa") or "OpenGL" in sys.modules:
+        return
+    try:
+        from mujoco.rendering.classic import gl_context
+    except ImportError:
+        return
+    cls = getattr(gl_context, "GLContext", None)
+    if cls is not None and getattr(cls, "__module__", "").startswith("mujoco.glfw"):
+        if gl == "egl":
+            from mujoco.egl import GLContext
+        else:
+            from mujoco.osmesa import GLContext
+        gl_context.GLContext = GLContext
+
+
+def start_renderer(model: mujoco.MjModel, width: int, height: int, max_geom: int) -> mujoco.Renderer:
+    """``mujoco.Renderer`` or a RuntimeError that names the fix."""
+    gl = os.environ.get("MUJOCO_GL")
+    try:
+        _adopt_requested_backend()
+        return mujoco.Renderer(model, height=height, width=width, max_geom=max_geom)
+    except Exception as e:  # noqa: BLE001 - GL failures come as ImportError, FatalError, AttributeError...
+        backend = _gl_backend()
+        extra = ""
+        if gl in ("egl", "osmesa") and backend and gl not in backend:
+            extra = (f" mujoco was imported before MUJOCO_GL={gl!r} was set and uses {backend}; "
+                     "set MUJOCO_GL in the shell or import quadswarm_mj first.")
+        elif gl in (None, "", "glfw", "glx") and not os.environ.get("DISPLAY"):
+            extra = f" MUJOCO_GL={gl!r} needs a display and DISPLAY is unset; use MUJOCO_GL=egl."
+        raise RuntimeError(f"MuJoCo's offscreen renderer could not start (MUJOCO_GL={gl!r}, "
+                           f"{type(e).__name__}: {e}).{extra} {_FIX_HINT}") from e
+
+
+class SwarmRenderer:
+    """Offscreen RGB frames of one world of a swarm engine (see the module docstring).
+
+    Args:
+        core: the engine (``env.core`` of the CPU envs).
+        width, height: frame size in pixels.
+        camera: default camera of :meth:`render` (``"overview"``, ``"chase"``, a room camera name or
+            index, ``"fixed:<name>"``, or a ``mujoco.MjvCamera`` used as given).
+        world: which world of a multi-world engine to draw (the others are hidden).
+        trail_length: rendered positions kept per quad for trails (0: no trails).
+        show_goals: draw the goal markers.
+        marker_radius: goal marker radius (m); the marker is a translucent, unlit sphere.
+        marker_alpha: goal marker opacity in (0, 1].
+        shadows: render shadows (prettier; costs about 2x in software GL).
+        antialias: 4x multisampling (costs about 2x more in software GL; barely visible in videos).
+        smooth_camera: smooth the overview camera over frames (for videos).
+        chase_quad: the quad the chase camera follows.
+    """
+
+    def __init__(self, core: Any, width: int = 640, height: int = 480, camera: Any = "overview",
+                 world: int = 0, trail_length: int = 0, show_goals: bool = True, marker_radius: float = 0.05,
+                 marker_alpha: float = 0.55, shadows: bool = True, antialias: bool = False,
+                 smooth_camera: bool = True, chase_quad: int = 0):
+        for name, v in (("width", width), ("height", height)):
+            if not isinstance(v, int) or isinstance(v, bool) or not 16 <= v <= 8192:
+                raise ValueError(f"{name} must be an int in [16, 8192] pixels, got {v!r}")
+        if not isinstance(trail_length, int) or trail_length < 0:
+            raise ValueError(f"trail_length must be an int >= 0, got {trail_length!r}")
+        arena = core.arena
+        if not 0 <= world < arena.num_worlds:
+            raise ValueError(f"world must be in [0, {arena.num_worlds}), got {world!r}")
+        if not 0 <= chase_quad < arena.num_quads:
+            raise ValueError(f"chase_quad must be in [0, {arena.num_quads}), got {chase_quad!r}")
+        self.core, self.world, self.width, self.height = core, world, width, height
+        self.num_quads = arena.num_quads
+        if not 0.0 < marker_alpha <= 1.0:
+            raise ValueError(f"marker_alpha must be in (0, 1], got {marker_alpha!r}")
+        self.show_goals, self.marker_radius, self.marker_alpha = show_goals, float(marker_radius), float(marker_alpha)
+        self.trail_length, self.smooth_camera, self.chase_quad = trail_length, smooth_camera, chase_quad
+        self.colors = quad_colors(self.num_quads)
+        # private model (tints, framebuffer size) and data: the simulation is never touched
+        self.model = copy.deepcopy(core.model)
+        self.model.vis.global_.offwidth = max(width, self.model.vis.global_.offwidth)
+        self.model.vis.global_.offheight = max(height, self.model.vis.global_.offheight)
+        self.model.vis.quality.offsamples = 4 if antialias else 0
+        self.data = mujoco.MjData(self.model)
+        self.body_ids = np.asarray(arena.body_ids[world])
+        self.world_offset = np.asarray(arena.world_offsets[world], dtype=np.float64)
+        self._tint(arena)
+        self.camera = self._resolve_camera(camera)  # validates the default camera
+        max_geom = int(self.model.ngeom + self.num_quads * (2 + trail_length) + 100)
+        self._renderer = start_renderer(self.model, width, height, max_geom)
+        self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = bool(shadows)
+        self._option = mujoco.MjvOption()
+        self._trail = np.zeros((max(trail_length, 1), self.num_quads, 3))
+        self._trail_count = 0
+        self._cam_state: tuple[np.ndarray, float] | None = None
+        self._chase_yaw: float | None = None
+        self._last_time = -1.0
+
+    # ------------------------------------------------------------------ set-up
+    def _tint(self, arena: Any) -> None:
+        m = self.model
+        quad_of_body = {int(b): i for i, b in enumerate(self.body_ids)}
+        other = set(int(b) for b in np.asarray(arena.body_ids).ravel()) - set(quad_of_body)
+        for gid in range(m.ngeom):
+            body = int(m.geom_bodyid[gid])
+            if body in other:  # other worlds share the room in the "paper" model: hide them
+                m.geom_rgba[gid, 3] = 0.0
+            elif body in quad_of_body and m.geom(gid).name.split("/")[-1] in TINTED_GEOMS:
+                rgba = self.colors[quad_of_body[body]].copy()
+                rgba[3] = m.geom_rgba[gid, 3]
+                m.geom_rgba[gid] = rgba
+
+    def _resolve_camera(self, camera: Any) -> Any:
+        if isinstance(camera, mujoco.MjvCamera):
+            return camera
+        if isinstance(camera, (int, np.integer)) and not isinstance(camera, bool):
+            if not -1 <= int(camera) < self.model.ncam:
+                raise ValueError(f"camera index must be in [-1, {self.model.ncam}), got {camera}")
+            return int(camera)
+        if not isinstance(camera, str):
+            raise ValueError(f"camera must be a name or an index, got {camera!r}")
+        if camera in CAMERAS:
+            return camera
+        name = camera[len("fixed:"):] if camera.startswith("fixed:") else camera
+        cid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, name)
+        if cid < 0:
+            fixed = [self.model.camera(i).name for i in range(self.model.ncam)]
+            raise ValueError(f"unknown camera {camera!r}; known: {list(CAMERAS)} and the room cameras {fixed} "
+                             f"(prefix 'fixed:' to pick a room camera that shares a name)")
+        return int(cid)
+
+    def cameras(self) -> list[str]:
+        """Names accepted by :meth:`render`."""
+        return list(CAMERAS) + [f"fixed:{self.model.camera(i).name}" for i in range(self.model.ncam)]
+
+    # ------------------------------------------------------------------ state
+    def _sync(self, qpos: Any | None) -> np.ndarray:
+        """Copy the pose into the private data and update its kinematics; return the quad
+        positions (N, 3) in the MuJoCo frame (world offset included)."""
+        src = self.core.data.qpos if qpos is None else np.asarray(qpos, dtype=np.float64)
+        if src.shape != self.data.qpos.shape:
+            raise ValueError(f"qpos must have shape {self.data.qpos.shape}, got {src.shape}")
+        self.data.qpos[:] = src
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_camlight(self.model, self.data)
+        return self.data.xpos[self.body_ids].copy()
+
+    def _goals(self, goals: Any | None) -> np.ndarray:
+        if goals is None:
+            goals = np.asarray(self.core.sstate.goals)[self.world]
+        goals = np.asarray(goals, dtype=np.float64).reshape(self.num_quads, 3)
+        return goals + self.world_offset
+
+    def reset(self) -> None:
+        """Forget trails and camera smoothing (called automatically when a new episode starts)."""
+        self._trail_count = 0
+        self._cam_state = None
+        self._chase_yaw = None
+
+    # ------------------------------------------------------------------ cameras
+    def _overview_camera(self, points: np.ndarray) -> mujoco.MjvCamera:
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        center = 0.5 * (lo + hi)
+        radius = float(np.max(np.linalg.norm(points - center, axis=1))) + 0.35
+        fovy = math.radians(self.model.vis.global_.fovy)
+        fovx = 2.0 * math.atan(math.tan(fovy / 2) * self.width / self.height)
+        dist = max(1.5, 1.1 * radius / math.sin(min(fovx, fovy) / 2))
+        if self.smooth_camera and self._cam_state is not None:
+            look, d = self._cam_state
+            look = look + 0.15 * (center - look)
+            dist = dist if dist > d else d + 0.05 * (dist - d)
+            center = look
+        self._cam_state = (center, dist)
+        cam = mujoco.MjvCamera()
+        cam.type = mujoco.mjtCamera.mjCAMERA_FREE
+        cam.lookat[:] = center
+        cam.distance = dist
+        cam.azimuth = 90.0  # looking along +y, like the room's fixed overview camera
+        cam.elevation = -28.0
+        return cam
+
+    def _chase_camera(self) -> mujoco.MjvCamera:
+        i = self.chase_quad
+        yaw = float(yaw_of(self.data.xmat[self.body_ids[i]].reshape(3, 3)))
+        if self._chase_yaw is None or not self.smooth_camera:
+            self._chase_yaw = yaw
+        else:  # smooth the heading on the circle
+            self._chase_yaw += 0.2 * math.atan2(math.sin(yaw - self._chase_yaw), math.cos(yaw - self._chase_yaw))
+        cam = mujoco.MjvCamera()
+        cam.type = mujoco.mjtCamera.mjCAMERA_FREE
+        cam.lookat[:] = self.data.xpos[self.body_ids[i]]
+        cam.distance = 0.9
+        cam.azimuth = math.degrees(self._chase_yaw)
+        cam.elevation = -20.0
+        return cam
+
+    # ------------------------------------------------------------------ drawing
+    def _add_geom(self, gtype: int, size: Any, pos: Any, rgba: Any, emission: float = 0.0) -> Any:
+        scn = self._renderer.scene
+        if scn.ngeom >= scn.maxgeom:
+            return None
+        g = scn.geoms[scn.ngeom]
+        mujoco.mjv_initGeom(g, int(gtype), np.asarray(size, dtype=np.float64), np.asarray(pos, dtype=np.float64),
+                            np.eye(3).ravel(), np.asarray(rgba, dtype=np.float32))
+        g.emission = emission
+        g.specular = 0.0
+        g.castshadow = False
+        scn.ngeom += 1
+        return g
+
+    def _draw_goals(self, goals: np.ndarray) -> None:
+        r = self.marker_radius
+        for i in range(self.num_quads):  # scene decoration, not simulation: a loop is fine
+            rgba = np.concatenate([self.colors[i, :3], [self.marker_alpha]])
+            self._add_geom(mujoco.mjtGeom.mjGEOM_SPHERE, (r, r, r), goals[i], rgba, emission=0.8)
+
+    def _draw_trails(self) -> None:
+        k = min(self._trail_count, self.trail_length)
+        if k < 2:
+            return
+        idx = [(self._trail_count - k + j) % self.trail_length for j in range(k)]
+        pts = self._trail[idx]  # (k, N, 3), oldest first
+        for i in range(self.num_quads):
+            for j in range(k - 1):
+                alpha = 0.2 + 0.8 * (j + 1) / (k - 1)
+                rgba = np.concatenate([self.colors[i, :3], [alpha]])
+                g = self._add_geom(mujoco.mjtGeom.mjGEOM_LINE, (1, 1, 1), pts[j, i], rgba, emission=1.0)
+                if g is None:
+                    return
+                mujoco.mjv_connector(g, mujoco.mjtGeom.mjGEOM_LINE, 3.0, pts[j, i], pts[j + 1, i])
+
+    def render(self, camera: Any = None, qpos: Any | None = None, goals: Any | None = None) -> np.ndarray:
+        """One RGB frame (height, width, 3) uint8 of the current state.
+
+        ``camera`` overrides the default camera for this frame. ``qpos`` (model nq) and ``goals``
+        (N, 3, world-local m) draw a given state instead of the engine's (e.g. an MJX state
+        copied to NumPy).
+        """
+        cam_key = self.camera if camera is None else self._resolve_camera(camera)
+        t = float(self.core.data.time) if qpos is None else -1.0
+        if 0.0 <= t < self._last_time:  # time went back: a new episode
+            self.reset()
+        self._last_time = t
+        pos = self._sync(qpos)
+        goal_w = self._goals(goals)
+        if self.trail_length:
+            self._trail[self._trail_count % self.trail_length] = pos
+            self._trail_count += 1
+        if cam_key == "overview":
+            pts = np.concatenate([pos, goal_w]) if self.show_goals else pos
+            cam: Any = self._overview_camera(pts)
+        elif cam_key == "chase":
+            cam = self._chase_camera()
+        else:
+            cam = cam_key
+        self._renderer.update_scene(self.data, camera=cam, scene_option=self._option)
+        if self.show_goals:
+            self._draw_goals(goal_w)
+        if self.trail_length:
+            self._draw_trails()
+        return self._renderer.render()
+
+    def close(self) -> None:
+        """Free the GL resources (idempotent)."""
+        r = getattr(self, "_renderer", None)
+        if r is not None:
+            r.close()
+            self._renderer = None
+
+    def __enter__(self) -> SwarmRenderer:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
