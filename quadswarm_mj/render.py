@@ -245,7 +245,7 @@ class SwarmRenderer:
         cam.type = mujoco.mjtCamera.mjCAMERA_FREE
         cam.lookat[:] = center
         cam.distance = dist
-        cam.azimuth = 90.0  # looking along +y, like the room's fixed overview camera
+        cam.azimuth = 60.0  # oblique (from the -x, -y side): planar formations are never seen edge-on
         cam.elevation = -28.0
         return cam
 
