@@ -277,11 +277,9 @@ def _check_recorded(name, scenarios, episodes=20):
             assert abs(got - rec[key]) <= tol, (name, scenario, key, got, rec[key], tol)
 
 
-@pytest.mark.slow
 def test_pretrained_single_reproduces_recorded_metrics():
     _check_recorded("single", ["static_same_goal", "dynamic_same_goal"])
 
 
-@pytest.mark.slow
 def test_pretrained_swarm8_reproduces_recorded_metrics():
     _check_recorded("swarm8", ["static_diff_goal", "swap_goals"])

@@ -3,7 +3,7 @@
 NumPy + MuJoCo only (no JAX). Two paths give the same statistics:
 
 * ``batched`` (default): the CPU engine behind ``QuadSwarmEnv`` (``CpuSwarm``) stepping up to
-  ``max_worlds`` episodes at once in one MjData: same model, same per-episode metrics
+  ``max_worlds`` episodes at once: same model, same per-episode metrics
   (``CpuSwarm.episode_metrics`` is what ``QuadSwarmEnv`` puts in ``info["episode_metrics"]``),
   many times faster;
 * ``gym``: ``QuadSwarmEnv`` itself, one episode after the other, metrics read from

@@ -1,7 +1,7 @@
 """PPO for quadswarm_mj: Brax's PPO (loss, networks, observation normalizer) on the batched CPU engine.
 
 Why this split (measurements in TRAINING.md): on this 2-core CPU the MuJoCo C engine stepping B
-worlds in one ``MjData`` (``quadswarm_mj.envs.cpu_core.CpuSwarm``) is several times faster than
+worlds together (``quadswarm_mj.envs.cpu_core.CpuSwarm``) is several times faster than
 MJX on CPU, so rollouts run there (NumPy + MuJoCo, no Python loop over worlds or quads), while
 everything learned runs in JAX: the policy's action sampling (one jitted call per control step
 for all agents) and the PPO update (one jitted call per iteration: normalizer update, then
