@@ -23,8 +23,8 @@ and whose worlds are stepped by one MuJoCo call per physics sub-step. Shard 0 ru
 process, the others in worker processes (``python -c ...`` running :func:`_worker_main`) that share
 the action and output arrays with it through one memory-mapped file, so a step costs two one-byte
 pipe messages per worker. Processes rather than threads: NumPy and MuJoCo release the GIL only
-inside their C loops, and the model math is many small NumPy calls, so two threads measured little
-faster than one (BENCHMARKS.md); two processes use both cores fully. A worker exits when its pipe
+inside their C loops, and the model math is many small NumPy calls: at 256 worlds two threads
+measured 1.25x one process, two processes 1.6x (BENCHMARKS.md). A worker exits when its pipe
 closes, so none outlives the env (``close()``, garbage collection, or the parent's exit).
 
 Seeding: ``reset(seed=s)`` seeds shard k with ``SeedSequence(s).spawn(num_shards)[k]``; every world
