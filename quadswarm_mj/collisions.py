@@ -231,3 +231,15 @@ def quad_collisions(pos: Any, vel: Any, omega: Any, prev_contact: Any, hitbox: f
     inv = involved[..., None]
     return {"vel": xp.where(inv, v_new, vel), "omega": xp.where(inv, omega + d_omega, omega),
             "contact": contact, "new_contact": new}
+
+
+def collision_draw_specs(cfg: Any) -> dict[str, DrawSpec]:
+    """The draw specs of the paper's collision models for one world of ``cfg`` (an EnvConfig):
+    ``{"quad": ..., "wall": ..., "floor": ...}``; built once by each front end."""
+    n, c = cfg.num_quads, cfg.collision
+    return {
+        "quad": quad_collision_draw_spec(n, c.tries, c.shared_noise_std, c.own_noise_std, cfg.collision_decay,
+                                         c.kick_omega),
+        "wall": wall_draw_spec(n, cfg.collision_decay, c.kick_omega),
+        "floor": floor_draw_spec(n),
+    }

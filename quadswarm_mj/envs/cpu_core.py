@@ -53,14 +53,12 @@ from quadswarm_mj.actuation import (
 from quadswarm_mj.arena import build_arena
 from quadswarm_mj.collisions import (
     FLOOR_TOL,
-    floor_draw_spec,
+    collision_draw_specs,
     floor_impact,
     floor_wrench,
     pairwise_contacts,
-    quad_collision_draw_spec,
     quad_collisions,
     wall_collisions,
-    wall_draw_spec,
 )
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.downwash import apply_downwash, downwash_draw_spec
@@ -242,11 +240,8 @@ class CpuSwarm:
         self.rng = np.random.default_rng()
         self.total_steps = 0  # across episodes, for reward annealing
         # draw specs, built once
-        c = cfg.collision
-        self._spec_quad = quad_collision_draw_spec(N, c.tries, c.shared_noise_std, c.own_noise_std,
-                                                   cfg.collision_decay, c.kick_omega)
-        self._spec_wall = wall_draw_spec(N, cfg.collision_decay, c.kick_omega)
-        self._spec_floor = floor_draw_spec(N)
+        specs = collision_draw_specs(cfg)
+        self._spec_quad, self._spec_wall, self._spec_floor = specs["quad"], specs["wall"], specs["floor"]
         self._spec_down = downwash_draw_spec(N)
         spec_sensor = sensor_noise_spec(cfg)
         self._sensor_on = any(d.std > 0 for d in spec_sensor.values())

@@ -82,14 +82,12 @@ from quadswarm_mj.actuation import (
 )
 from quadswarm_mj.arena import build_arena
 from quadswarm_mj.collisions import (
-    floor_draw_spec,
+    collision_draw_specs,
     floor_impact,
     floor_wrench,
     pairwise_contacts,
-    quad_collision_draw_spec,
     quad_collisions,
     wall_collisions,
-    wall_draw_spec,
 )
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.downwash import apply_downwash, downwash_draw_spec
@@ -188,11 +186,8 @@ class MjxQuadSwarmEnv:
         low, high = obs_bounds(cfg)
         self._obs_low, self._obs_high = np.asarray(low, np.float64), np.asarray(high, np.float64)
         self._obs_scale = obs_scale(cfg) if cfg.normalize_obs else None
-        c = cfg.collision
-        self._spec_quad = quad_collision_draw_spec(n, c.tries, c.shared_noise_std, c.own_noise_std,
-                                                   cfg.collision_decay, c.kick_omega)
-        self._spec_wall = wall_draw_spec(n, cfg.collision_decay, c.kick_omega)
-        self._spec_floor = floor_draw_spec(n)
+        specs = collision_draw_specs(cfg)
+        self._spec_quad, self._spec_wall, self._spec_floor = specs["quad"], specs["wall"], specs["floor"]
         self._spec_down = downwash_draw_spec(n)
         self._spec_motor = motor_noise_draw_spec(n)
         self._spec_sensor = sensor_noise_spec(cfg)
