@@ -1,7 +1,8 @@
 """Build the MuJoCo world for N quads (and B worlds side by side) with MjSpec.
 
-The room (``assets/arenas/room.xml``) is rescaled to ``EnvConfig.room_size`` and one
-Crazyflie (``assets/crazyflie2.xml``) is attached per quad, named ``q{i}`` (``w{b}q{i}`` when
+The room (``quadswarm_mj/assets/arenas/room.xml``, package data read with ``importlib.resources``;
+``assets/`` at the top of the repository links to it) is rescaled to ``EnvConfig.room_size`` and one
+Crazyflie (``quadswarm_mj/assets/crazyflie2.xml``) is attached per quad, named ``q{i}`` (``w{b}q{i}`` when
 several worlds share the model). Quad bodies are contiguous, world-major, so their state in
 ``MjData`` is a plain (B, N, ...) view. Contacts are disabled in the "paper" collision model
 (the paper's own floor/wall/quad-quad models run instead); in "mujoco" and "blend" each quad's
@@ -11,16 +12,28 @@ hitbox sphere and the room geoms collide, and worlds are placed apart along x so
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
+from importlib import resources
+from importlib.resources.abc import Traversable
 
 import mujoco
 import numpy as np
 
 from quadswarm_mj.config import EnvConfig
 
-ASSETS_DIR = Path(__file__).resolve().parent.parent / "assets"
+#: The MJCF files shipped as package data (``importlib.resources`` traversables; they reference no other file).
+ASSETS_DIR = resources.files("quadswarm_mj") / "assets"
 CRAZYFLIE_XML = ASSETS_DIR / "crazyflie2.xml"
 ROOM_XML = ASSETS_DIR / "arenas" / "room.xml"
+
+
+def load_spec(asset: Traversable) -> mujoco.MjSpec:
+    """Parse one shipped MJCF file (read as text, so it also works from a zipped install)."""
+    try:
+        xml = asset.read_text(encoding="utf-8")
+    except FileNotFoundError as e:
+        raise FileNotFoundError(f"quadswarm_mj asset {asset} is missing from the installation "
+                                "(package data not installed?)") from e
+    return mujoco.MjSpec.from_string(xml)
 ROOM_GEOMS = ("floor", "wall_px", "wall_nx", "wall_py", "wall_ny", "ceiling")
 WALL_THICKNESS = 0.05  # half thickness, m
 
@@ -68,7 +81,7 @@ def build_arena(cfg: EnvConfig, num_worlds: int = 1, visual: bool = True) -> Are
     if num_worlds < 1:
         raise ValueError(f"num_worlds must be >= 1, got {num_worlds}")
     contacts = cfg.collision_model in ("mujoco", "blend")
-    spec = mujoco.MjSpec.from_file(str(ROOM_XML))
+    spec = load_spec(ROOM_XML)
     spec.modelname = "quadswarm"
     spec.copy_during_attach = True
     spec.option.timestep = cfg.sim_dt
@@ -96,7 +109,7 @@ def build_arena(cfg: EnvConfig, num_worlds: int = 1, visual: bool = True) -> Are
     cam = spec.camera("overview")
     cam.pos = (0.0, -0.95 * W - 0.3 * L, 0.75 * H)
 
-    cf = mujoco.MjSpec.from_file(str(CRAZYFLIE_XML))
+    cf = load_spec(CRAZYFLIE_XML)
     cf_body = cf.body("crazyflie")
     if not visual:
         for el in [g for g in cf.geoms if g.group == 2] + list(cf.sites):

@@ -1,0 +1,518 @@
+"""Throughput of quadswarm_mj on this machine, with the bare-MuJoCo ceiling measured in the same run.
+
+samples/s = quad-steps per second (one quad advanced one 100 Hz control step = 2 physics sub-steps
+of 200 Hz), paper defaults (collisions, noise, K = 6 neighbours, static_same_goal). Rows:
+
+* ``QuadSwarmEnv`` (one world) at N = 1, 8, 32, 128 quads;
+* ``QuadSwarmVectorEnv`` at B = 64, 256, 1024 worlds x 8 quads (auto-reset);
+* the MJX env (``quadswarm_mj.envs.mjx_env.benchmark_mjx``) at 1, 64, 512 worlds x 8 quads, if it
+  imports (``--skip-mjx`` to leave it out);
+* for every row, the bare-MuJoCo ceiling for the same number of bodies: free bodies with the
+  Crazyflie's inertia, contacts off, Euler, 2 sub-steps per control step; ``1 core`` steps one model
+  holding all bodies with ``mj_step``, ``rollout`` steps them split in equal models on both cores
+  with ``mujoco.rollout`` (long rollouts, no Python in the loop). The ceiling is the faster of the two.
+
+Workloads (actions): ``hover`` = the hover command on every rotor (the quads drift and many crash
+after ~1 s: the floor model then runs every sub-step, as in early RL training); ``random`` =
+uniform in [-1, 1]; ``controller`` = the baseline position controller flying to the goals (only
+the env's ``step`` is timed, not the controller). Each figure is the best of ``--repeat`` runs of
+``--seconds`` each (the machine is shared: best-of is the least noisy estimate), and every ratio is
+of figures measured in the same run.
+
+Also installed as the console command ``quadswarm-benchmark`` (same options)::
+
+    /work/venv/bin/python scripts/benchmark.py                 # full table -> BENCHMARKS.md
+    /work/venv/bin/python scripts/benchmark.py --quick --skip-mjx --no-write
+    /work/venv/bin/python scripts/benchmark.py --rows single,ceiling --single-n 8 --profile
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import datetime
+import os
+import platform
+import pstats
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import mujoco
+import mujoco.rollout
+
+from quadswarm_mj import EnvConfig, QuadSwarmEnv, QuadSwarmVectorEnv
+from quadswarm_mj.controllers import PositionController
+
+WORKLOADS = ("hover", "random", "controller")
+NOTES_MARKER = "<!-- notes: kept by scripts/benchmark.py -->"
+
+
+# ---------------------------------------------------------------------------------------- helpers
+def machine() -> str:
+    cpu = platform.processor() or "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} logical cores, {platform.system()} {platform.release()}, " \
+           f"Python {platform.python_version()}, numpy {np.__version__}, mujoco {mujoco.__version__}"
+
+
+def load() -> str:
+    try:
+        return " ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def timed(run: Callable[[int], float], seconds: float, repeat: int, min_steps: int = 3) -> float:
+    """Best rate (units/s) over ``repeat`` runs; ``run(n)`` does n steps and returns their time."""
+    n = min_steps
+    while True:  # calibrate n to about `seconds`
+        dt = run(n)
+        if dt >= 0.2 * seconds or n >= 1_000_000:
+            break
+        n *= 4
+    n = max(min_steps, int(n * seconds / max(dt, 1e-9)))
+    best = 0.0
+    for _ in range(repeat):
+        best = max(best, n / run(n))
+    return best
+
+
+def hover_like(shape: tuple[int, ...]) -> np.ndarray:
+    return np.full(shape, EnvConfig().quad.hover_action, dtype=np.float32)
+
+
+# ------------------------------------------------------------------------------------ env rows
+def bench_single(n: int, workload: str, seconds: float, repeat: int) -> float:
+    cfg = EnvConfig(num_quads=n)
+    env = QuadSwarmEnv(cfg)
+    _, info = env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    shape = env.action_space.shape
+    pool = [rng.uniform(-1, 1, shape).astype(np.float32) for _ in range(64)]
+    hover = hover_like(shape)
+    ctrl = PositionController(cfg) if workload == "controller" else None
+    state = {"info": info}
+
+    def run(steps: int) -> float:
+        total = 0.0
+        for i in range(steps):
+            if workload == "hover":
+                a = hover
+            elif workload == "random":
+                a = pool[i % 64]
+            else:
+                inf = state["info"]
+                a = np.asarray(ctrl(inf["state"], inf["goals"], inf["goal_vel"], inf["params"]),
+                               np.float32).reshape(shape)
+            t = time.perf_counter()
+            _, _, _, trunc, inf = env.step(a)
+            if trunc:
+                _, inf = env.reset()
+            total += time.perf_counter() - t
+            state["info"] = inf
+        return total
+
+    try:
+        return n * timed(run, seconds, repeat)
+    finally:
+        env.close()
+
+
+def bench_vector(B: int, n: int, workload: str, seconds: float, repeat: int, **kw: Any) -> float:
+    cfg = EnvConfig(num_quads=n)
+    env = QuadSwarmVectorEnv(cfg, num_envs=B, **kw)
+    try:
+        _, info = env.reset(seed=0)
+        rng = np.random.default_rng(0)
+        shape = env.action_space.shape
+        pool = [rng.uniform(-1, 1, shape).astype(np.float32) for _ in range(8)]
+        hover = hover_like(shape)
+        ctrl = PositionController(cfg) if workload == "controller" else None
+        state = {"info": info}
+
+        def run(steps: int) -> float:
+            total = 0.0
+            for i in range(steps):
+                if workload == "hover":
+                    a = hover
+                elif workload == "random":
+                    a = pool[i % 8]
+                else:
+                    inf = state["info"]
+                    a = np.asarray(ctrl(inf["state"], inf["goals"], inf["goal_vel"], inf["params"]), np.float32)
+                t = time.perf_counter()
+                _, _, _, _, inf = env.step(a)
+                total += time.perf_counter() - t
+                state["info"] = inf
+            return total
+
+        return B * n * timed(run, seconds, repeat)
+    finally:
+        env.close()
+
+
+def bench_mjx(worlds: int, n: int, steps: int) -> dict[str, float] | None:
+    try:
+        from quadswarm_mj.envs.mjx_env import benchmark_mjx
+    except Exception as e:  # noqa: BLE001
+        print(f"  MJX env not available ({e!r}); skipped", flush=True)
+        return None
+    return benchmark_mjx(EnvConfig(num_quads=n), worlds, steps)
+
+
+# -------------------------------------------------------------------------------------- ceiling
+def bare_model(bodies: int) -> mujoco.MjModel:
+    """``bodies`` free bodies with the Crazyflie's inertia and no geoms; contacts off, Euler, 5 ms."""
+    b = "".join(f"<body pos='{0.3 * (i // 8):.1f} 0 {1 + 0.2 * (i % 8):.1f}'><freejoint/><inertial pos='0 0 0' "
+                f"mass='0.028' diaginertia='1.3669e-05 1.4357e-05 2.6562e-05'/></body>" for i in range(bodies))
+    size = f"<size memory='{4 + bodies * 60 // 1000}M'/>"
+    return mujoco.MjModel.from_xml_string(f"<mujoco>{size}<option timestep='0.005' integrator='Euler'>"
+                                          f"<flag contact='disable'/></option><worldbody>{b}</worldbody></mujoco>")
+
+
+def ceiling_one_core(bodies: int, seconds: float, repeat: int) -> float:
+    m = bare_model(bodies)
+    d = mujoco.MjData(m)
+
+    def run(steps: int) -> float:
+        t = time.perf_counter()
+        for _ in range(steps):
+            mujoco.mj_step(m, d)
+        return time.perf_counter() - t
+
+    return bodies * timed(run, seconds, repeat) / 2.0  # 2 sub-steps per sample
+
+
+def ceiling_rollout(bodies: int, seconds: float, repeat: int, nthread: int = 2) -> float:
+    parts = nthread if bodies % nthread == 0 and bodies >= nthread else 1
+    while bodies // parts > 512 and bodies % (2 * parts) == 0:  # equal models of <= 512 bodies
+        parts *= 2
+    m = bare_model(bodies // parts)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    s0 = np.zeros(mujoco.mj_stateSize(m, spec))
+    mujoco.mj_getState(m, d, s0, spec)
+    init = np.tile(s0, (parts, 1))
+    datas = [mujoco.MjData(m) for _ in range(nthread)]
+    with mujoco.rollout.Rollout(nthread=nthread) as r:
+        def run(steps: int) -> float:
+            t = time.perf_counter()
+            r.rollout(m, datas, init, nstep=steps)
+            return time.perf_counter() - t
+
+        return bodies * timed(run, seconds, repeat, min_steps=8) / 2.0
+
+
+def ceiling(bodies: int, seconds: float, repeat: int) -> dict[str, float]:
+    one = ceiling_one_core(bodies, seconds, repeat)
+    two = ceiling_rollout(bodies, seconds, repeat)
+    return {"one_core": one, "rollout": two, "ceiling": max(one, two)}
+
+
+# -------------------------------------------------------------------------------------- profile
+PROFILE_GROUPS = [  # (label, [(file suffix, function name)]); builtins have file "~" and match by substring
+    ("MuJoCo physics step (C)", [("~", "mj_step"), ("~", "_batch.step")]),
+    ("actuation: command, motor noise, lag, thrusts, wrench", [("actuation.py", "substep_wrench"),
+                                                               ("actuation.py", "motor_noise_step"),
+                                                               ("actuation.py", "action_to_command")]),
+    ("rotation matrices from quaternions", [("spatial.py", "quat_to_rotmat")]),
+    ("floor model (friction wrench + impact)", [("collisions.py", "floor_wrench"), ("cpu_core.py", "_floor_impact")]),
+    ("walls, ceiling, quad-quad response", [("collisions.py", "wall_collisions"),
+                                            ("collisions.py", "quad_collisions")]),
+    ("pairwise distances and contacts", [("collisions.py", "pairwise_contacts")]),
+    ("reward terms and total", [("rewards.py", "reward_terms"), ("rewards.py", "total_reward")]),
+    ("episode metrics", [("metrics.py", "update"), ("metrics.py", "goal_jump")]),
+    ("observations (sensor noise, own state, K nearest)", [("cpu_core.py", "observe")]),
+    ("scenario goals", [("scenarios/static.py", "step"), ("scenarios/base.py", "step")]),
+    ("env wrapper: action check, info / output arrays", [("validation.py", "check_action"), ("gym_env.py", "_info"),
+                                                         ("vector_env.py", "_info"),
+                                                         ("vector_env.py", "_write_info")]),
+]
+
+
+def profile_breakdown(fn: Callable[[], None]) -> tuple[float, list[tuple[str, float]]]:
+    """Run ``fn`` under cProfile; return its total time and the cumulative time of each group (the
+    groups are disjoint calls, except that the floor model computes rotations too)."""
+    pr = cProfile.Profile()
+    pr.enable()
+    fn()
+    pr.disable()
+    st = pstats.Stats(pr)
+    total = max(v[3] for v in st.stats.values())
+    out = []
+    for label, keys in PROFILE_GROUPS:
+        t = 0.0
+        for (file, _line, name), (_cc, _nc, _tt, ct, _callers) in st.stats.items():
+            for suffix, fname in keys:
+                if (suffix == "~" and file == "~" and fname in name) or (
+                        suffix != "~" and file.endswith(suffix) and name == fname):
+                    t += ct
+        out.append((label, t))
+    return total, out
+
+
+def _profile_table(total: float, groups: list[tuple[str, float]]) -> list[str]:
+    lines = ["| stage | share of step time |", "|---|---:|"]
+    for label, t in groups:
+        if t > 0:
+            lines.append(f"| {label} | {100 * t / total:.1f} % |")
+    rest = total - sum(t for label, t in groups if "rotation" not in label)
+    lines.append(f"| everything else (engine glue, Python overhead) | {100 * max(rest, 0.0) / total:.1f} % |")
+    return lines
+
+
+def run_profile() -> str:
+    cfg = EnvConfig(num_quads=8)
+    env = QuadSwarmEnv(cfg)
+    env.reset(seed=0)
+    a = hover_like(env.action_space.shape)
+
+    def single() -> None:
+        for _ in range(1500):
+            _, _, _, tr, _ = env.step(a)
+            if tr:
+                env.reset()
+
+    total, groups = profile_breakdown(single)
+    env.close()
+    lines = ["QuadSwarmEnv, 8 quads, hover workload (quads crash after ~1 s, so the floor model runs), one "
+             f"1500-step episode under cProfile: {total / 1500 * 1e6:.0f} us/step profiled (cProfile adds"
+             " overhead per Python call, so Python-heavy stages look larger than they are):", ""]
+    lines += _profile_table(total, groups)
+    venv = QuadSwarmVectorEnv(cfg, num_envs=512, num_shards=1)
+    venv.reset(seed=0)
+    act = hover_like(venv.action_space.shape)
+
+    def vector() -> None:
+        for _ in range(100):
+            venv.step(act)
+
+    total, groups = profile_breakdown(vector)
+    venv.close()
+    lines += ["", "QuadSwarmVectorEnv with one shard of 512 worlds x 8 quads (what each of the two processes runs "
+              f"at B = 1024), hover workload, 100 steps under cProfile: {total / 100 * 1e3:.2f} ms/step profiled:", ""]
+    lines += _profile_table(total, groups)
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------- design choices
+def compare_engines(B: int, seconds: float, repeat: int) -> str:
+    """The measurements behind the vector env's design: physics back ends, threads vs processes."""
+    import threading
+
+    from quadswarm_mj.envs.cpu_core import CpuSwarm
+
+    cfg = EnvConfig(num_quads=8)
+    act = np.full((B, 8, 4), cfg.quad.hover_action)
+    rows = []
+
+    def physics_rate(core: CpuSwarm) -> float:
+        core.seed(0)
+        core.reset()
+
+        def run(steps: int) -> float:
+            t = time.perf_counter()
+            for _ in range(steps):
+                core.phys.step(cfg.quad.max_omega)
+            return time.perf_counter() - t
+
+        return B * 8 * timed(run, seconds, repeat) / 2.0
+
+    for label, kw in [(f"one MjData, {B} worlds, visual geoms", {"backend": "mjdata", "visual": True}),
+                      (f"one MjData, {B} worlds, no visual geoms", {"backend": "mjdata", "visual": False}),
+                      (f"mujoco.batch, {B} one-world simulations", {"backend": "batch", "chunk_worlds": 1}),
+                      (f"mujoco.batch, {B // 64} simulations of 64 worlds (+ copies)",
+                       {"backend": "batch", "chunk_worlds": 64})]:
+        t0 = time.perf_counter()
+        core = CpuSwarm(cfg, B, **kw)
+        build = time.perf_counter() - t0
+        rows.append((f"physics only: {label}", physics_rate(core), f"model built in {build:.1f} s"))
+    rows.append((f"bare-MuJoCo ceiling, {8 * B} free bodies, 1 core", ceiling_one_core(8 * B, seconds, repeat), ""))
+
+    def step_rate(cores: list[CpuSwarm], threads: bool) -> float:
+        for k, c in enumerate(cores):
+            c.seed(k)
+            c.reset()
+        a = act[: cores[0].B]
+
+        def one(c: CpuSwarm, steps: int) -> None:
+            for _ in range(steps):
+                c.step(a)
+
+        def run(steps: int) -> float:
+            t = time.perf_counter()
+            if threads:
+                th = [threading.Thread(target=one, args=(c, steps)) for c in cores]
+                for x in th:
+                    x.start()
+                for x in th:
+                    x.join()
+            else:
+                for c in cores:
+                    one(c, steps)
+            return time.perf_counter() - t
+
+        return B * 8 * timed(run, seconds, repeat)
+
+    half = [CpuSwarm(cfg, B // 2, backend="batch") for _ in range(2)]
+    rows.append((f"engine step, {B} worlds in 1 process (2 shards one after the other)", step_rate(half, False), ""))
+    rows.append((f"engine step, {B} worlds, 2 shards in 2 threads", step_rate(half, True), ""))
+    rows.append((f"QuadSwarmVectorEnv, {B} worlds, 2 shards in 2 processes",
+                 bench_vector(B, 8, "hover", seconds, repeat, num_shards=2), "whole env step, info included"))
+    rows.append((f"QuadSwarmVectorEnv, {B} worlds, 1 process",
+                 bench_vector(B, 8, "hover", seconds, repeat, num_shards=1), "whole env step, info included"))
+    out = ["| measurement (hover workload) | samples/s | note |", "|---|---:|---|"]
+    out += [f"| {a} | {fmt(b)} | {c} |" for a, b, c in rows]
+    return "\n".join(out)
+
+
+# ----------------------------------------------------------------------------------------- main
+def fmt(x: float | None) -> str:
+    if x is None:
+        return "-"
+    if x >= 1e6:
+        return f"{x / 1e6:.2f} M"
+    if x >= 1e3:
+        return f"{x / 1e3:.1f} k"
+    return f"{x:.0f}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--quick", action="store_true", help="short runs (0.5 s, 1 repeat, hover workload only)")
+    p.add_argument("--rows", default="single,vector,mjx", help="comma list of single, vector, mjx")
+    p.add_argument("--single-n", default="1,8,32,128")
+    p.add_argument("--vector-b", default="64,256,1024")
+    p.add_argument("--mjx-worlds", default="1,64,512")
+    p.add_argument("--mjx-steps", type=int, default=200)
+    p.add_argument("--skip-mjx", action="store_true")
+    p.add_argument("--workloads", default=None, help=f"comma list of {WORKLOADS} (default: all; --quick: hover)")
+    p.add_argument("--seconds", type=float, default=None, help="length of one timed run (default 2, --quick 0.5)")
+    p.add_argument("--repeat", type=int, default=None, help="timed runs per figure, best kept (default 3, --quick 1)")
+    p.add_argument("--profile", action="store_true", help="add a cProfile breakdown of the single and vector env")
+    p.add_argument("--compare", type=int, default=0, metavar="B",
+                   help="add the design measurements (physics back ends, threads vs processes) at B worlds")
+    p.add_argument("--out", default="BENCHMARKS.md", help="report file (default BENCHMARKS.md in the current directory)")
+    p.add_argument("--no-write", action="store_true", help="print only")
+    args = p.parse_args(argv)
+    seconds = args.seconds or (0.5 if args.quick else 2.0)
+    repeat = args.repeat or (1 if args.quick else 3)
+    workloads = tuple((args.workloads or ("hover" if args.quick else ",".join(WORKLOADS))).split(","))
+    for w in workloads:
+        if w not in WORKLOADS:
+            p.error(f"unknown workload {w!r}; known: {WORKLOADS}")
+    rows = set(args.rows.split(","))
+    if args.skip_mjx:
+        rows.discard("mjx")
+    command = "/work/venv/bin/python scripts/benchmark.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    started = datetime.datetime.now().astimezone()
+    load0 = load()
+    print(f"{machine()}\nload average at start: {load0}\n", flush=True)
+
+    table = []  # dicts: label, quads, bodies, workloads..., mjx, ceiling...
+    if "single" in rows:
+        for n in (int(x) for x in args.single_n.split(",")):
+            r = {"label": f"QuadSwarmEnv, 1 world x {n}", "bodies": n}
+            for w in workloads:
+                r[w] = bench_single(n, w, seconds, repeat)
+            r.update(ceiling(n, seconds, repeat))
+            print(r, flush=True)
+            table.append(r)
+    if "vector" in rows:
+        for B in (int(x) for x in args.vector_b.split(",")):
+            r = {"label": f"QuadSwarmVectorEnv, {B} worlds x 8", "bodies": 8 * B, "vector": True}
+            for w in workloads:
+                r[w] = bench_vector(B, 8, w, seconds, repeat)
+            r.update(ceiling(8 * B, seconds, repeat))
+            print(r, flush=True)
+            table.append(r)
+    if "mjx" in rows:
+        for W in (int(x) for x in args.mjx_worlds.split(",")):
+            res = bench_mjx(W, 8, args.mjx_steps if not args.quick else max(20, args.mjx_steps // 4))
+            if res is None:
+                break
+            r = {"label": f"MJX env (jit, CPU), {W} worlds x 8", "bodies": 8 * W, "mjx": res}
+            r["hover"] = res["samples_per_s"]
+            r.update(ceiling(8 * W, seconds, repeat))
+            print(r, flush=True)
+            table.append(r)
+    prof = run_profile() if args.profile else None
+    comp = compare_engines(args.compare, seconds, repeat) if args.compare else None
+    load1 = load()
+
+    head = "| configuration | " + " | ".join(f"{w} (samples/s)" for w in workloads) + \
+           " | ceiling 1 core | ceiling rollout 2 cores | env / ceiling (" + workloads[0] + ") |"
+    sep = "|---|" + "---:|" * (len(workloads) + 3)
+    lines = [head, sep]
+    for r in table:
+        vals = [fmt(r.get(w)) for w in workloads]
+        label = r["label"]
+        if "mjx" in r:
+            label += f" (compile {r['mjx']['compile_s']:.0f} s)"
+        ratio = r.get(workloads[0])
+        ratio_s = f"{100 * ratio / r['ceiling']:.0f} %" if ratio else "-"
+        lines.append(f"| {label} | " + " | ".join(vals)
+                     + f" | {fmt(r['one_core'])} | {fmt(r['rollout'])} | {ratio_s} |")
+    tab = "\n".join(lines)
+    print("\n" + tab)
+    vec = [r for r in table if r.get("vector")]
+    summary = []
+    for r in vec:
+        for w in workloads:
+            summary.append(f"- {r['label']}, {w}: {fmt(r[w])} samples/s = {100 * r[w] / r['ceiling']:.0f} % of the "
+                           f"ceiling ({fmt(r['ceiling'])}, the faster of 1 core {fmt(r['one_core'])} and rollout "
+                           f"{fmt(r['rollout'])})")
+    if args.no_write:
+        for extra in (prof, comp):
+            if extra:
+                print("\n" + extra)
+        return 0
+    doc = [
+        "# Benchmarks",
+        "",
+        "The part above the notes marker is generated by `scripts/benchmark.py`; the notes below it are",
+        "kept when the script rewrites the file.",
+        "",
+        f"- command: `{command}`",
+        f"- machine: {machine()}",
+        f"- date: {started.strftime('%Y-%m-%d %H:%M %Z')}; load average (1, 5, 15 min) at start {load0}, "
+        f"at end {load1} "
+        "(2 cores shared with other jobs: absolute figures drift with load, ratios are measured in the same run)",
+        f"- each figure: best of {repeat} timed runs of {seconds:g} s; samples/s = quad-steps/s at 100 Hz control,"
+        " 200 Hz physics, paper defaults (collisions, noise, K = 6, static_same_goal)",
+        "- workloads: hover = hover command (quads drift and crash, the floor model runs), random = uniform"
+        " actions, controller = baseline position controller (flying; only `step` timed)",
+        "- ceiling: bare free bodies (Crazyflie inertia, no geoms, contacts off, Euler, 2 sub-steps per sample);"
+        " 1 core = one model, `mj_step` loop; rollout = `mujoco.rollout` on 2 threads over equal models",
+        "",
+        tab,
+        "",
+    ]
+    if summary:
+        doc += ["Vector env / ceiling, measured in this run:", ""] + summary + [""]
+    if prof:
+        doc += ["## Where the time goes", "", prof, ""]
+    if comp:
+        doc += ["## Design measurements (same run)", "", comp, ""]
+    out = Path(args.out)
+    old = out.read_text() if out.exists() else ""
+    doc.append(old[old.index(NOTES_MARKER):] if NOTES_MARKER in old else NOTES_MARKER + "\n")
+    out.write_text("\n".join(doc))
+    print(f"\nwrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

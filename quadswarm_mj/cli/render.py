@@ -1,0 +1,215 @@
+"""Fly a swarm headless and write a video, then print the episode metrics and the speed reached.
+
+Example (8 quads, the baseline position controller, 3 s, 640x480 at 30 fps)::
+
+    python scripts/render_rollout.py --scenario swap_goals --num-quads 8 --seconds 3 --out swarm.mp4
+    quadswarm-render --scenario swap_goals --num-quads 8 --seconds 3 --out swarm.mp4   # the same, installed
+
+Runs one world of the CPU env (``QuadSwarmEnv``, 100 Hz control) and renders every k-th control
+step offscreen (EGL by default, no display needed) so the video plays in real time at ``--fps``.
+Policies: ``controller`` (``quadswarm_mj.controllers.PositionController``, default), ``hover``
+(constant hover thrust), ``random`` (uniform actions), and trained policies, ``pretrained:<name>``
+or a policy ``.npz`` path, loaded by ``quadswarm_mj.policies.load_policy`` (the env then takes the
+observation settings the policy was trained with).
+"""
+
+from __future__ import annotations
+
+# ``import quadswarm_mj`` (the package of this module, imported first) sets MUJOCO_GL=egl when it is unset.
+import argparse
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import quadswarm_mj
+from quadswarm_mj import QuadSwarmEnv
+from quadswarm_mj.controllers import PositionController
+from quadswarm_mj.render import SwarmRenderer
+
+#: A policy maps (observation, info) of ``QuadSwarmEnv`` to an action of its action space.
+Policy = Callable[[np.ndarray, dict[str, Any]], np.ndarray]
+BUILTIN_POLICIES = ("controller", "hover", "random")
+
+
+def load_external_policy(spec: str) -> Any:
+    """A trained policy (``pretrained:<name>`` or a policy ``.npz`` path) through
+    ``quadswarm_mj.policies.load_policy``: an object with ``act(obs, info)`` and ``env_kwargs``
+    (the EnvConfig overrides its observations need)."""
+    try:
+        from quadswarm_mj.policies import load_policy
+    except ImportError as e:
+        raise ValueError(f"policy {spec!r} needs quadswarm_mj.policies (trained-policy loading), "
+                         f"which is not available: {e}") from e
+    return load_policy(spec)
+
+
+def make_policy(name: str, env: QuadSwarmEnv, seed: int | None, external: Any = None) -> Policy:
+    """The policy called ``name`` for ``env`` (see the module docstring); ``external`` is a loaded
+    trained policy (from :func:`load_external_policy`)."""
+    shape = env.action_space.shape
+    if external is not None:
+        return lambda obs, info: np.asarray(external.act(obs, info), dtype=np.float64).reshape(shape)
+    if name == "controller":
+        ctrl = PositionController(env.cfg)
+
+        def controller(obs: np.ndarray, info: dict[str, Any]) -> np.ndarray:
+            return ctrl(info["state"], info["goals"], info["goal_vel"], info["params"]).reshape(shape)
+
+        return controller
+    if name == "hover":
+        hover = np.full(shape, env.cfg.quad.hover_action)
+        return lambda obs, info: hover
+    if name == "random":
+        env.action_space.seed(seed)
+        return lambda obs, info: env.action_space.sample()
+    raise ValueError(f"unknown policy {name!r}; use {', '.join(BUILTIN_POLICIES)}, pretrained:<name> or a "
+                     "policy .npz path")
+
+
+def frame_steps(seconds: float, fps: float, control_hz: int) -> np.ndarray:
+    """Control-step indices at which frames are taken: frame j shows the state at time j / fps
+    (rounded to the control step), for ``round(seconds * fps)`` frames."""
+    n = int(round(seconds * fps))
+    return np.round(np.arange(n) * control_hz / fps).astype(np.int64)
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--scenario", default="swap_goals", help=f"one of {quadswarm_mj.list_scenarios()}")
+    p.add_argument("--num-quads", type=int, default=8)
+    p.add_argument("--seconds", type=float, default=3.0, help="simulated time (the episode length)")
+    p.add_argument("--policy", default="controller",
+                   help="controller, hover, random, pretrained:<name> or a policy .npz path")
+    p.add_argument("--camera", default="overview",
+                   help="overview (frames the swarm and its goals), chase (follows quad 0), or a room camera: "
+                        "top, fixed:overview")
+    p.add_argument("--width", type=int, default=640)
+    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--fps", type=float, default=30.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--trail", type=int, default=20, help="trail length in rendered frames (0: none)")
+    p.add_argument("--shadows", action=argparse.BooleanOptionalAction, default=True)
+    p.add_argument("--antialias", action=argparse.BooleanOptionalAction, default=False)
+    p.add_argument("--still", type=Path, default=None, help="also save one frame as a PNG here")
+    p.add_argument("--still-at", type=float, default=None, help="time (s) of the --still frame (default: last)")
+    p.add_argument("--out", type=Path, default=Path("video.mp4"), help="video file (.mp4 or .gif)")
+    args = p.parse_args(argv)
+    if args.seconds <= 0 or args.fps <= 0:
+        p.error("--seconds and --fps must be > 0")
+    if args.fps > 100:
+        p.error("--fps must be <= the 100 Hz control rate")
+    if args.out.suffix.lower() != ".gif" and (args.width % 2 or args.height % 2):
+        p.error("--width and --height must be even for h264 video")
+    return args
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """Fly, render and write the video; return the metrics and timings."""
+    import imageio_ffmpeg
+    import mediapy
+    from tqdm import tqdm
+
+    mediapy.set_ffmpeg(imageio_ffmpeg.get_ffmpeg_exe())
+    external = None if args.policy in BUILTIN_POLICIES else load_external_policy(args.policy)
+    env_kwargs = {"num_quads": args.num_quads}
+    if external is not None:  # the observation layout the policy was trained on
+        env_kwargs.update(getattr(external, "env_kwargs", {}) or {})
+        if env_kwargs["num_quads"] != args.num_quads:
+            print(f"note: {args.policy} was trained with {env_kwargs['num_quads']} quads; using that",
+                  file=sys.stderr)
+            args.num_quads = env_kwargs["num_quads"]
+    env = QuadSwarmEnv(scenario=args.scenario, episode_seconds=args.seconds, **env_kwargs)
+    policy = make_policy(args.policy, env, args.seed, external)
+    renderer = SwarmRenderer(env.core, width=args.width, height=args.height, camera=args.camera,
+                             trail_length=args.trail, shadows=args.shadows, antialias=args.antialias)
+    cfg = env.cfg
+    n_steps = cfg.episode_steps
+    shots = frame_steps(args.seconds, args.fps, cfg.control_hz)
+    still_step = None
+    if args.still is not None:
+        t = args.seconds if args.still_at is None else args.still_at
+        still_step = int(shots[np.argmin(np.abs(shots - t * cfg.control_hz))])
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    codec = "gif" if args.out.suffix.lower() == ".gif" else "h264"
+    t_sim = t_policy = t_render = 0.0
+    metrics: dict[str, float] | None = None
+    wall0 = time.perf_counter()
+    obs, info = env.reset(seed=args.seed)
+    shot_iter = iter(shots.tolist())
+    next_shot = next(shot_iter, None)
+    frames = 0
+    with mediapy.VideoWriter(args.out, shape=(args.height, args.width), fps=args.fps, codec=codec) as video, \
+            tqdm(total=n_steps, unit="step", desc=f"{args.scenario} x{args.num_quads}", file=sys.stderr) as bar:
+        for k in range(n_steps):
+            if k == next_shot:  # the state at time k / control_hz
+                t0 = time.perf_counter()
+                frame = renderer.render()
+                t_render += time.perf_counter() - t0
+                video.add_image(frame)
+                frames += 1
+                if k == still_step:
+                    args.still.parent.mkdir(parents=True, exist_ok=True)
+                    mediapy.write_image(args.still, frame)
+                next_shot = next(shot_iter, None)
+            t0 = time.perf_counter()
+            action = policy(obs, info)
+            t1 = time.perf_counter()
+            obs, _, terminated, truncated, info = env.step(action)
+            t2 = time.perf_counter()
+            t_policy += t1 - t0
+            t_sim += t2 - t1
+            bar.update(1)
+            if terminated or truncated:
+                metrics = info.get("episode_metrics")
+                break
+    wall = time.perf_counter() - wall0
+    if metrics is None:
+        metrics = {k: float(v[0]) for k, v in env.core.episode_metrics().items()}
+    renderer.close()
+    env.close()
+    steps = k + 1
+    samples = steps * args.num_quads
+    return {"metrics": metrics, "steps": steps, "sim_seconds": steps * cfg.control_dt, "frames": frames,
+            "samples": samples, "t_sim": t_sim,
+            "t_policy": t_policy, "t_render": t_render, "wall": wall}
+
+
+def report(args: argparse.Namespace, r: dict[str, Any]) -> str:
+    m = r["metrics"]
+    lines = [f"episode metrics ({args.scenario}, {args.num_quads} quads, {r['sim_seconds']:.2f} s simulated, "
+             f"policy {args.policy}, seed {args.seed}):"]
+    lines += [f"  {k:<16} {v:.4g}" for k, v in m.items()]
+    sim_rate = r["samples"] / max(r["t_sim"], 1e-9)
+    no_render = r["samples"] / max(r["t_sim"] + r["t_policy"], 1e-9)
+    lines.append(f"simulation speed: {sim_rate:,.0f} samples/s (quad-steps/s, env.step only; "
+                 f"{r['steps'] / max(r['t_sim'], 1e-9):,.0f} control steps/s)")
+    lines.append(f"  with the policy: {no_render:,.0f} samples/s (excluding rendering; policy {r['t_policy']:.2f} s)")
+    lines.append(f"  total: {r['samples'] / max(r['wall'], 1e-9):,.0f} samples/s over {r['wall']:.1f} s wall "
+                 f"(rendering {r['frames']} frames took {r['t_render']:.1f} s, "
+                 f"{r['frames'] / max(r['t_render'], 1e-9):.1f} frames/s at {args.width}x{args.height})")
+    lines.append(f"wrote {args.out} ({r['frames']} frames, {args.fps:g} fps)"
+                 + (f" and {args.still}" if args.still is not None else ""))
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        result = run(args)
+    except ValueError as e:  # bad scenario, policy, camera or size: a clean message
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except RuntimeError as e:  # the renderer could not start: the message names the fix
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    print(report(args, result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
