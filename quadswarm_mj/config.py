@@ -127,7 +127,10 @@ class RandomizationConfig:
 
 @dataclass(frozen=True)
 class RewardScales:
-    """Reward-term scales (SPEC §8, paper baseline). r_term = -control_dt * scale * cost."""
+    """Reward-term scales (SPEC §8, paper baseline), time-scaled as the original: the state terms
+    (pos ... rot) give r = -sim_dt * scale * cost, ``proximity`` r = -control_dt * scale * cost, and the
+    event terms (quad_collision, floor_hit, wall_hit, ceiling_hit) r = -scale * count (not time-scaled:
+    a new collision at the baseline 5.0 costs 5.0 per quad involved)."""
 
     pos: float = 1.0
     effort: float = 0.05

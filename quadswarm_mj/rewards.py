@@ -1,4 +1,10 @@
-"""Reward terms (SPEC §8). Every term is a reward: r_term = -control_dt * scale * cost.
+"""Reward terms (SPEC §8), per quad and control step, with the original's time scaling:
+
+* state terms (``STATE_TERMS``): r = -sim_dt * scale * cost (sim_dt = 1 / sim_hz = 0.005 s by default;
+  the original multiplies by its simulation step although it computes the reward once per control step);
+* ``proximity``: r = -control_dt * scale * cost (0.01 s);
+* event terms (``EVENT_TERMS``): r = -scale * count, not time-scaled: one new quad-quad collision at the
+  baseline scale costs 5.0 per quad involved, as much as 1,000 control steps 1 m from the goal.
 
 Terms (keys of ``info["reward_terms"]``) and their costs per quad:
 
@@ -24,6 +30,21 @@ from quadswarm_mj.spatial import norm_last
 
 TERMS = RewardScales.TERMS
 ANNEALED = ("quad_collision", "proximity")
+#: Terms scaled by the simulation step, by the control step, and not time-scaled (counts of events).
+STATE_TERMS = ("pos", "effort", "spin", "crash", "orient", "vel", "action_change", "yaw", "rot")
+CONTROL_DT_TERMS = ("proximity",)
+EVENT_TERMS = ("quad_collision", "obstacle_collision", "floor_hit", "wall_hit", "ceiling_hit")
+
+
+def term_dt(cfg: EnvConfig, term: str) -> float:
+    """The time factor of ``term`` (s): sim_dt, control_dt, or 1.0 for event terms (SPEC §8)."""
+    if term in STATE_TERMS:
+        return cfg.sim_dt
+    if term in CONTROL_DT_TERMS:
+        return cfg.control_dt
+    if term in EVENT_TERMS:
+        return 1.0
+    raise ValueError(f"unknown reward term {term!r}; known: {TERMS}")
 
 
 #: Terms whose cost is never negative: with a zero scale they are exactly -0.0 and are not computed.
@@ -42,11 +63,10 @@ def reward_terms(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: 
     """Dict term -> (..., N) rewards for one control step. ``dist`` is the (..., N, N) distance matrix;
     ``goal_dist`` optionally passes ||goals - pos|| (..., N) when the caller has it already.
 
-    A term with a zero scale whose cost cannot be negative is -0.0 (= -dt * 0 * cost) without
-    computing the cost."""
+    Each term is -term_dt(cfg, term) * scale * cost (see the module doc). A term with a zero scale
+    whose cost cannot be negative is -0.0 (= -dt * 0 * cost) without computing the cost."""
     xp = array_namespace(pos, vel)
     s = cfg.rewards
-    dt = cfg.control_dt
     n = pos.shape[-2]
     falloff = s.proximity_falloff_arms * cfg.quad.arm
     cost_fns = {
@@ -73,7 +93,7 @@ def reward_terms(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: 
             out[k] = -0.0 * on_floor  # a fresh (..., N) array of -0.0 (default float type)
             continue
         scale = base * (anneal if k in ANNEALED else 1.0)
-        out[k] = -dt * scale * cost_fns[k]()
+        out[k] = -term_dt(cfg, k) * scale * cost_fns[k]()
     return out
 
 

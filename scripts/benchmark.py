@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Thin wrapper of ``quadswarm_mj.cli.benchmark`` (installed as the console command ``quadswarm-benchmark``); see ``--help``."""
+"""Thin wrapper of ``quadswarm_mj.cli.benchmark`` (console command ``quadswarm-benchmark``); see ``--help``."""
 
 import sys
 from pathlib import Path

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Thin wrapper of ``quadswarm_mj.cli.evaluate`` (installed as the console command ``quadswarm-evaluate``); see ``--help``."""
+"""Thin wrapper of ``quadswarm_mj.cli.evaluate`` (console command ``quadswarm-evaluate``); see ``--help``."""
 
 import sys
 from pathlib import Path

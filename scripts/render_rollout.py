@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Thin wrapper of ``quadswarm_mj.cli.render`` (installed as the console command ``quadswarm-render``); see ``--help``."""
+"""Thin wrapper of ``quadswarm_mj.cli.render`` (console command ``quadswarm-render``); see ``--help``."""
 
 import sys
 from pathlib import Path

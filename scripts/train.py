@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Thin wrapper of ``quadswarm_mj.cli.train`` (installed as the console command ``quadswarm-train``); see ``--help``."""
+"""Thin wrapper of ``quadswarm_mj.cli.train`` (console command ``quadswarm-train``); see ``--help``."""
 
 import sys
 from pathlib import Path

@@ -110,3 +110,28 @@ def test_ppo_config_validation():
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(pytest.main([__file__, "-q"]))
+
+
+def test_desync_truncates_first_episodes_without_moving_scenario_clocks():
+    """The first episode of each world ends after its own random length; every world starts at
+    t = 0, so dynamic_same_goal's first goal jump (U(4, 6) s) never fires before t = 4 s."""
+    cfg = EnvConfig(num_quads=1, scenario="dynamic_same_goal", episode_seconds=6.0).without_noise()
+    batch = AgentBatch([cfg], [8], seed=3, desync=True)
+    batch.reset()
+    e = batch.engines[0]
+    assert (e.steps == 0).all()
+    first_len = batch.first_len[0].copy()
+    assert first_len.min() >= 1 and first_len.max() <= cfg.episode_steps and len(np.unique(first_len)) > 1
+    goals = e.sstate.goals.copy()
+    ended = np.zeros(8, bool)
+    for step in range(1, cfg.episode_steps + 1):
+        t_before = e.steps * cfg.control_dt + cfg.control_dt  # time of the state this step reaches
+        _, _, trunc, _, _ = batch.step(np.full((8, 4), cfg.quad.hover_action))
+        done = trunc.astype(bool)
+        np.testing.assert_array_equal(done & ~ended, ~ended & (first_len == step))
+        changed = np.abs(e.sstate.goals - goals).max(axis=(1, 2)) > 0
+        first = ~ended & ~done
+        assert not (changed & first & (t_before < 4.0 - 1e-4)).any(), f"goal jump before 4 s at step {step}"
+        ended |= done
+        goals = e.sstate.goals.copy()
+    assert ended.all()

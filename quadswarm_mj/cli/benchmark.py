@@ -40,10 +40,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 import mujoco
 import mujoco.rollout
+import numpy as np
 
 from quadswarm_mj import EnvConfig, QuadSwarmEnv, QuadSwarmVectorEnv
 from quadswarm_mj.controllers import PositionController
@@ -404,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--profile", action="store_true", help="add a cProfile breakdown of the single and vector env")
     p.add_argument("--compare", type=int, default=0, metavar="B",
                    help="add the design measurements (physics back ends, threads vs processes) at B worlds")
-    p.add_argument("--out", default="BENCHMARKS.md", help="report file (default BENCHMARKS.md in the current directory)")
+    p.add_argument("--out", default="BENCHMARKS.md", help="report file (default ./BENCHMARKS.md)")
     p.add_argument("--no-write", action="store_true", help="print only")
     args = p.parse_args(argv)
     seconds = args.seconds or (0.5 if args.quick else 2.0)

@@ -14,8 +14,11 @@ the PPO batch has ``num_worlds * num_quads`` agents, each with its own reward (t
 reward of SPEC §8). Several scenarios can be trained at once: the worlds are split evenly among
 one engine per scenario (e.g. static_same_goal + dynamic_same_goal for the single-quad policy).
 
-Episodes end by truncation only (15 s); the first episode of every world is started at a random
-time offset so that episode ends are spread over iterations (their metrics are not logged).
+Episodes end by truncation only (15 s). So that episode ends are spread over iterations, the
+first episode of every world is truncated early, after a random number of steps in
+[1, episode_steps] (:attr:`AgentBatch.first_len`); its scenario starts at t = 0 as every episode
+does (no scenario clock is moved, so time-driven goal changes happen at their times). The metrics
+of these first, shortened episodes are not logged.
 """
 
 from __future__ import annotations
@@ -71,7 +74,7 @@ class PPOConfig:
     lr_schedule: str = "linear"  # "constant", or "linear": decays to lr_final_fraction at the end of the budget
     lr_final_fraction: float = 0.1
     init_std: float = 0.6  # initial std of the pre-tanh Gaussian (Brax's default is softplus(0) = 0.69)
-    desync_episodes: bool = True  # random start offsets of the first episodes
+    desync_episodes: bool = True  # truncate each world's first episode after a random number of steps
 
     def __post_init__(self) -> None:
         for n in ("num_worlds", "unroll_length", "num_minibatches", "num_epochs"):
@@ -126,12 +129,16 @@ class AgentBatch:
         self.rng = np.random.default_rng(seed)
         self.ep_return = [np.zeros((e.B, n)) for e in self.engines]
         self.first = [np.ones(e.B, bool) for e in self.engines]
+        #: (B_k,) control steps after which the first episode of each world is truncated.
+        self.first_len = [np.full(e.B, e.cfg.episode_steps, np.int64) for e in self.engines]
 
     def reset(self) -> np.ndarray:
         for k, e in enumerate(self.engines):
             e.reset()
-            if self.desync:  # spread the first episode ends over the first episode
-                e.steps = self.rng.integers(0, e.cfg.episode_steps, size=e.B).astype(np.int64)
+            self.first[k][:] = True
+            steps = e.cfg.episode_steps
+            self.first_len[k] = (self.rng.integers(1, steps + 1, size=e.B).astype(np.int64) if self.desync
+                                 else np.full(e.B, steps, np.int64))
             self.ep_return[k][:] = 0.0
         return self.observe()
 
@@ -154,7 +161,9 @@ class AgentBatch:
             o = out["obs"].reshape(-1, self.obs_dim)
             r = out["rewards"]
             self.ep_return[k] += r
-            done = np.asarray(out["truncated"], bool)
+            # a world's first episode may be cut short (desynchronization); the engine's own time
+            # limit ends every other episode
+            done = np.asarray(out["truncated"], bool) | (self.first[k] & (e.steps >= self.first_len[k]))
             next_obs.append(o)
             rew.append(r.reshape(-1))
             trunc.append(np.repeat(done, self.N))

@@ -1,8 +1,11 @@
-"""Ship a trained policy: copy it into ``quadswarm_mj/pretrained/``, evaluate it and record its
-SHA-256, size and metrics in ``manifest.json`` (NumPy only, no JAX).
+"""Ship a trained policy: copy it into a directory of shipped policies (``--out``), evaluate it and
+record its SHA-256, size and metrics in that directory's ``manifest.json`` (NumPy only, no JAX).
+
+The directory is always given: an installed package (site-packages) may be read-only. To update
+the policies that ship with the package, run from the source checkout::
 
     python -m quadswarm_mj.training.release --name single --policy runs/single/final.npz \\
-        --scenarios static_same_goal,dynamic_same_goal --episodes 100 --run runs/single
+        --scenarios static_same_goal,dynamic_same_goal --episodes 100 --run runs/single --out quadswarm_mj/pretrained
 
 The recorded metrics (mean, standard deviation over episodes, standard error, episodes, seed) are
 what ``tests/test_policies.py`` checks a fresh 20-episode evaluation against.
@@ -20,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from quadswarm_mj.metrics import METRIC_KEYS
-from quadswarm_mj.policies import MANIFEST, load_policy_file, pretrained_dir, sha256_file
+from quadswarm_mj.policies import MANIFEST, load_policy_file, sha256_file
 from quadswarm_mj.training.evaluation import evaluate
 
 
@@ -28,10 +31,14 @@ def _finite(x: float) -> float | None:
     return None if not math.isfinite(x) else round(float(x), 5)
 
 
-def release(name: str, policy_path: str | Path, scenarios: list[str], episodes: int = 100, seed: int = 0,
-            run_dir: str | Path | None = None, description: str = "", directory: str | Path | None = None
-            ) -> dict[str, Any]:
-    d = Path(directory) if directory is not None else pretrained_dir()
+def release(name: str, policy_path: str | Path, scenarios: list[str], directory: str | Path, episodes: int = 100,
+            seed: int = 0, run_dir: str | Path | None = None, description: str = "") -> dict[str, Any]:
+    """Copy ``policy_path`` to ``directory/<name>.npz``, evaluate it on ``scenarios`` and record it in
+    ``directory/manifest.json`` (created if missing). Returns the manifest entry."""
+    if directory is None:
+        raise ValueError("directory must be given (the installed package may be read-only); "
+                         "use quadswarm_mj/pretrained in a source checkout")
+    d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     dst = d / f"{name}.npz"
     if Path(policy_path).resolve() != dst.resolve():
@@ -72,9 +79,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--run", help="training run directory (its run.json is recorded)")
     p.add_argument("--description", default="")
+    p.add_argument("--out", required=True, help="directory of shipped policies to write (e.g. quadswarm_mj/pretrained)")
     a = p.parse_args(argv)
-    release(a.name, a.policy, [s.strip() for s in a.scenarios.split(",") if s.strip()], a.episodes, a.seed, a.run,
-            a.description)
+    release(a.name, a.policy, [s.strip() for s in a.scenarios.split(",") if s.strip()], a.out, a.episodes, a.seed,
+            a.run, a.description)
     return 0
 
 
