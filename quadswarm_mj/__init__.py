@@ -11,6 +11,10 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 if os.environ.get("MUJOCO_GL") in ("egl", "osmesa"):
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
+from quadswarm_mj import _quiet_imports  # noqa: E402
+
+_quiet_imports.install()  # mujoco.mjx prints "Failed to import warp" twice without NVIDIA Warp
+
 from quadswarm_mj.config import (  # noqa: E402
     CollisionParams,
     EnvConfig,

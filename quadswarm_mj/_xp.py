@@ -27,11 +27,6 @@ def array_namespace(*arrays: Any) -> ModuleType:
     return np
 
 
-def set_where(xp: ModuleType, mask: Any, new: Any, old: Any) -> Any:
-    """Functional masked update: ``new`` where ``mask`` else ``old`` (mask broadcast)."""
-    return xp.where(mask, new, old)
-
-
 def safe_normalize(xp: ModuleType, v: Any, eps: float = 1e-5) -> Any:
     """Normalize along the last axis; a zero vector stays (near) zero instead of NaN."""
     n = xp.sqrt(xp.sum(v * v, axis=-1, keepdims=True))

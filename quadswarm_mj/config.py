@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -15,17 +16,26 @@ COLLISION_MODELS = ("paper", "mujoco", "blend")
 MOTOR_STARTS = ("zero", "hover")
 OBS_SELF_VARIANTS = ("base", "floor", "wall")
 NEIGHBOR_SORTS = ("distance", "original")
+#: Spawn rules of ``quadswarm_mj.scenarios.base.spawn_state`` (SPEC §9): quads start at z >= SPAWN_MIN_Z
+#: and SPAWN_MARGIN (m) from the walls and the ceiling; the room must leave that band non-empty.
+SPAWN_MIN_Z = 0.75
+SPAWN_MARGIN = 0.5
+MIN_ROOM_HEIGHT = SPAWN_MIN_Z + SPAWN_MARGIN  # 1.25 m
+MIN_ROOM_SIDE = 2 * SPAWN_MARGIN  # 1.0 m
 
 
 def _check_range(name: str, value: float, lo: float | None = None, hi: float | None = None,
                  lo_open: bool = False) -> None:
-    if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
-        raise ValueError(f"{name} must be a finite number, got {value!r}")
-    if lo is not None and (value < lo or (lo_open and value == lo)):
-        op = ">" if lo_open else ">="
-        raise ValueError(f"{name} must be {op} {lo}, got {value!r}")
-    if hi is not None and value > hi:
-        raise ValueError(f"{name} must be <= {hi}, got {value!r}")
+    """ValueError naming ``name`` and the allowed range unless ``value`` is a finite real in it."""
+    bounds = [f"{'>' if lo_open else '>='} {lo}" if lo is not None else "", f"<= {hi}" if hi is not None else ""]
+    rng = " and ".join(b for b in bounds if b)
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and lo is not None and (value < lo or (lo_open and value == lo)):
+        ok = False
+    if ok and hi is not None and value > hi:
+        ok = False
+    if not ok:
+        raise ValueError(f"{name} must be a finite number{' ' + rng if rng else ''}, got {value!r}")
 
 
 def _check_pair(name: str, pair: Any, lo: float | None = None, hi: float | None = None) -> tuple:
@@ -58,9 +68,17 @@ class QuadParams:
         for n in ("mass", "arm", "thrust_to_weight", "torque_to_thrust", "motor_settling_time",
                   "max_omega", "gravity"):
             _check_range(f"quad.{n}", getattr(self, n), 0.0, lo_open=True)
-        if len(self.inertia) != 3 or any(not (float(i) > 0) for i in self.inertia):
-            raise ValueError(f"quad.inertia must be 3 positive numbers, got {self.inertia!r}")
-        object.__setattr__(self, "inertia", tuple(float(i) for i in self.inertia))
+        if self.arm >= SPAWN_MARGIN:
+            raise ValueError(f"quad.arm must be < {SPAWN_MARGIN} m (the spawn margin from walls and ceiling), "
+                             f"got {self.arm!r}")
+        _check_range("quad.rotor_z", self.rotor_z, -self.arm, self.arm)
+        try:
+            inertia = tuple(float(i) for i in self.inertia)
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"quad.inertia must be 3 finite numbers > 0 (kg m^2), got {self.inertia!r}") from e
+        if len(inertia) != 3 or not all(math.isfinite(i) and i > 0 for i in inertia):
+            raise ValueError(f"quad.inertia must be 3 finite numbers > 0 (kg m^2), got {self.inertia!r}")
+        object.__setattr__(self, "inertia", inertia)
 
     @property
     def thrust_max(self) -> float:
@@ -220,7 +238,8 @@ class EnvConfig:
     neighbor_vel_clip: float = 6.0  # m/s, clip of neighbour relative velocity
     normalize_obs: bool = False
     formation_center: tuple[float, float, float] = (0.0, 0.0, 2.0)
-    grace_period_s: float = 1.5  # s, collisions before this are not counted/penalized
+    grace_period_s: float = 1.5  # s, collisions before this are not counted in the episode metrics (the reward
+    # penalizes every collision)
     quad: QuadParams = field(default_factory=QuadParams)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
@@ -246,6 +265,12 @@ class EnvConfig:
             raise ValueError(f"room_size must be 3 positive numbers (m), got {self.room_size!r}") from e
         if len(room) != 3 or not all(math.isfinite(x) and x > 0 for x in room):
             raise ValueError(f"room_size must be 3 positive finite numbers (m), got {self.room_size!r}")
+        if room[2] < MIN_ROOM_HEIGHT:
+            raise ValueError(f"room_size[2] (height) must be >= {MIN_ROOM_HEIGHT} m (quads spawn at z >= "
+                             f"{SPAWN_MIN_Z} m and {SPAWN_MARGIN} m below the ceiling), got {room[2]!r}")
+        if min(room[:2]) < MIN_ROOM_SIDE:
+            raise ValueError(f"room_size[0] and room_size[1] (length, width) must be >= {MIN_ROOM_SIDE} m "
+                             f"(quads spawn {SPAWN_MARGIN} m from the walls), got {self.room_size!r}")
         object.__setattr__(self, "room_size", room)
         for n in ("control_hz", "sim_hz"):
             v = getattr(self, n)
@@ -271,9 +296,12 @@ class EnvConfig:
                                  f"(each quad has num_quads - 1 neighbors), got {k!r}")
         _check_range("neighbor_vel_clip", self.neighbor_vel_clip, 0.0, lo_open=True)
         _check_range("grace_period_s", self.grace_period_s, 0.0)
-        fc = tuple(float(x) for x in self.formation_center)
-        if len(fc) != 3:
-            raise ValueError(f"formation_center must be 3 numbers, got {self.formation_center!r}")
+        try:
+            fc = tuple(float(x) for x in self.formation_center)
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"formation_center must be 3 finite numbers (m), got {self.formation_center!r}") from e
+        if len(fc) != 3 or not all(math.isfinite(x) for x in fc):
+            raise ValueError(f"formation_center must be 3 finite numbers (m), got {self.formation_center!r}")
         object.__setattr__(self, "formation_center", fc)
         for n in ("downwash", "randomize", "normalize_obs"):
             if not isinstance(getattr(self, n), bool):

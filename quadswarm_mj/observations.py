@@ -61,9 +61,15 @@ def obs_bounds(cfg: EnvConfig) -> tuple[np.ndarray, np.ndarray]:
 
 
 def obs_scale(cfg: EnvConfig) -> np.ndarray:
-    """Per-component scale used by ``normalize_obs`` (max |bound|), so normalized obs lie in [-1, 1]."""
+    """Per-component scale used by ``normalize_obs``, so normalized obs lie in [-1, 1]: max |bound|,
+    except the neighbour relative velocities, which are clipped to +-``neighbor_vel_clip`` (m/s)
+    and so are divided by the clip (they reach +-1)."""
     lo, hi = obs_bounds(cfg)
-    return np.maximum(np.abs(lo), np.abs(hi)).astype(np.float64)
+    scale = np.maximum(np.abs(lo), np.abs(hi)).astype(np.float64)
+    d = cfg.self_obs_dim
+    for j in range(cfg.neighbors):
+        scale[d + 6 * j + 3:d + 6 * j + 6] = cfg.neighbor_vel_clip
+    return scale
 
 
 def self_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any) -> Any:

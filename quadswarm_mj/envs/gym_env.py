@@ -32,10 +32,12 @@ def make_config(cfg: EnvConfig | None, kwargs: dict[str, Any]) -> EnvConfig:
 class QuadSwarmEnv(gym.Env):
     """One world of ``cfg.num_quads`` Crazyflies under per-rotor thrust control."""
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
+    #: ``render_fps`` is set per instance to the control rate (``cfg.control_hz``): one frame per step.
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 100}
 
     def __init__(self, cfg: EnvConfig | None = None, render_mode: str | None = None, **kwargs: Any):
         self.cfg = make_config(cfg, kwargs)
+        self.metadata = {**self.metadata, "render_fps": self.cfg.control_hz}
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         self.render_mode = render_mode
@@ -81,7 +83,7 @@ class QuadSwarmEnv(gym.Env):
             if not isinstance(options, dict):
                 raise ValueError(f"options must be a dict, got {type(options).__name__}")
             if options.get("state") is not None:
-                state = check_state(options["state"], self.cfg.num_quads)
+                state = check_state(options["state"], self.cfg.num_quads, room=(self.cfg.room_low, self.cfg.room_high))
         super().reset(seed=seed)
         if seed is not None:
             self.core.seed(seed)

@@ -23,10 +23,11 @@ STATE_PER_QUAD = 21
 class QuadSwarmParallelEnv(ParallelEnv):
     """PettingZoo parallel API over one world of N quads."""
 
-    metadata = {"render_modes": ["rgb_array"], "name": "quadswarm_v0", "render_fps": 30, "is_parallelizable": True}
+    metadata = {"render_modes": ["rgb_array"], "name": "quadswarm_v0", "render_fps": 100, "is_parallelizable": True}
 
     def __init__(self, cfg: EnvConfig | None = None, render_mode: str | None = None, **kwargs: Any):
         self.cfg = make_config(cfg, kwargs)
+        self.metadata = {**self.metadata, "render_fps": self.cfg.control_hz}  # one frame per control step
         self.env = QuadSwarmEnv(self.cfg, render_mode=render_mode)
         self.render_mode = render_mode
         n = self.cfg.num_quads

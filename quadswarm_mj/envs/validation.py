@@ -25,8 +25,12 @@ def check_action(action: Any, expected_shape: tuple[int, ...]) -> np.ndarray:
     return a
 
 
-def check_state(state: Any, num_quads: int, lead: tuple[int, ...] = ()) -> dict[str, Any]:
-    """Validate a ``reset(options={"state": ...})`` dict; arrays are (*lead, N, ...)."""
+def check_state(state: Any, num_quads: int, lead: tuple[int, ...] = (),
+                room: tuple[Any, Any] | None = None) -> dict[str, Any]:
+    """Validate a ``reset(options={"state": ...})`` dict; arrays are (*lead, N, ...).
+
+    ``room`` = (low, high) corners (m, world frame; ``(cfg.room_low, cfg.room_high)``): positions and
+    goals must lie in that box (bounds included). Returns float64 copies."""
     if not isinstance(state, dict):
         raise ValueError(f"options['state'] must be a dict, got {type(state).__name__}")
     allowed = {"pos": (3,), "vel": (3,), "rot": (3, 3), "omega": (3,), "goals": (3,), "motors": (4,)}
@@ -51,6 +55,16 @@ def check_state(state: Any, num_quads: int, lead: tuple[int, ...] = ()) -> dict[
         if not np.all(np.isfinite(a)):
             raise ValueError(f"options['state']['{key}'] contains NaN or inf")
         out[key] = a.copy()
+    if room is not None:
+        low, high = np.asarray(room[0], np.float64), np.asarray(room[1], np.float64)
+        box = " x ".join(f"[{lo:g}, {hi:g}]" for lo, hi in zip(low, high))
+        for key in ("pos", "goals"):
+            if key in out:
+                outside = ((out[key] < low) | (out[key] > high)).any(axis=-1)
+                if outside.any():
+                    idx = tuple(int(i) for i in np.argwhere(outside)[0])
+                    raise ValueError(f"options['state']['{key}'] must be inside the room {box} m; index {idx} is "
+                                     f"{out[key][idx].tolist()}")
     if "rot" in out:
         R = out["rot"]
         err = np.abs(np.einsum("...ij,...kj->...ik", R, R) - np.eye(3)).max()
