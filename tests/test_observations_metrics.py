@@ -94,3 +94,17 @@ def test_mujoco_contact_models(mode):
     for _ in range(100):
         _, _, _, _, info = env.step(-np.ones(4))
     assert info["state"]["pos"][0, 2] == pytest.approx(QuadParams().arm, abs=2e-3) and info["on_floor"][0]
+
+
+def test_normalized_neighbor_velocity_reaches_plus_minus_one():
+    """normalize_obs divides the neighbour relative velocity by its clip (neighbor_vel_clip), so a
+    clipped value is exactly +-1, and a value below the clip is v / clip."""
+    cfg = EnvConfig(num_quads=3, num_neighbors=2, normalize_obs=True, neighbor_vel_clip=6.0).without_noise()
+    env = QuadSwarmEnv(cfg)
+    pos = [[0.0, 0, 2], [0.5, 0, 2], [0, 1.5, 2]]
+    vel = [[0.0, 0, 0], [10.0, -10.0, 3.0], [-8.0, 0.0, 0.0]]
+    obs, _ = env.reset(options={"state": {"pos": pos, "vel": vel, "goals": pos}})
+    d = cfg.self_obs_dim
+    np.testing.assert_allclose(obs[0, d + 3:d + 6], [1.0, -1.0, 0.5], atol=1e-6)  # quad 1 (nearest), 3 / 6
+    np.testing.assert_allclose(obs[0, d + 9:d + 12], [-1.0, 0.0, 0.0], atol=1e-6)  # quad 2
+    assert env.observation_space.contains(obs)
