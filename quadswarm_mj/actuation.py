@@ -94,7 +94,7 @@ def inverse_thrust_map(t: Any, q: float) -> Any:
     if q == 0.0:
         return t
     t = xp.maximum(t, 0.0)
-    return 2.0 * t / ((1.0 - q) + xp.sqrt((1.0 - q) ** 2 + 4.0 * q * t))
+    return 2.0 * t / xp.maximum((1.0 - q) + xp.sqrt((1.0 - q) ** 2 + 4.0 * q * t), 1e-30)
 
 
 def body_wrench(f_norm: Any, thrust_max: Any, torque_max: Any, rotor_pos: Any) -> tuple[Any, Any]:

@@ -94,7 +94,7 @@ class QuadParams:
         * ``"crazyflie21_identified"``: the Crazyflie 2.x from published measurements and its system
           identification, sources in ``tests/reference_data/crazyflie2_thrust.json``: mass 0.027 kg
           (firmware ``CF_MASS``), inertia diag(16.571710, 16.655602, 29.261652) e-6 kg m^2 (Förster
-          2015, as in the firmware's Lee controller), arm 0.046 m (firmware ``ARM_LENGTH``),
+          2015, as in the firmware's controller_sjc.c), arm 0.046 m (firmware ``ARM_LENGTH``),
           torque-to-thrust 0.005964552 m (firmware ``thrustToTorque``), motor settling time 0.18 s
           (Bitcraze: 0 to 25k rpm in about 180 ms), and the static thrust curve
           thrust = thrust_max ((1 - q) p + q p^2) of the PWM fraction p fitted (minimax relative error)
