@@ -10,8 +10,9 @@ the physics rate inside the sub-step loop, and are off by default (the paper has
   h = r / 4 and is only validated for h >~ r / 2, so the gain is clipped at
   ``AeroConfig.ground_effect_max_gain`` = 4/3 (its value at h = r / 2). A Crazyflie resting on the
   floor has its rotors ~0.043 m up (h / r = 1.8): gain 1.019. The gain multiplies each rotor's
-  thrust (and its reaction torque), i.e. it acts AFTER the motor model and the thrust map:
-  ``substep_wrench(..., rotor_gain=ground_effect_gain(...))``.
+  thrust (and its reaction torque) after the motor model and the thrust map:
+  :func:`ground_effect_stage` runs before the wrench and its gain goes in as
+  ``substep_wrench(..., rotor_gain=gain)``.
 * Rotor drag (induced / blade-flapping drag, linear in the body velocity and the rotor speed):
   F_body = -diag(c) * (sum_i w_i) * v_body with w_i the rotor speeds in rad/s and
   c = (9.1785e-7, 9.1785e-7, 10.311e-7) N / (m/s) / (rad/s), the values of gym-pybullet-drones
@@ -19,8 +20,18 @@ the physics rate inside the sub-step loop, and are off by default (the paper has
   identified by Förster 2015, "System identification of the Crazyflie 2.0 nano quadrocopter",
   ETH Zurich BSc thesis. The rotor speeds follow from the rotor thrusts by F_i = k_f w_i^2 with
   k_f = 3.16e-10 N/rpm^2 (the same source). At hover (sum w ~ 6000 rad/s) this is about
-  5.5e-3 N per m/s in x, y: 2 % of the weight at 1 m/s. The force is world-rotated and added to
-  the thrust force written to ``xfrc_applied``.
+  5.5e-3 N per m/s in x, y: 2 % of the weight at 1 m/s. :func:`drag_stage` runs after the motor
+  model (it needs this sub-step's rotor thrusts); its world force is added to the force written
+  to ``xfrc_applied``.
+
+Both stages return None when their switch is off (static Python switches), so the default
+configuration evaluates nothing. The order inside one sub-step (see tests/closed_loop.py)::
+
+    gain = ground_effect_stage(cfg, params, pos, R, rotor_pos)
+    u, f_norm, force, torque = substep_wrench(u, cmd, eps, params, R, rotor_pos,
+                                              thrust_quadratic=q, rotor_gain=gain)
+    drag = drag_stage(cfg, params, R, vel, f_norm, gain)
+    xfrc_applied <- (force if drag is None else force + drag, torque)
 
 Per-quad parameters (:func:`aero_params_from_draws`): ``rotor_radius`` (..., N) m and
 ``drag_coeff`` (..., N, 3), nominal or scaled by per-reset draws (:func:`aero_draw_spec`,
@@ -101,25 +112,32 @@ def _transpose(R: Any) -> Any:
     return array_namespace(R).swapaxes(R, -1, -2)
 
 
-def aero_substep(cfg: EnvConfig, params: dict[str, Any], pos: Any, vel: Any, R: Any, f_norm: Any,
-                 rotor_pos: Any) -> tuple[Any | None, Any | None]:
-    """Both effects for one sub-step, as enabled in ``cfg.aero`` (static switches).
+def ground_effect_stage(cfg: EnvConfig, params: dict[str, Any], pos: Any, R: Any, rotor_pos: Any) -> Any | None:
+    """Sub-step stage BEFORE the wrench: the per-rotor ground-effect gain (..., N, 4) to pass as
+    ``substep_wrench(..., rotor_gain=...)``, or None when ``cfg.aero.ground_effect`` is off (a
+    static switch). ``pos`` (..., N, 3) world-local COM position (floor at z = 0), ``R`` body->world;
+    ``params`` must hold ``rotor_radius`` (:func:`aero_params_from_draws`)."""
+    a = cfg.aero
+    if not a.ground_effect:
+        return None
+    return ground_effect_gain(rotor_heights(pos, R, rotor_pos), params["rotor_radius"], a.ground_effect_max_gain)
 
-    Returns (``rotor_gain`` (..., N, 4) or None, for ``substep_wrench(..., rotor_gain=...)``;
-    ``drag`` world force (..., N, 3) or None, to add to the force written to ``xfrc_applied``).
-    ``f_norm`` is the motor output of the previous sub-step (the drag uses its thrust through the
-    static thrust map and the ground-effect gain of this sub-step)."""
-    from quadswarm_mj.actuation import thrust_map
+
+def drag_stage(cfg: EnvConfig, params: dict[str, Any], R: Any, vel: Any, f_norm: Any,
+               rotor_gain: Any | None = None) -> Any | None:
+    """Sub-step stage AFTER the motor model: the world rotor-drag force (..., N, 3) to add to the
+    force written to ``xfrc_applied``, or None when ``cfg.aero.drag`` is off (a static switch).
+
+    ``f_norm`` (..., N, 4) is this sub-step's motor output (returned by ``substep_wrench``); the
+    rotor thrusts are ``thrust_max * thrust_map(f_norm) * rotor_gain`` as in the wrench; ``vel``
+    (..., N, 3) m/s world; ``params`` must hold ``thrust_max`` and ``drag_coeff``."""
+    from quadswarm_mj.actuation import thrust_map  # late import: actuation imports nothing from here
 
     a = cfg.aero
-    gain = None
-    if a.ground_effect:
-        gain = ground_effect_gain(rotor_heights(pos, R, rotor_pos), params["rotor_radius"], a.ground_effect_max_gain)
-    drag = None
-    if a.drag:
-        q = cfg.quad.thrust_map_quadratic
-        thrust = params["thrust_max"] * (f_norm if q == 0.0 else thrust_map(f_norm, q))
-        if gain is not None:
-            thrust = thrust * gain
-        drag = rotor_drag_force(R, vel, thrust, params["drag_coeff"], a.thrust_coeff)
-    return gain, drag
+    if not a.drag:
+        return None
+    q = cfg.quad.thrust_map_quadratic
+    thrust = params["thrust_max"] * (f_norm if q == 0.0 else thrust_map(f_norm, q))
+    if rotor_gain is not None:
+        thrust = thrust * rotor_gain
+    return rotor_drag_force(R, vel, thrust, params["drag_coeff"], a.thrust_coeff)

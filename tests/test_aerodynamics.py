@@ -11,8 +11,9 @@ from quadswarm_mj.aerodynamics import (
     aero_draw_spec,
     aero_nominal_draws,
     aero_params_from_draws,
-    aero_substep,
+    drag_stage,
     ground_effect_gain,
+    ground_effect_stage,
     rotor_drag_force,
     rotor_heights,
     rotor_speeds,
@@ -70,8 +71,9 @@ def test_ground_effect_raises_thrust_in_the_wrench() -> None:
     rp = rotor_positions(cfg.quad)
     u, cmd, R = np.full((1, 4), 0.7), np.full((1, 4), 0.49), np.eye(3)[None]
     pos = np.array([[0.0, 0.0, 0.05]])
-    gain, drag = aero_substep(cfg, p, pos, np.zeros((1, 3)), R, u * u, rp)
-    assert drag is None
+    gain = ground_effect_stage(cfg, p, pos, R, rp)
+    assert drag_stage(cfg, p, R, np.ones((1, 3)), u * u, gain) is None  # drag off
+    assert ground_effect_stage(EnvConfig(num_quads=1), p, pos, R, rp) is None  # default: off
     _, _, f0, t0 = substep_wrench(u, cmd, np.zeros((1, 4)), p, R, rp)
     _, _, f1, t1 = substep_wrench(u, cmd, np.zeros((1, 4)), p, R, rp, rotor_gain=gain)
     np.testing.assert_allclose(f1[0, 2] / f0[0, 2], gain[0, 0], rtol=1e-12)
@@ -137,10 +139,47 @@ def test_numpy_jax_jit_equivalence() -> None:
     pos = np.column_stack([rng.normal(size=(3, 2)), [0.02, 0.05, 0.3]])
     vel, f = rng.normal(size=(3, 3)), rng.uniform(0.2, 0.8, size=(3, 4))
     rp = rotor_positions(cfg.quad)
-    g_ref, d_ref = aero_substep(cfg, p, pos, vel, R, f, rp)
-    jf = jax.jit(lambda prm, *a: aero_substep(cfg, prm, *a, rp))
+
+    def both(prm, pos, vel, R, f):
+        gain = ground_effect_stage(cfg, prm, pos, R, rp)
+        return gain, drag_stage(cfg, prm, R, vel, f, gain)
+
+    g_ref, d_ref = both(p, pos, vel, R, f)
     pj = {k: (jnp.asarray(v) if k != "gravity" else v) for k, v in p.items()}
-    g, d = jf(pj, jnp.asarray(pos), jnp.asarray(vel), jnp.asarray(R), jnp.asarray(f))
+    g, d = jax.jit(both)(pj, jnp.asarray(pos), jnp.asarray(vel), jnp.asarray(R), jnp.asarray(f))
     np.testing.assert_allclose(np.asarray(g), g_ref, rtol=1e-12)
     np.testing.assert_allclose(np.asarray(d), d_ref, rtol=1e-12, atol=1e-18)
     assert g_ref.max() > 1.01 and np.abs(d_ref).max() > 1e-4  # both effects active in the compared case
+
+
+def test_closed_loop_ground_effect_lifts_a_hovering_quad() -> None:
+    """MuJoCo closed loop (tests/closed_loop.py): a level quad at 6 cm with the hover command
+    accelerates upward at (gain - 1) g; with the ground effect off it holds its height."""
+    from closed_loop import run_closed_loop
+
+    cfg = EnvConfig(num_quads=1, aero=AeroConfig(ground_effect=True)).without_noise()
+    hover = np.full((1, 4), cfg.quad.hover_action)
+    pos0 = np.array([[0.0, 0.0, 0.06]])
+    tr = run_closed_loop(cfg, hover, 0.05, pos0=pos0)
+    h = 0.06 + cfg.quad.rotor_z
+    gain = 1.0 / (1.0 - (R_CF / (4 * h)) ** 2)
+    expected = (gain - 1.0) * cfg.quad.gravity * 0.05
+    np.testing.assert_allclose(tr["vel"][-1, 0, 2], expected, rtol=0.05)
+    assert expected > 4e-3
+    off = run_closed_loop(cfg.replace(aero=AeroConfig()), hover, 0.05, pos0=pos0)
+    assert abs(off["vel"][-1, 0, 2]) < 1e-9
+
+
+def test_closed_loop_drag_decays_a_gliding_quad() -> None:
+    """A level quad at hover thrust moving at 1 m/s along x slows as exp(-k t), k = c_x w_sum / m
+    (w_sum the hover rotor speeds), within 1 % after 1 s; its y velocity stays 0."""
+    from closed_loop import run_closed_loop
+
+    cfg = EnvConfig(num_quads=1, aero=AeroConfig(drag=True)).without_noise()
+    a, q = cfg.aero, cfg.quad
+    tr = run_closed_loop(cfg, np.full((1, 4), q.hover_action), 1.0, vel0=np.array([[1.0, 0.0, 0.0]]))
+    w_sum = 4 * np.sqrt(q.mass * q.gravity / 4 / a.thrust_coeff)
+    k = a.drag_coeff[0] * w_sum / q.mass
+    np.testing.assert_allclose(tr["vel"][-1, 0, 0], np.exp(-k * 1.0), rtol=0.01)
+    assert np.exp(-k) < 0.85  # a visible effect: > 15 % speed lost in 1 s
+    assert abs(tr["vel"][-1, 0, 1]) < 1e-9

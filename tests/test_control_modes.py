@@ -1,20 +1,18 @@
 """Control modes (quadswarm_mj.control_modes): constant commands reach the commanded rate,
 attitude or velocity in closed loop on MuJoCo, NumPy and jax.jit agree, bounds are physical.
 
-The closed-loop driver integrates one world the way the CPU engine's sub-step loop does:
-mode_command -> substep_wrench (motor lag, noise, thrust map) -> xfrc_applied -> mj_step ->
-omega clip, at the physics rate."""
+The closed-loop driver (tests/closed_loop.py) integrates one world the way the CPU engine's
+sub-step loop does: mode_command -> substep_wrench (motor lag, noise, thrust map) ->
+xfrc_applied -> mj_step -> omega clip, at the physics rate."""
 
 from __future__ import annotations
 
 import math
 
-import mujoco
 import numpy as np
 import pytest
+from closed_loop import make_params, run_closed_loop
 
-from quadswarm_mj.actuation import hover_motor_state_mapped, motor_noise_step, rotor_positions, substep_wrench
-from quadswarm_mj.arena import build_arena
 from quadswarm_mj.config import EnvConfig, QuadParams
 from quadswarm_mj.control_modes import (
     MAX_SPEED,
@@ -24,62 +22,11 @@ from quadswarm_mj.control_modes import (
     make_mode_controller,
     mode_command,
 )
-from quadswarm_mj.random_draws import NumpySampler
-from quadswarm_mj.randomization import nominal_draws, params_from_draws, randomization_draw_spec
 from quadswarm_mj.spatial import quat_to_rotmat
 
 
 def _params(cfg: EnvConfig, seed: int | None = None) -> dict:
-    if seed is None:
-        draws = nominal_draws(cfg, np.zeros(1))
-    else:
-        draws = NumpySampler(np.random.default_rng(seed)).draw(randomization_draw_spec(cfg))
-    return params_from_draws(cfg, draws)
-
-
-def run_closed_loop(cfg: EnvConfig, action: np.ndarray, seconds: float, seed: int | None = None,
-                    z0: float = 5.0) -> dict[str, np.ndarray]:
-    """Fly ``cfg.num_quads`` quads from hover at rest with a constant mode ``action`` (N, 4).
-
-    Returns the trajectories of R (T, N, 3, 3), omega body (T, N, 3), vel world (T, N, 3)."""
-    n = cfg.num_quads
-    arena = build_arena(cfg, 1, visual=False)
-    model = arena.model
-    data = mujoco.MjData(model)
-    params = _params(cfg, seed)
-    model.body_mass[arena.first_body:arena.first_body + n] = params["mass"]  # the airframe reaches MuJoCo
-    model.body_inertia[arena.first_body:arena.first_body + n] = params["inertia"]
-    q0, v0 = arena.qpos_start, arena.qvel_start
-    qpos = data.qpos[q0:q0 + 7 * n].reshape(n, 7)
-    qvel = data.qvel[v0:v0 + 6 * n].reshape(n, 6)
-    xfrc = data.xfrc_applied[arena.first_body:arena.first_body + n]
-    qpos[:, :3] = np.stack([np.arange(n) * 1.0 - 0.5 * (n - 1), np.zeros(n), np.full(n, z0)], -1)
-    qpos[:, 3:] = [1.0, 0.0, 0.0, 0.0]
-    qvel[:] = 0.0
-    mujoco.mj_forward(model, data)
-    rotor_pos = rotor_positions(cfg.quad)
-    q = cfg.quad.thrust_map_quadratic
-    u = hover_motor_state_mapped(params, q)
-    eps = np.zeros((n, 4))
-    rng = np.random.default_rng(0 if seed is None else seed + 1)
-    ctrl = make_mode_controller(cfg)
-    cs = init_control_state((n,))
-    out: dict[str, list] = {"rot": [], "omega": [], "vel": [], "pos": []}
-    for _ in range(int(round(seconds * cfg.control_hz))):
-        eps = motor_noise_step(eps, params["motor_sigma"], cfg.noise.motor_noise_theta, rng.standard_normal((n, 4)))
-        for _ in range(cfg.substeps):
-            R = quat_to_rotmat(qpos[:, 3:7].copy())
-            state = {"rot": R, "omega": qvel[:, 3:].copy(), "vel": qvel[:, :3].copy()}
-            cmd, cs = ctrl(action, state, params, cs)
-            u, _, force, torque = substep_wrench(u, cmd, eps, params, R, rotor_pos, thrust_quadratic=q)
-            xfrc[:, :3], xfrc[:, 3:] = force, torque
-            mujoco.mj_step(model, data)
-            np.clip(qvel[:, 3:], -cfg.quad.max_omega, cfg.quad.max_omega, out=qvel[:, 3:])
-        out["rot"].append(quat_to_rotmat(qpos[:, 3:7].copy()))
-        out["omega"].append(qvel[:, 3:].copy())
-        out["vel"].append(qvel[:, :3].copy())
-        out["pos"].append(qpos[:, :3].copy())
-    return {k: np.array(v) for k, v in out.items()}
+    return make_params(cfg, seed)
 
 
 CFG = EnvConfig(num_quads=2)
