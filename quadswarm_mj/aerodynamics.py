@@ -19,8 +19,8 @@ the physics rate inside the sub-step loop, and are off by default (the paper has
   (``cf2x.urdf`` drag_coeff_xy, drag_coeff_z; Panerati et al. 2021), derived from the drag matrix
   identified by Förster 2015, "System identification of the Crazyflie 2.0 nano quadrocopter",
   ETH Zurich BSc thesis. The rotor speeds follow from the rotor thrusts by F_i = k_f w_i^2 with
-  k_f = 3.16e-10 N/rpm^2 (the same source). At hover (sum w ~ 6000 rad/s) this is about
-  5.5e-3 N per m/s in x, y: 2 % of the weight at 1 m/s. :func:`drag_stage` runs after the motor
+  k_f = 3.16e-10 N/rpm^2 (the same source). At hover (sum w ~ 6200 rad/s) this is about
+  5.7e-3 N per m/s in x, y: 2 % of the weight at 1 m/s. :func:`drag_stage` runs after the motor
   model (it needs this sub-step's rotor thrusts); its world force is added to the force written
   to ``xfrc_applied``.
 
