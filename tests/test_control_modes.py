@@ -237,3 +237,33 @@ def test_env_velocity(engine: str) -> None:
     action = np.array([[1.0, -0.5, 0.3, 0.0], [-0.6, 0.4, -0.2, 1.0]])
     tr = _env_constant_command(engine, "velocity", action, 3.5)
     np.testing.assert_allclose(tr["vel"][300:].mean(0), action[:, :3], atol=0.05)
+
+
+@_SKIP
+@pytest.mark.parametrize("mode", ["ctbr", "attitude", "velocity"])
+def test_wrappers_expose_physical_action_bounds(mode: str) -> None:
+    """Gymnasium, PettingZoo and the vector env take physical-unit actions within the mode's bounds;
+    a hover command (ctbr/attitude: m g and zero rates/angles; velocity: zero) keeps a hover start
+    level and nearly still for 0.2 s."""
+    from quadswarm_mj.envs.gym_env import QuadSwarmEnv
+    from quadswarm_mj.envs.parallel_env import QuadSwarmParallelEnv
+    from quadswarm_mj.envs.vector_env import QuadSwarmVectorEnv
+
+    cfg = EnvConfig(num_quads=2, control_mode=mode, motor_start="hover").without_noise()
+    lo, hi = control_action_bounds(cfg)
+    hover = np.zeros(4) if mode == "velocity" else np.array([_hover_thrust(cfg), 0.0, 0.0, 0.0])
+    env = QuadSwarmEnv(cfg)
+    np.testing.assert_allclose(env.action_space.low.reshape(2, 4), np.broadcast_to(lo, (2, 4)))
+    env.reset(seed=0)
+    for _ in range(20):
+        _, _, _, _, info = env.step(np.broadcast_to(hover, (2, 4)).reshape(env.action_space.shape))
+    assert np.abs(info["state"]["omega"]).max() < 0.1
+    penv = QuadSwarmParallelEnv(cfg)
+    np.testing.assert_allclose(penv.action_space(penv.possible_agents[0]).high, hi)
+    penv.reset(seed=0)
+    penv.step({a: hover for a in penv.agents})
+    venv = QuadSwarmVectorEnv(cfg, num_envs=2)
+    np.testing.assert_allclose(venv.single_action_space.high, np.broadcast_to(hi, (2, 4)))
+    venv.reset(seed=0)
+    venv.step(np.broadcast_to(hover, (2, 2, 4)).copy())
+    venv.close()
