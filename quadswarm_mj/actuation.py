@@ -80,6 +80,23 @@ def rotor_thrust(u: Any, cmd: Any, noise: Any) -> Any:
     return xp.minimum(xp.maximum(u * u + cmd * noise, 0.0), 1.0)  # = clip, as two cheap ufuncs
 
 
+def thrust_map(f: Any, q: float) -> Any:
+    """Static thrust curve: thrust / thrust_max = (1 - q) f + q f^2 of the normalized motor output f.
+
+    q = ``QuadParams.thrust_map_quadratic`` in [0, 1]; q = 0 is the paper's linear model (identity).
+    Monotone on [0, 1] with map(0) = 0 and map(1) = 1."""
+    return f * ((1.0 - q) + q * f)
+
+
+def inverse_thrust_map(t: Any, q: float) -> Any:
+    """The f in [0, 1] with ``thrust_map(f, q) == t`` for t in [0, 1] (stable root of the quadratic)."""
+    xp = array_namespace(t)
+    if q == 0.0:
+        return t
+    t = xp.maximum(t, 0.0)
+    return 2.0 * t / xp.maximum((1.0 - q) + xp.sqrt((1.0 - q) ** 2 + 4.0 * q * t), 1e-30)
+
+
 def body_wrench(f_norm: Any, thrust_max: Any, torque_max: Any, rotor_pos: Any) -> tuple[Any, Any]:
     """Rotor thrusts -> (force, torque) in the body frame about the COM.
 
@@ -126,19 +143,35 @@ def hover_motor_state(params: dict[str, Any]) -> Any:
     return xp.sqrt(f) * xp.ones_like(params["thrust_max"])
 
 
+def hover_motor_state_mapped(params: dict[str, Any], thrust_quadratic: float) -> Any:
+    """:func:`hover_motor_state` through the static thrust map (``QuadParams.thrust_map_quadratic``);
+    equal to it for ``thrust_quadratic == 0``."""
+    u = hover_motor_state(params)
+    return u if thrust_quadratic == 0.0 else array_namespace(u).sqrt(inverse_thrust_map(u * u, thrust_quadratic))
+
+
 def substep_wrench(u: Any, cmd: Any, noise: Any, params: dict[str, Any], R: Any, rotor_pos: Any,
-                   mix: Any | None = None, torque_spin: Any | None = None) -> tuple[Any, Any, Any, Any]:
+                   mix: Any | None = None, torque_spin: Any | None = None, thrust_quadratic: float = 0.0,
+                   rotor_gain: Any | None = None) -> tuple[Any, Any, Any, Any]:
     """One physics sub-step of the actuation chain.
 
     Returns the new motor state ``u``, ``f_norm`` (..., N, 4) and the world-frame force
     and torque (..., N, 3) to write into ``xfrc_applied``. ``mix`` (= ``wrench_matrix(rotor_pos)``)
     and ``torque_spin`` (= ``params["torque_max"] * SPIN``) may be passed in precomputed.
+    ``thrust_quadratic`` (a Python float, ``QuadParams.thrust_map_quadratic``) applies
+    :func:`thrust_map` to ``f_norm`` before the wrench; ``rotor_gain`` (..., N, 4), e.g. the ground
+    effect of :func:`quadswarm_mj.aerodynamics.ground_effect_gain`, multiplies each rotor's thrust
+    and reaction torque. With the defaults (0.0, None) neither is evaluated (bit-identical to the
+    paper's chain). The returned ``f_norm`` is always the motor output before both.
     """
     xp = array_namespace(u, cmd)
     u = motor_lag(u, cmd, params["alpha"])
     f_norm = rotor_thrust(u, cmd, noise)
     mix = wrench_matrix(rotor_pos) if mix is None else mix
     torque_spin = params["torque_max"] * SPIN if torque_spin is None else torque_spin
-    fz, torque_b = _thrust_torque(xp, f_norm, params["thrust_max"], torque_spin, mix)
+    f_eff = f_norm if thrust_quadratic == 0.0 else thrust_map(f_norm, thrust_quadratic)
+    if rotor_gain is not None:
+        f_eff = f_eff * rotor_gain
+    fz, torque_b = _thrust_torque(xp, f_eff, params["thrust_max"], torque_spin, mix)
     force_w, torque_w = _rotate_wrench(R, fz, torque_b)
     return u, f_norm, force_w, torque_w

@@ -22,6 +22,8 @@ SPAWN_MIN_Z = 0.75
 SPAWN_MARGIN = 0.5
 MIN_ROOM_HEIGHT = SPAWN_MIN_Z + SPAWN_MARGIN  # 1.25 m
 MIN_ROOM_SIDE = 2 * SPAWN_MARGIN  # 1.0 m
+CONTROL_MODES = ("rotor", "ctbr", "attitude", "velocity")
+QUAD_PRESETS = ("quadswarm", "crazyflie21_identified")
 
 
 def _check_range(name: str, value: float, lo: float | None = None, hi: float | None = None,
@@ -63,11 +65,15 @@ class QuadParams:
     motor_settling_time: float = 0.15  # s, 2 % settling (4 time constants)
     max_omega: float = 40.0  # rad/s, per body axis
     gravity: float = 9.81  # m/s^2
+    #: q in [0, 1] of the static thrust map thrust / thrust_max = (1 - q) f + q f^2 of the normalized
+    #: motor output f (PWM fraction); 0 (default) is the paper's linear model and is never evaluated.
+    thrust_map_quadratic: float = 0.0
 
     def __post_init__(self) -> None:
         for n in ("mass", "arm", "thrust_to_weight", "torque_to_thrust", "motor_settling_time",
                   "max_omega", "gravity"):
             _check_range(f"quad.{n}", getattr(self, n), 0.0, lo_open=True)
+        _check_range("quad.thrust_map_quadratic", self.thrust_map_quadratic, 0.0, 1.0)
         if self.arm >= SPAWN_MARGIN:
             raise ValueError(f"quad.arm must be < {SPAWN_MARGIN} m (the spawn margin from walls and ceiling), "
                              f"got {self.arm!r}")
@@ -92,8 +98,38 @@ class QuadParams:
 
     @property
     def hover_command(self) -> float:
-        """Normalized per-rotor thrust that balances gravity (0.5263158 nominal)."""
-        return 1.0 / self.thrust_to_weight
+        """Normalized per-rotor command whose static thrust balances gravity (0.5263158 nominal)."""
+        f, q = 1.0 / self.thrust_to_weight, self.thrust_map_quadratic
+        if q == 0.0:
+            return f
+        return 2.0 * f / ((1.0 - q) + math.sqrt((1.0 - q) ** 2 + 4.0 * q * f))  # inverse of the thrust map
+
+    @classmethod
+    def preset(cls, name: str, **changes: Any) -> QuadParams:
+        """A named airframe (``QUAD_PRESETS``), optionally with fields changed.
+
+        * ``"quadswarm"``: the paper's constants (SPEC §1, the default ``QuadParams()``).
+        * ``"crazyflie21_identified"``: the Crazyflie 2.x from published measurements and its system
+          identification, sources in ``tests/reference_data/crazyflie2_thrust.json``: mass 0.027 kg
+          (firmware ``CF_MASS``), inertia diag(16.571710, 16.655602, 29.261652) e-6 kg m^2 (Förster
+          2015, as in the firmware's controller_sjc.c), arm 0.046 m (firmware ``ARM_LENGTH``),
+          torque-to-thrust 0.005964552 m (firmware ``thrustToTorque``), motor settling time 0.18 s
+          (Bitcraze: 0 to 25k rpm in about 180 ms), and the static thrust curve
+          thrust = thrust_max ((1 - q) p + q p^2) of the PWM fraction p fitted (minimax relative error)
+          to Bitcraze's PWM-to-thrust table over 12.5-93.75 % PWM: thrust_max = 0.15485 N per rotor
+          (thrust-to-weight 2.339), q = 0.4302. (The firmware's own fit a p^2 + b p, a = 0.091492681 N,
+          b = 0.067673604 N, misses that table by up to 18 % at low PWM; tests/test_thrust_curve.py.)
+        """
+        if name == "quadswarm":
+            base = cls()
+        elif name == "crazyflie21_identified":
+            thrust_max, mass, g = 0.15485, 0.027, 9.81  # N per rotor, kg, m/s^2
+            base = cls(mass=mass, inertia=(16.571710e-6, 16.655602e-6, 29.261652e-6), arm=0.046,
+                       thrust_to_weight=4.0 * thrust_max / (mass * g), torque_to_thrust=0.005964552,
+                       motor_settling_time=0.18, gravity=g, thrust_map_quadratic=0.4302)
+        else:
+            raise ValueError(f"quad preset must be one of {QUAD_PRESETS}, got {name!r}")
+        return replace(base, **changes) if changes else base
 
     @property
     def hover_action(self) -> float:
@@ -186,6 +222,57 @@ class RewardScales:
 
 
 @dataclass(frozen=True)
+class AeroConfig:
+    """Aerodynamic effects beyond the paper (off by default), see :mod:`quadswarm_mj.aerodynamics`.
+
+    * ground effect: per-rotor thrust gain 1 / (1 - (r / 4 h)^2) at rotor height h above the floor
+      (Cheeseman & Bennett 1955), r = ``rotor_radius`` (the Crazyflie's 46.2 mm props: 0.0231 m;
+      gym-pybullet-drones ``cf2x.urdf`` prop_radius 2.31348e-2 m), clipped at ``ground_effect_max_gain``
+      (4/3 = the form at h = r / 2, the lower end of its validity);
+    * rotor (blade) drag: body-frame force -diag(``drag_coeff``) * (sum of rotor speeds, rad/s) * v_body,
+      drag_coeff in N / (m/s) / (rad/s) from gym-pybullet-drones ``cf2x.urdf`` (drag_coeff_xy 9.1785e-7,
+      drag_coeff_z 10.311e-7, after Förster 2015); rotor speeds from the rotor thrust by
+      F = ``thrust_coeff`` * w^2 (3.16e-10 N/rpm^2 = 2.8816e-8 N/(rad/s)^2, the same source).
+
+    ``*_scale`` are per-quad randomization ranges (multipliers, drawn per reset when
+    ``EnvConfig.randomize``).
+    """
+
+    ground_effect: bool = False
+    drag: bool = False
+    rotor_radius: float = 0.0231  # m
+    ground_effect_max_gain: float = 4.0 / 3.0
+    drag_coeff: tuple[float, float, float] = (9.1785e-7, 9.1785e-7, 10.311e-7)  # N/(m/s)/(rad/s), body x, y, z
+    thrust_coeff: float = 3.16e-10 * (60.0 / (2.0 * math.pi)) ** 2  # N/(rad/s)^2
+    rotor_radius_scale: tuple[float, float] = (0.9, 1.1)
+    drag_scale: tuple[float, float] = (0.5, 1.5)
+
+    def __post_init__(self) -> None:
+        for n in ("ground_effect", "drag"):
+            if not isinstance(getattr(self, n), bool):
+                raise ValueError(f"aero.{n} must be a bool, got {getattr(self, n)!r}")
+        _check_range("aero.rotor_radius", self.rotor_radius, 0.0, lo_open=True)
+        _check_range("aero.ground_effect_max_gain", self.ground_effect_max_gain, 1.0, lo_open=True)
+        _check_range("aero.thrust_coeff", self.thrust_coeff, 0.0, lo_open=True)
+        try:
+            d = tuple(float(x) for x in self.drag_coeff)
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"aero.drag_coeff must be 3 numbers >= 0, got {self.drag_coeff!r}") from e
+        if len(d) != 3:
+            raise ValueError(f"aero.drag_coeff must be 3 numbers >= 0, got {self.drag_coeff!r}")
+        for i, x in enumerate(d):
+            _check_range(f"aero.drag_coeff[{i}]", x, 0.0)
+        object.__setattr__(self, "drag_coeff", d)
+        for n in ("rotor_radius_scale", "drag_scale"):
+            object.__setattr__(self, n, _check_pair(f"aero.{n}", getattr(self, n), 0.0))
+
+    @property
+    def any(self) -> bool:
+        """True if any aerodynamic effect is on."""
+        return self.ground_effect or self.drag
+
+
+@dataclass(frozen=True)
 class CollisionParams:
     """Constants of the paper's collision model (SPEC §4-5)."""
 
@@ -210,7 +297,7 @@ class CollisionParams:
 
 
 _NESTED = {"quad": QuadParams, "noise": NoiseConfig, "randomization": RandomizationConfig,
-           "rewards": RewardScales, "collision": CollisionParams}
+           "rewards": RewardScales, "collision": CollisionParams, "aero": AeroConfig}
 
 
 @dataclass(frozen=True)
@@ -245,8 +332,12 @@ class EnvConfig:
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
     rewards: RewardScales = field(default_factory=RewardScales)
     collision: CollisionParams = field(default_factory=CollisionParams)
+    control_mode: str = "rotor"  # "rotor", "ctbr", "attitude", "velocity" (quadswarm_mj.control_modes)
+    aero: AeroConfig = field(default_factory=AeroConfig)
 
     def __post_init__(self) -> None:
+        if isinstance(self.quad, str):  # a preset name
+            object.__setattr__(self, "quad", QuadParams.preset(self.quad))
         for name, cls in _NESTED.items():
             v = getattr(self, name)
             if isinstance(v, dict):
@@ -286,6 +377,8 @@ class EnvConfig:
             raise ValueError(f"motor_start must be one of {MOTOR_STARTS}, got {self.motor_start!r}")
         if self.obs_self not in OBS_SELF_VARIANTS:
             raise ValueError(f"obs_self must be one of {OBS_SELF_VARIANTS}, got {self.obs_self!r}")
+        if self.control_mode not in CONTROL_MODES:
+            raise ValueError(f"control_mode must be one of {CONTROL_MODES}, got {self.control_mode!r}")
         if self.neighbor_sort not in NEIGHBOR_SORTS:
             raise ValueError(f"neighbor_sort must be one of {NEIGHBOR_SORTS}, got {self.neighbor_sort!r}")
         object.__setattr__(self, "collision_decay", _check_pair("collision_decay", self.collision_decay, 0.0))
