@@ -1,7 +1,8 @@
 # ruff: noqa: I001  (import order = registration order = order of list_scenarios())
 """Scenarios (SPEC §10): small frozen objects with pure ``init``/``step``, found by name.
 
-Importing this package registers all sixteen scenarios (eleven, plus five ``o_*`` that need obstacles); ``list_scenarios()`` shows their names.
+Importing this package registers all sixteen scenarios (eleven, plus the five ``o_*`` ones that need
+obstacles); ``list_scenarios()`` shows their names.
 """
 
 # Order of import = order of ``list_scenarios()``; each module registers its scenarios.

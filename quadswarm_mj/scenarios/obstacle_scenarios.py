@@ -424,7 +424,7 @@ def approach_threshold(scn: Scenario, cfg: Any, state: ScenarioState, default: f
     if getattr(scn, "name", "") == "mix" and cfg.obstacles is not None:
         from quadswarm_mj.scenarios.mix import OBSTACLE_MIX_CHOICES
 
-        thr = xp.asarray([getattr(O_BY_NAME[c], "approach_goal_metric") for c in OBSTACLE_MIX_CHOICES],
+        thr = xp.asarray([O_BY_NAME[c].approach_goal_metric for c in OBSTACLE_MIX_CHOICES],
                          dtype=state.goals.dtype)
         return xp.where(state.kind >= 0, thr[xp.clip(state.kind, 0, len(OBSTACLE_MIX_CHOICES) - 1)], default)
     return xp.full(state.kind.shape, getattr(scn, "approach_goal_metric", default), dtype=state.goals.dtype)
