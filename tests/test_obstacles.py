@@ -429,3 +429,62 @@ def test_renderer_draws_columns():
     assert changed > 0.01, changed  # the column is visible (a 0.6 m column in a 10 m room)
     np.testing.assert_allclose(given, col)
     np.testing.assert_allclose(none, empty)
+
+
+# ------------------------------------------------------------------------------- controller
+
+
+def test_controller_obstacle_term_repels_at_a_column_side():
+    from quadswarm_mj.controllers import ControllerGains, PositionController
+
+    ctrl = PositionController(EnvConfig(), ControllerGains(obstacle_radius=0.5, obstacle_gain=8.0))
+    pos = np.array([[0.5, 0.0, 2.0], [0.0, 0.7, 2.0], [3.0, 0.0, 2.0]])  # right, above (+y) and far from a column
+    acc = ctrl.obstacle_acceleration(pos, np.zeros((3, 3)), np.array([[0.0, 0.0]]), np.array([True]), 0.3)
+    assert acc[0, 0] > 0 and abs(acc[0, 2]) == 0  # pushed away along +x, horizontal only
+    assert acc[1, 1] > 0 and acc[1, 1] < acc[0, 0]  # farther from the surface: weaker
+    np.testing.assert_allclose(acc[2], 0.0)
+    np.testing.assert_allclose(acc[0, 0], 8.0 * (1 - 0.2 / 0.5))
+    none = ctrl.obstacle_acceleration(pos, np.zeros((3, 3)), np.array([[0.0, 0.0]]), np.array([False]), 0.3)
+    np.testing.assert_allclose(none, 0.0)
+    # approaching: the brake adds along the normal; moving sideways: the swirl follows the motion
+    a2 = ctrl.obstacle_acceleration(pos[:1], np.array([[-1.0, 0.5, 0.0]]), np.array([[0.0, 0.0]]), None, 0.3)
+    assert a2[0, 0] > acc[0, 0] and a2[0, 1] > 0
+
+
+def test_controller_obstacles_argument_changes_actions_only_when_on():
+    from quadswarm_mj.controllers import ControllerGains, PositionController
+
+    cfg = EnvConfig(num_quads=1)
+    state = {"pos": np.array([[0.45, 0.0, 2.0]]), "vel": np.zeros((1, 3)), "rot": np.eye(3)[None],
+             "omega": np.zeros((1, 3))}
+    goals = np.array([[0.45, 0.0, 2.0]])
+    cols = np.array([[0.0, 0.0]])
+    off = PositionController(cfg)
+    on = PositionController(cfg, ControllerGains(obstacle_radius=0.5))
+    np.testing.assert_allclose(off(state, goals, obstacles=cols), off(state, goals))
+    assert np.abs(on(state, goals, obstacles=cols) - on(state, goals)).max() > 1e-3
+    m = ob.map_from_centres(ObstacleConfig(), cols)
+    np.testing.assert_allclose(on(state, goals, obstacles=m), on(state, goals, obstacles=cols))
+    with pytest.raises(ValueError, match="obstacle_radius"):
+        ControllerGains(obstacle_radius=-1.0)
+
+
+@pytest.mark.parametrize("y0", [0.0, 0.1])
+def test_controller_flies_around_a_column(y0):
+    from quadswarm_mj import QuadSwarmEnv
+    from quadswarm_mj.controllers import ControllerGains, PositionController
+
+    cfg = EnvConfig(num_quads=1, motor_start="hover").without_noise()
+    env = QuadSwarmEnv(cfg)  # columns are not in the engine yet: only the controller sees this one
+    ctrl = PositionController(cfg, ControllerGains(obstacle_radius=0.6))
+    goal = np.array([[2.5, 0.0, 2.0]])
+    _, info = env.reset(seed=0, options={"state": {"pos": np.array([[-2.5, y0, 2.0]]), "goals": goal}})
+    dmin = np.inf
+    for _ in range(600):
+        a = ctrl(info["state"], goal, obstacles=np.array([[0.0, 0.0]]))
+        _, _, _, _, info = env.step(a[0])
+        p = info["state"]["pos"][0]
+        dmin = min(dmin, float(np.hypot(p[0], p[1])))
+    env.close()
+    assert dmin > 0.3 + ARM  # never touched the column
+    assert np.linalg.norm(p - goal[0]) < 0.1  # and got past it
