@@ -18,6 +18,25 @@ Cell indexing (A.1): the area is ``gx x gy`` cells (x, y); flat cell id ``k`` is
 ``y = (gy - 1 - r + 0.5 - gy / 2) cell`` (row <-> -y, column <-> x), so on 8 x 8 cells of 1 m,
 cell (r, c) <-> (c - 3.5, 3.5 - r). (The original uses ``gx // 2``: the same for the even grids
 of every run; an odd grid is centred here.)
+
+Wiring into an engine (per world; ``o = cfg.obstacles``, nothing changes when it is None):
+
+* reset: ``omap = reset_map(o, NumpySampler(rng).draw(map_draw_spec(o), (M,)), given)`` (``given``
+  = ``options["obstacles"]`` / ``init_state["obstacles"]`` (M, 2), else None); keep ``omap`` and
+  ``prev_contact = detect(pos, ...)[0]`` (or zeros) per world; move the columns:
+  ``arena.place_obstacles(arena, data.mocap_pos, omap.centres, omap.valid, H)`` (+
+  ``set_obstacle_radius`` under size randomization) on CPU, ``arena.obstacle_mocap_pos`` on MJX;
+  scenario goals and spawns through ``scenarios.obstacle_scenarios.scenario_init`` /
+  ``scenario_spawn`` with ``obstacles=omap``;
+* step, after the quad-quad response (paper model; ``respond=False`` with MuJoCo contacts):
+  ``r = obstacle_step(pos, vel, omega, prev_contact, *omap, cfg.quad.arm, draws)`` with
+  ``draws = sampler(noise.stochastic_collisions).draw(response_draw_spec(N), (B,))``;
+  write ``r["vel"]``, ``r["omega"]`` back, ``prev_contact = r["contact"]``;
+* observation: ``concatenate([obs, obstacle_features(true_pos, *omap)], -1)`` (last 9), bounds
+  ``feature_bounds(cfg)`` appended to ``observations.obs_bounds``;
+* reward: ``terms["obstacle_collision"] = obstacle_penalty(r["new_contact"], o.collision_reward,
+  anneal)`` added to the total; metrics: :func:`metrics_update` / :func:`metrics_finalize`
+  (threshold ``obstacle_scenarios.approach_threshold``); ``info["obstacles"] = active_centres(omap)``.
 """
 
 from __future__ import annotations
@@ -134,6 +153,14 @@ def map_from_centres(ocfg: ObstacleConfig, centres: Any, radius: Any = None, xp:
     valid = xp.arange(slots) < m
     r = 0.5 * ocfg.size if radius is None else radius
     return ObstacleMap(centres=full, valid=valid, radius=xp.asarray(r, dtype=full.dtype))
+
+
+def reset_map(ocfg: ObstacleConfig, draws: dict[str, Any], centres: Any = None, xp: Any = np) -> ObstacleMap:
+    """The map of a reset: the given columns ``centres`` (M, 2) m (``reset(options={"obstacles": ...})``,
+    radius ``size / 2``), else a random map from ``draws`` (:func:`map_draw_spec`, any batch dims)."""
+    if centres is not None:
+        return map_from_centres(ocfg, centres, xp=xp)
+    return generate_map(ocfg, draws)[0]
 
 
 def active_centres(omap: ObstacleMap) -> np.ndarray:

@@ -488,3 +488,11 @@ def test_controller_flies_around_a_column(y0):
     env.close()
     assert dmin > 0.3 + ARM  # never touched the column
     assert np.linalg.norm(p - goal[0]) < 0.1  # and got past it
+
+
+def test_reset_map_given_or_random():
+    o = ObstacleConfig()
+    d = NumpySampler(np.random.default_rng(0)).draw(ob.map_draw_spec(o))
+    np.testing.assert_allclose(ob.reset_map(o, d).centres, ob.generate_map(o, d)[0].centres)
+    given = ob.reset_map(o, d, np.array([[0.0, 0.0], [3.0, 3.0]]))
+    np.testing.assert_allclose(ob.active_centres(given), [[0.0, 0.0], [3.0, 3.0]])
