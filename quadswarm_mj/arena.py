@@ -55,6 +55,8 @@ class Arena:
 
 #: colour of the obstacle columns (opaque warm grey)
 OBSTACLE_RGBA = (0.62, 0.56, 0.5, 1.0)
+#: collision bit of the columns (room geoms and hitboxes use bit 1)
+OBSTACLE_BIT = 2
 
 
 def obstacle_geom_name(num_worlds: int, world: int, k: int) -> str:
@@ -75,10 +77,10 @@ def add_obstacle_geoms(spec: mujoco.MjSpec, cfg: EnvConfig, offsets: np.ndarray,
     the same name, of the largest drawable radius and the room's height. Mocap bodies move
     through ``data.mocap_pos`` (no recompilation; MuJoCo's mid-phase keeps static world geoms in a
     precomputed tree, so moving world geoms would break contacts; on MJX ``mocap_pos`` is per
-    world data). They collide with the quad hitbox spheres (contype = conaffinity = 1) when MuJoCo
-    resolves contacts (``contacts``: collision_model "mujoco"/"blend"); in "paper" they never
-    collide (the paper's obstacle model runs instead). World 0's columns are visible (group 0);
-    other worlds' columns are in group 4 like their room copies. :func:`place_obstacles` (CPU) /
+    world data). They collide with the quad hitbox spheres only, when MuJoCo resolves contacts
+    (``contacts``: collision_model "mujoco"/"blend"; bits: see :func:`obstacle_hitbox_bits`); in
+    "paper" they never collide (the paper's model runs instead). World 0's columns are visible
+    (group 0); other worlds' columns are in group 4 like their room copies. :func:`place_obstacles` (CPU) /
     :func:`obstacle_mocap_pos` (MJX) move them onto a map at reset.
     """
     o = cfg.obstacles
@@ -86,13 +88,21 @@ def add_obstacle_geoms(spec: mujoco.MjSpec, cfg: EnvConfig, offsets: np.ndarray,
         return
     H = cfg.room_size[2]
     park = obstacle_park(cfg)
-    bit = 1 if contacts else 0
+    aff = OBSTACLE_BIT if contacts else 0
     for b in range(offsets.shape[0]):
         for k in range(o.slots):
             name = obstacle_geom_name(offsets.shape[0], b, k)
             body = spec.worldbody.add_body(name=name, pos=park + offsets[b], mocap=True)
             body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=(0.5 * o.max_size, 0.5 * H, 0.0),
-                          contype=bit, conaffinity=bit, group=0 if b == 0 else 4, rgba=OBSTACLE_RGBA)
+                          contype=0, conaffinity=aff, group=0 if b == 0 else 4, rgba=OBSTACLE_RGBA)
+
+
+def obstacle_hitbox_bits(hitbox: mujoco.MjsGeom, cfg: EnvConfig, contacts: bool) -> None:
+    """Let the quad hitbox sphere collide with the columns: its contype gains ``OBSTACLE_BIT``.
+    Columns have contype 0 and conaffinity ``OBSTACLE_BIT``, so they pair with the hitboxes only,
+    never with the room geoms or each other (MJX has no cylinder-box collision)."""
+    if contacts and cfg.obstacles is not None:
+        hitbox.contype = int(hitbox.contype) | OBSTACLE_BIT
 
 
 def _obstacle_ids(model: mujoco.MjModel, cfg: EnvConfig, num_worlds: int) -> tuple[Any, Any]:
@@ -226,6 +236,7 @@ def build_arena(cfg: EnvConfig, num_worlds: int = 1, visual: bool = True) -> Are
     hit.size = (cfg.quad.arm, 0, 0)
     if contacts:
         hit.contype, hit.conaffinity = 1, 1
+    obstacle_hitbox_bits(hit, cfg, contacts)
     n = cfg.num_quads
     for b in range(num_worlds):
         for i in range(n):

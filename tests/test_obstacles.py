@@ -323,13 +323,17 @@ def _arena(model_name: str, worlds: int = 1, **ocfg):
 
 
 def test_arena_pool_parked_and_collision_bits():
-    for cm, bit in (("paper", 0), ("mujoco", 1), ("blend", 1)):
+    for cm, bit in (("paper", 0), ("mujoco", 2), ("blend", 2)):
         cfg, a = _arena(cm, worlds=2)
         ids = a.obstacle_geom_ids
         m = a.model
         assert ids.shape == (2, 12) and a.obstacle_name(1, 3) == "w1obst3" and m.geom(int(ids[1, 3])).name == "w1obst3"
         assert np.all(m.geom_type[ids] == 5)  # mjGEOM_CYLINDER
-        assert np.all(m.geom_contype[ids] == bit) and np.all(m.geom_conaffinity[ids] == bit)
+        assert np.all(m.geom_contype[ids] == 0) and np.all(m.geom_conaffinity[ids] == bit)
+        hb = m.geom("q0/hitbox" if a.num_worlds == 1 else "w0q0/hitbox").id
+        assert (m.geom_contype[hb] & bit) == bit  # hitboxes pair with columns, room geoms never do
+        room = [m.geom(g).id for g in ("floor", "wall_px", "ceiling")]
+        assert np.all((m.geom_contype[room] & m.geom_conaffinity[ids[0, 0]]) == 0)
         # radius, half height: floor to ceiling
         np.testing.assert_allclose(m.geom_size[ids, :2], np.broadcast_to([0.3, 5.0], ids.shape + (2,)))
         assert np.all(m.body_pos[m.geom_bodyid[ids], 2] + m.geom_size[ids, 1] < 0)  # parked below the floor
