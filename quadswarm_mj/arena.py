@@ -7,6 +7,8 @@ several worlds share the model). Quad bodies are contiguous, world-major, so the
 ``MjData`` is a plain (B, N, ...) view. Contacts are disabled in the "paper" collision model
 (the paper's own floor/wall/quad-quad models run instead); in "mujoco" and "blend" each quad's
 hitbox sphere and the room geoms collide, and worlds are placed apart along x so they never touch.
+With obstacles (``EnvConfig.obstacles``) each world also holds a fixed pool of column geoms
+(mocap bodies, :func:`add_obstacle_geoms`), moved onto the map at every reset (:func:`place_obstacles`).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from importlib import resources
 from importlib.resources.abc import Traversable
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -50,9 +53,137 @@ class Arena:
     qpos_start: int  # qpos address of the first quad's free joint; 7 per quad, contiguous
     qvel_start: int  # qvel address of the first quad; 6 per quad, contiguous
     world_offsets: np.ndarray  # (B, 3) origin of each world in the MuJoCo frame (m)
+    obstacle_geom_ids: np.ndarray | None = None  # (B, M_max) geom ids of the column pool (None: no obstacles)
+    obstacle_mocap_ids: np.ndarray | None = None  # (B, M_max) mocap ids (rows of data.mocap_pos) of the columns
+    obstacle_park: np.ndarray | None = None  # (3,) world-local position (m) of unused columns (below the floor)
 
     def quad_name(self, world: int, quad: int) -> str:
         return f"q{quad}" if self.num_worlds == 1 else f"w{world}q{quad}"
+
+    def obstacle_name(self, world: int, k: int) -> str:
+        return obstacle_geom_name(self.num_worlds, world, k)
+
+
+# ------------------------------------------------------------------------------ obstacle columns
+
+#: colour of the obstacle columns (opaque warm grey)
+OBSTACLE_RGBA = (0.62, 0.56, 0.5, 1.0)
+#: collision bit of the columns (room geoms and hitboxes use bit 1)
+OBSTACLE_BIT = 2
+
+
+def obstacle_geom_name(num_worlds: int, world: int, k: int) -> str:
+    """``obst{k}`` in a one-world model, ``w{b}obst{k}`` otherwise."""
+    return f"obst{k}" if num_worlds == 1 else f"w{world}obst{k}"
+
+
+def obstacle_park(cfg: EnvConfig) -> np.ndarray:
+    """World-local parking position (m) of unused columns: centred below the floor, so a parked
+    column (half height room_h / 2) ends 1 m under it (never seen, never touched)."""
+    return np.array([0.0, 0.0, -0.5 * cfg.room_size[2] - 1.0])
+
+
+def add_obstacle_geoms(spec: mujoco.MjSpec, cfg: EnvConfig, offsets: np.ndarray, contacts: bool) -> None:
+    """Add the fixed pool of ``M_max`` columns per world (SPEC_obstacles A.1), parked.
+
+    Each column is a mocap body ``obst{k}`` / ``w{b}obst{k}`` holding a vertical cylinder geom of
+    the same name, of the largest drawable radius and the room's height. Mocap bodies move
+    through ``data.mocap_pos`` (no recompilation; MuJoCo's mid-phase keeps static world geoms in a
+    precomputed tree, so moving world geoms would break contacts; on MJX ``mocap_pos`` is per
+    world data). They collide with the quad hitbox spheres only, when MuJoCo resolves contacts
+    (``contacts``: collision_model "mujoco"/"blend"; bits: see :func:`obstacle_hitbox_bits`); in
+    "paper" they never collide (the paper's model runs instead). World 0's columns are visible
+    (group 0); other worlds' columns are in group 4 like their room copies. :func:`place_obstacles` (CPU) /
+    :func:`obstacle_mocap_pos` (MJX) move them onto a map at reset.
+    """
+    o = cfg.obstacles
+    if o is None:
+        return
+    H = cfg.room_size[2]
+    park = obstacle_park(cfg)
+    aff = OBSTACLE_BIT if contacts else 0
+    for b in range(offsets.shape[0]):
+        for k in range(o.slots):
+            name = obstacle_geom_name(offsets.shape[0], b, k)
+            body = spec.worldbody.add_body(name=name, pos=park + offsets[b], mocap=True)
+            body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=(0.5 * o.max_size, 0.5 * H, 0.0),
+                          contype=0, conaffinity=aff, group=0 if b == 0 else 4, rgba=OBSTACLE_RGBA)
+
+
+def obstacle_hitbox_bits(hitbox: mujoco.MjsGeom, cfg: EnvConfig, contacts: bool) -> None:
+    """Let the quad hitbox sphere collide with the columns: its contype gains ``OBSTACLE_BIT``.
+    Columns have contype 0 and conaffinity ``OBSTACLE_BIT``, so they pair with the hitboxes only,
+    never with the room geoms or each other (MJX has no cylinder-box collision)."""
+    if contacts and cfg.obstacles is not None:
+        hitbox.contype = int(hitbox.contype) | OBSTACLE_BIT
+
+
+def _obstacle_ids(model: mujoco.MjModel, cfg: EnvConfig, num_worlds: int) -> tuple[Any, Any]:
+    """(geom ids, mocap ids), each (B, M_max), or (None, None) without obstacles."""
+    if cfg.obstacles is None:
+        return None, None
+    names = [[obstacle_geom_name(num_worlds, b, k) for k in range(cfg.obstacles.slots)] for b in range(num_worlds)]
+    geoms = np.array([[model.geom(n).id for n in row] for row in names], dtype=np.int64)
+    mocap = np.array([[model.body_mocapid[model.body(n).id] for n in row] for row in names], dtype=np.int64)
+    return geoms, mocap
+
+
+def obstacle_positions(arena: Arena, centres: Any, valid: Any, room_h: float, worlds: Any = None) -> np.ndarray:
+    """(W, M_max, 3) MuJoCo-frame positions of the column bodies of the worlds ``worlds`` (default
+    all) for maps ``centres`` (W, M_max, 2) m world-local and ``valid`` (W, M_max)."""
+    from quadswarm_mj.obstacles import geom_positions
+
+    off = arena.world_offsets if worlds is None else arena.world_offsets[worlds]
+    off = np.asarray(off).reshape(-1, 3)
+    m = arena.obstacle_mocap_ids.shape[-1]
+    c = np.asarray(centres, dtype=np.float64).reshape(-1, m, 2)
+    v = np.asarray(valid, dtype=bool).reshape(-1, m)
+    return geom_positions(c, v, room_h, arena.obstacle_park) + off[:, None, :]
+
+
+def place_obstacles(arena: Arena, mocap_pos: np.ndarray, centres: Any, valid: Any, room_h: float,
+                    worlds: Any = None) -> None:
+    """Move the column pool of the given worlds onto maps (CPU): writes ``mocap_pos`` (the
+    ``data.mocap_pos`` array, (nmocap, 3)) in place. ``centres`` (W, M_max, 2) m world-local,
+    ``valid`` (W, M_max) bool; ``worlds`` selects the W worlds (default: all)."""
+    if arena.obstacle_mocap_ids is None:
+        raise ValueError("this arena has no obstacle columns (EnvConfig.obstacles is None)")
+    ids = arena.obstacle_mocap_ids if worlds is None else arena.obstacle_mocap_ids[worlds]
+    mocap_pos[np.asarray(ids).reshape(-1)] = obstacle_positions(arena, centres, valid, room_h, worlds).reshape(-1, 3)
+
+
+def set_obstacle_radius(model: mujoco.MjModel, arena: Arena, radius: Any, worlds: Any = None) -> None:
+    """Column radius per world (W,) m (size randomization): writes ``model.geom_size``; at most the
+    compiled radius (the largest drawable), so broad-phase bounds stay conservative."""
+    ids = arena.obstacle_geom_ids if worlds is None else arena.obstacle_geom_ids[worlds]
+    ids = np.asarray(ids).reshape(-1, arena.obstacle_geom_ids.shape[-1])
+    r = np.broadcast_to(np.asarray(radius, dtype=np.float64).reshape(-1), (ids.shape[0],))
+    h = model.geom_size[ids[:, 0], 1]
+    r0 = np.sqrt(np.maximum(model.geom_rbound[ids[:, 0]] ** 2 - h**2, 0.0))  # the compiled radius
+    if np.any(r > r0 + 1e-9) or np.any(r <= 0):
+        raise ValueError(f"column radius must be in (0, {float(r0.min()):.6g}] m (the compiled radius), got {r}")
+    model.geom_size[ids, 0] = r[:, None]
+
+
+def obstacle_mocap_pos(mocap_pos: Any, ids: np.ndarray, centres: Any, valid: Any, room_h: float, park: Any,
+                       offset: Any = None) -> Any:
+    """MJX: ``mocap_pos`` (nmocap, 3) with the column pool ``ids`` (M_max,) (``Arena.obstacle_mocap_ids``
+    of the world) moved onto one world's map (``centres`` (..., M_max, 2), ``valid`` (..., M_max));
+    returns (..., nmocap, 3), to use as ``mjx_data.replace(mocap_pos=...)`` (per world data).
+    Pure NumPy / jax.numpy."""
+    from quadswarm_mj._xp import array_namespace
+    from quadswarm_mj.obstacles import geom_positions
+
+    xp = array_namespace(centres, mocap_pos)
+    p = geom_positions(centres, valid, room_h, park)
+    if offset is not None:
+        p = p + xp.asarray(offset, dtype=p.dtype)
+    base = xp.broadcast_to(xp.asarray(mocap_pos, dtype=p.dtype), p.shape[:-2] + tuple(np.shape(mocap_pos)))
+    if xp is np:
+        out = base.copy()
+        out[..., ids, :] = p
+        return out
+    return base.at[..., ids, :].set(p)
 
 
 def _room_geoms(spec: mujoco.MjSpec, cfg: EnvConfig) -> None:
@@ -118,6 +249,7 @@ def build_arena(cfg: EnvConfig, num_worlds: int = 1, visual: bool = True) -> Are
     hit.size = (cfg.quad.arm, 0, 0)
     if contacts:
         hit.contype, hit.conaffinity = 1, 1
+    obstacle_hitbox_bits(hit, cfg, contacts)
     n = cfg.num_quads
     for b in range(num_worlds):
         for i in range(n):
@@ -125,6 +257,7 @@ def build_arena(cfg: EnvConfig, num_worlds: int = 1, visual: bool = True) -> Are
             name = f"q{i}" if num_worlds == 1 else f"w{b}q{i}"
             body = frame.attach_body(cf_body, f"{name}/", "")
             body.name = name
+    add_obstacle_geoms(spec, cfg, offsets, contacts)  # after the quads: their bodies stay first and contiguous
     total = num_worlds * n
     if total > 256:
         spec.memory = int(4e6 + 60_000 * total)  # bytes; large worlds need more arena memory
@@ -138,5 +271,8 @@ def build_arena(cfg: EnvConfig, num_worlds: int = 1, visual: bool = True) -> Are
     qpos_start, qvel_start = int(model.jnt_qposadr[jnt]), int(model.jnt_dofadr[jnt])
     if model.nq != qpos_start + 7 * total or model.nv != qvel_start + 6 * total:
         raise RuntimeError("quad free joints are not contiguous in the compiled model")
+    obst_geoms, obst_mocap = _obstacle_ids(model, cfg, num_worlds)
     return Arena(model=model, num_worlds=num_worlds, num_quads=n, body_ids=body_ids, first_body=first,
-                 qpos_start=qpos_start, qvel_start=qvel_start, world_offsets=offsets)
+                 qpos_start=qpos_start, qvel_start=qvel_start, world_offsets=offsets,
+                 obstacle_geom_ids=obst_geoms, obstacle_mocap_ids=obst_mocap,
+                 obstacle_park=None if cfg.obstacles is None else obstacle_park(cfg))

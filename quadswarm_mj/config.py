@@ -296,6 +296,106 @@ class CollisionParams:
         _check_range("collision.floor_friction", self.floor_friction, 0.0)
 
 
+OBSTACLE_DENSITY_VALUES = (0.05, 0.10, 0.15, 0.20)  # SPEC_obstacles A.6: np.arange(0.05, 0.2, 0.05) incl. 0.2
+OBSTACLE_SIZE_VALUES = (0.3, 0.4, 0.5)  # SPEC_obstacles A.6: np.arange(0.3, 0.6, 0.1), 0.6 excluded
+
+
+@dataclass(frozen=True)
+class ObstacleConfig:
+    """Columns from floor to ceiling on the cells of a spawn area (SPEC_obstacles A.1, A.6).
+
+    ``size`` is the column *diameter* (m); ``area`` (m, along x and y) is centred on the room and
+    split into ``cell``-sized cells; ``int(cells_x * cells_y * density)`` cells get a column at
+    every reset. ``density_random`` / ``size_random`` draw density and size per reset uniformly
+    from ``density_values`` / ``size_values``. ``max_columns`` (None: the most any reset can
+    place) fixes the number of column slots per world (static shapes). ``collision_reward`` is
+    the penalty per new obstacle contact (not scaled by dt; SPEC_obstacles A.4).
+    """
+
+    density: float = 0.2
+    size: float = 0.6  # m, diameter
+    area: tuple[float, float] = (8.0, 8.0)  # m
+    cell: float = 1.0  # m
+    density_random: bool = False
+    size_random: bool = False
+    density_values: tuple[float, ...] = OBSTACLE_DENSITY_VALUES
+    size_values: tuple[float, ...] = OBSTACLE_SIZE_VALUES
+    max_columns: int | None = None
+    collision_reward: float = 5.0
+
+    def __post_init__(self) -> None:
+        _check_range("obstacles.density", self.density, 0.0, 1.0)
+        _check_range("obstacles.cell", self.cell, 0.0, lo_open=True)
+        _check_range("obstacles.size", self.size, 0.0, lo_open=True)
+        if not self.size < self.cell:
+            raise ValueError(f"obstacles.size (diameter, m) must be smaller than obstacles.cell = {self.cell}, "
+                             f"got {self.size!r}")
+        try:
+            area = tuple(float(x) for x in self.area)
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"obstacles.area must be 2 numbers (m, x and y), got {self.area!r}") from e
+        if len(area) != 2:
+            raise ValueError(f"obstacles.area must be 2 numbers (m, x and y), got {self.area!r}")
+        for i, a in enumerate(area):
+            _check_range(f"obstacles.area[{i}]", a, self.cell)
+        object.__setattr__(self, "area", area)
+        for n, vals in (("density_values", self.density_values), ("size_values", self.size_values)):
+            try:
+                vals = tuple(float(x) for x in vals)
+            except Exception as e:  # noqa: BLE001
+                raise ValueError(f"obstacles.{n} must be a non-empty tuple of numbers, got {vals!r}") from e
+            if not vals:
+                raise ValueError(f"obstacles.{n} must be a non-empty tuple of numbers, got {vals!r}")
+            object.__setattr__(self, n, vals)
+        for i, d in enumerate(self.density_values):
+            _check_range(f"obstacles.density_values[{i}]", d, 0.0, 1.0)
+        for i, d in enumerate(self.size_values):
+            _check_range(f"obstacles.size_values[{i}]", d, 0.0, lo_open=True)
+            if not d < self.cell:
+                raise ValueError(f"obstacles.size_values[{i}] must be smaller than obstacles.cell = {self.cell}, "
+                                 f"got {d!r}")
+        for n in ("density_random", "size_random"):
+            if not isinstance(getattr(self, n), bool):
+                raise ValueError(f"obstacles.{n} must be a bool, got {getattr(self, n)!r}")
+        _check_range("obstacles.collision_reward", self.collision_reward, 0.0)
+        need = self.columns_needed
+        if self.max_columns is not None:
+            m = self.max_columns
+            if not isinstance(m, int) or isinstance(m, bool) or m < max(need, 1) or m > self.num_cells:
+                raise ValueError(f"obstacles.max_columns must be an int in [{max(need, 1)}, {self.num_cells}] "
+                                 f"(the most columns a reset places .. the number of cells), got {m!r}")
+
+    @property
+    def grid(self) -> tuple[int, int]:
+        """(cells along x, cells along y)."""
+        return tuple(int(a / self.cell + 1e-9) for a in self.area)  # type: ignore[return-value]
+
+    @property
+    def num_cells(self) -> int:
+        gx, gy = self.grid
+        return gx * gy
+
+    def num_columns(self, density: float | None = None) -> int:
+        """Columns placed at ``density`` (default: ``self.density``): int(cells * density), as the original."""
+        return int(self.num_cells * (self.density if density is None else density))
+
+    @property
+    def columns_needed(self) -> int:
+        """The most columns one reset can place (over the density values when randomized)."""
+        ds = self.density_values if self.density_random else (self.density,)
+        return max(self.num_columns(d) for d in ds)
+
+    @property
+    def slots(self) -> int:
+        """M_max: column slots per world (>= 1 so arrays never have a zero-size axis)."""
+        return self.max_columns if self.max_columns is not None else max(self.columns_needed, 1)
+
+    @property
+    def max_size(self) -> float:
+        """Largest column diameter any reset can draw (m)."""
+        return max(self.size_values) if self.size_random else self.size
+
+
 _NESTED = {"quad": QuadParams, "noise": NoiseConfig, "randomization": RandomizationConfig,
            "rewards": RewardScales, "collision": CollisionParams, "aero": AeroConfig}
 
@@ -334,6 +434,7 @@ class EnvConfig:
     collision: CollisionParams = field(default_factory=CollisionParams)
     control_mode: str = "rotor"  # "rotor", "ctbr", "attitude", "velocity" (quadswarm_mj.control_modes)
     aero: AeroConfig = field(default_factory=AeroConfig)
+    obstacles: ObstacleConfig | None = None  # None: no obstacles (SPEC_obstacles)
 
     def __post_init__(self) -> None:
         if isinstance(self.quad, str):  # a preset name
@@ -399,9 +500,36 @@ class EnvConfig:
         for n in ("downwash", "randomize", "normalize_obs"):
             if not isinstance(getattr(self, n), bool):
                 raise ValueError(f"{n} must be a bool, got {getattr(self, n)!r}")
+        self._check_obstacles()
         from quadswarm_mj.scenarios import get_scenario  # late import: registry validates the name
 
-        get_scenario(self.scenario)
+        scn = get_scenario(self.scenario)
+        if getattr(scn, "requires_obstacles", False) and self.obstacles is None:
+            raise ValueError(f"scenario {self.scenario!r} needs obstacles, which are off (obstacles=None); turn them "
+                             f"on with EnvConfig(scenario={self.scenario!r}, obstacles=ObstacleConfig()) "
+                             f"(or obstacles={{}} for the defaults)")
+
+    def _check_obstacles(self) -> None:
+        o = self.obstacles
+        if o is None:
+            return
+        if isinstance(o, dict):
+            try:
+                o = ObstacleConfig(**o)
+            except TypeError as e:
+                raise ValueError(f"obstacles: {e}") from e
+            object.__setattr__(self, "obstacles", o)
+        elif not isinstance(o, ObstacleConfig):
+            raise ValueError(f"obstacles must be an ObstacleConfig, a dict or None, got {type(o).__name__}")
+        L, W, _ = self.room_size
+        for i, (a, r) in enumerate(zip(o.area, (L, W))):
+            if a > r:
+                raise ValueError(f"obstacles.area[{i}] = {a} m must fit inside the room (room_size[{i}] = {r} m)")
+        free = o.num_cells - o.columns_needed
+        if free < self.num_quads:
+            raise ValueError(f"obstacles: {o.num_cells} cells with up to {o.columns_needed} columns leave {free} free "
+                             f"cells, fewer than num_quads = {self.num_quads} (spawns need distinct free cells); "
+                             f"lower obstacles.density or enlarge obstacles.area")
 
     # ---- derived quantities ----
     @property
@@ -431,7 +559,8 @@ class EnvConfig:
 
     @property
     def obs_dim(self) -> int:
-        return self.self_obs_dim + 6 * self.neighbors
+        """Self block + 6 per neighbour (+ 9 obstacle distance features, last, when obstacles are on)."""
+        return self.self_obs_dim + 6 * self.neighbors + (9 if self.obstacles is not None else 0)
 
     @property
     def hitbox(self) -> float:
@@ -453,7 +582,8 @@ class EnvConfig:
 
     def without_noise(self) -> EnvConfig:
         """Copy with every noise source and randomization off, and the collision and
-        downwash draws replaced by their means (SPEC §5, §6)."""
+        downwash draws replaced by their means (SPEC §5, §6). Obstacles are kept (their
+        response's draws take their means too, through ``noise.stochastic_collisions``)."""
         noise = replace(self.noise, motor_noise_ratio=0.0, sensor_pos_std=0.0, sensor_vel_std=0.0,
                         sensor_omega_std=0.0, neighbor_obs_noise=False, stochastic_collisions=False,
                         stochastic_downwash=False)

@@ -67,6 +67,11 @@ class ControllerGains:
     avoid_acc: float = 6.0  # m/s^2, repulsion at zero distance (falls linearly to 0 at avoid_radius)
     avoid_swirl: float = 0.5  # sideways (right-hand) share of the repulsion, breaks head-on deadlocks
     avoid_damping: float = 4.0  # 1/s, brakes the closing speed of neighbours within avoid_radius
+    obstacle_radius: float = 0.0  # m from a column's surface within which it repels (0: columns ignored)
+    obstacle_gain: float = 8.0  # m/s^2, horizontal repulsion at the surface (falls linearly to 0 at obstacle_radius)
+    obstacle_swirl: float = 0.6  # tangential share of the repulsion (side of the current motion): slides around
+    obstacle_damping: float = 4.0  # 1/s, brakes the approach speed toward columns within obstacle_radius
+    column_radius: float = 0.3  # m, column radius used when ``obstacles`` is a plain (..., M, 2) array
 
     def __post_init__(self) -> None:
         for n in ("kp", "kv", "kR", "kw"):
@@ -84,7 +89,7 @@ class ControllerGains:
             object.__setattr__(self, n, v)
         for f in fields(self):
             if f.name not in ("kp", "kv", "kR", "kw"):
-                _check_positive(f.name, getattr(self, f.name), allow_zero=f.name.startswith("avoid"))
+                _check_positive(f.name, getattr(self, f.name), allow_zero=f.name.startswith(("avoid", "obstacle")))
         if not self.max_tilt_deg < 89.0:
             raise ValueError(f"controller max_tilt_deg must be < 89, got {self.max_tilt_deg!r}")
         if self.max_thrust_fraction > 1.0:
@@ -135,6 +140,9 @@ class PositionController:
     Returns actions (..., N, 4) in [-1, 1] (same namespace as ``state["pos"]``).
     ``yaw`` (rad, scalar or (..., N)) sets a heading to hold; None (default) keeps the current
     heading and only damps the yaw rate (the position loop does not need a heading).
+    ``obstacles``: optional columns to steer around (an ``ObstacleMap``, or the (..., M, 2) centres
+    of ``info["obstacles"]`` with radius ``gains.column_radius``); active when
+    ``gains.obstacle_radius > 0`` (:meth:`obstacle_acceleration`).
     """
 
     def __init__(self, cfg: EnvConfig | QuadParams | None = None, gains: ControllerGains | dict | None = None,
@@ -181,6 +189,32 @@ class PositionController:
         brake = xp.where(near, g.avoid_damping * xp.maximum(closing, 0.0), 0.0)[..., None]
         return xp.sum(w * (unit + g.avoid_swirl * side) + brake * unit, axis=-2)
 
+    def obstacle_acceleration(self, pos: Any, vel: Any, centres: Any, valid: Any = None, radius: Any = None) -> Any:
+        """Horizontal potential-field acceleration (..., N, 3) (m/s^2, world frame) away from the columns
+        (``centres`` (..., M, 2) m, ``valid`` (..., M) bool or None = all, ``radius`` (...,) m or None =
+        ``column_radius``) within ``obstacle_radius`` of their surface: ``obstacle_gain (1 - s / R)``
+        along the outward normal plus an ``obstacle_swirl`` share tangentially (on the side the quad
+        already moves to, so it slides around the column), and a brake on the approach speed."""
+        xp = array_namespace(pos, centres)
+        g = self.gains
+        c = xp.asarray(centres, dtype=pos.dtype)
+        r = g.column_radius if radius is None else xp.asarray(radius, dtype=pos.dtype)[..., None, None]
+        rel = pos[..., :, None, :2] - c[..., None, :, :]  # (..., N, M, 2)
+        d = xp.sqrt(xp.sum(rel * rel, axis=-1) + 1e-12)
+        s = d - r  # distance to the surface
+        near = s < g.obstacle_radius
+        if valid is not None:
+            near = near & xp.asarray(valid)[..., None, :]
+        w = xp.where(near, g.obstacle_gain * (1.0 - xp.maximum(s, 0.0) / g.obstacle_radius), 0.0)[..., None]
+        unit = rel / d[..., None]
+        tangent = xp.stack([-unit[..., 1], unit[..., 0]], axis=-1)  # normal rotated +90 deg about z
+        v = vel[..., :, None, :2]
+        side = xp.where(xp.sum(v * tangent, axis=-1, keepdims=True) < 0, -1.0, 1.0)
+        closing = xp.maximum(-xp.sum(v * unit, axis=-1), 0.0)[..., None]  # > 0: approaching
+        brake = xp.where(near[..., None], g.obstacle_damping * closing, 0.0)
+        h = xp.sum(w * (unit + g.obstacle_swirl * side * tangent) + brake * unit, axis=-2)
+        return xp.concatenate([h, xp.zeros_like(h[..., :1])], axis=-1)
+
     def allocate(self, thrust: Any, torque: Any, thrust_max: Any, torque_max: Any) -> Any:
         """Normalized rotor thrusts f (..., 4) in [0, 1] for collective ``thrust`` (...,) N and body
         ``torque`` (..., 3) N m, with per-rotor ``thrust_max``/``torque_max`` (..., 4).
@@ -222,7 +256,7 @@ class PositionController:
 
     # ------------------------------------------------------------------ control law
     def __call__(self, state: dict[str, Any], goals: Any, goal_vel: Any = None,
-                 params: dict[str, Any] | None = None) -> Any:
+                 params: dict[str, Any] | None = None, obstacles: Any = None) -> Any:
         try:
             pos, vel, R, omega = state["pos"], state["vel"], state["rot"], state["omega"]
         except (KeyError, TypeError) as e:
@@ -247,6 +281,11 @@ class PositionController:
         acc = -kp * e_p - kv * (vel - gv)
         if gains.avoid_radius > 0 and pos.shape[-2] > 1:
             acc = acc + self._avoidance(xp, pos, vel)
+        if obstacles is not None and gains.obstacle_radius > 0:
+            if hasattr(obstacles, "centres"):  # an ObstacleMap (centres, valid, radius)
+                acc = acc + self.obstacle_acceleration(pos, vel, obstacles.centres, obstacles.valid, obstacles.radius)
+            else:  # (..., M, 2) column centres, e.g. info["obstacles"]
+                acc = acc + self.obstacle_acceleration(pos, vel, obstacles)
         az = xp.clip(acc[..., 2], -gains.max_down_acc, gains.max_up_acc) + g
         h = acc[..., :2]
         h_max = az * math.tan(math.radians(gains.max_tilt_deg))

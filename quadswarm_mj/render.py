@@ -155,6 +155,10 @@ class SwarmRenderer:
         self.body_ids = np.asarray(arena.body_ids[world])
         self.world_offset = np.asarray(arena.world_offsets[world], dtype=np.float64)
         self._tint(arena)
+        self._obst_ids = None if getattr(arena, "obstacle_geom_ids", None) is None else arena.obstacle_geom_ids
+        if self._obst_ids is not None:  # other worlds' columns overlap this one's in the "paper" model: hide
+            others = np.delete(self._obst_ids, world, axis=0).ravel()
+            self.model.geom_rgba[others, 3] = 0.0
         self.camera = self._resolve_camera(camera)  # validates the default camera
         max_geom = int(self.model.ngeom + self.num_quads * (2 + trail_length) + 100)
         self._renderer = start_renderer(self.model, width, height, max_geom)
@@ -299,13 +303,38 @@ class SwarmRenderer:
                     return
                 mujoco.mjv_connector(g, mujoco.mjtGeom.mjGEOM_LINE, 3.0, pts[j, i], pts[j + 1, i])
 
-    def render(self, camera: Any = None, qpos: Any | None = None, goals: Any | None = None) -> np.ndarray:
+    def _sync_obstacles(self, obstacles: Any | None) -> None:
+        """Columns of the drawn world: from the engine (``data.mocap_pos``, radii from its model), or
+        the given (M, 2) centres (m, world-local) with the other columns parked."""
+        if self._obst_ids is None:
+            return
+        arena = self.core.arena
+        gids, mids = self._obst_ids[self.world], arena.obstacle_mocap_ids[self.world]
+        self.model.geom_size[gids] = self.core.model.geom_size[gids]
+        if obstacles is None:
+            if getattr(self.core, "data", None) is not None:
+                self.data.mocap_pos[mids] = self.core.data.mocap_pos[mids]
+            return
+        c = np.asarray(obstacles, dtype=np.float64).reshape(-1, 2)
+        if c.shape[0] > len(mids):
+            raise ValueError(f"obstacles: at most {len(mids)} columns, got {c.shape[0]}")
+        from quadswarm_mj.arena import obstacle_positions
+
+        full = np.zeros((1, len(mids), 2))
+        full[0, :c.shape[0]] = c
+        H = 2.0 * float(self.model.geom_size[gids[0], 1])
+        valid = (np.arange(len(mids)) < c.shape[0])[None]
+        self.data.mocap_pos[mids] = obstacle_positions(arena, full, valid, H, worlds=[self.world])[0]
+
+    def render(self, camera: Any = None, qpos: Any | None = None, goals: Any | None = None,
+               obstacles: Any | None = None) -> np.ndarray:
         """One RGB frame (height, width, 3) uint8 of the current state.
 
-        ``camera`` overrides the default camera for this frame. ``qpos`` (model nq) and ``goals``
-        (N, 3, world-local m) draw a given state instead of the engine's (e.g. an MJX state
-        copied to NumPy).
+        ``camera`` overrides the default camera for this frame. ``qpos`` (model nq), ``goals``
+        (N, 3, world-local m) and ``obstacles`` (M, 2 column centres, world-local m) draw a given
+        state instead of the engine's (e.g. an MJX state copied to NumPy).
         """
+        self._sync_obstacles(obstacles)
         cam_key = self.camera if camera is None else self._resolve_camera(camera)
         t = float(self.core.data.time) if qpos is None else -1.0
         if 0.0 <= t < self._last_time:  # time went back: a new episode

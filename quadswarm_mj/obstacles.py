@@ -1,0 +1,405 @@
+"""Obstacles (SPEC_obstacles A.1-A.4): column maps, distance features, contacts, response, metrics.
+
+Columns are vertical cylinders from floor to ceiling; everything here is 2D (x, y), world frame,
+SI units. A world holds a fixed number ``M_max = ObstacleConfig.slots`` of column slots with a
+validity mask, so shapes are static under ``jax.jit``: an :class:`ObstacleMap` is
+
+* ``centres`` (..., M_max, 2) m, column axes (x, y); invalid slots hold any finite value,
+* ``valid`` (..., M_max) bool,
+* ``radius`` (...,) m, column radius (= ObstacleConfig.size / 2; per world under size randomization).
+
+Pure functions over NumPy or ``jax.numpy`` (leading batch dims allowed); random draws come in as
+arrays (draw specs :func:`map_draw_spec`, :func:`response_draw_spec`). The control-step stage
+functions for the engines are :func:`obstacle_step` and :func:`obstacle_features` (see their
+docstrings for where they plug into the pipeline).
+
+Cell indexing (A.1): the area is ``gx x gy`` cells (x, y); flat cell id ``k`` is row
+``r = k // gx`` and column ``c = k % gx``; its centre is ``x = (c + 0.5 - gx / 2) cell``,
+``y = (gy - 1 - r + 0.5 - gy / 2) cell`` (row <-> -y, column <-> x), so on 8 x 8 cells of 1 m,
+cell (r, c) <-> (c - 3.5, 3.5 - r). (The original uses ``gx // 2``: the same for the even grids
+of every run; an odd grid is centred here.)
+
+Wiring into an engine (per world; ``o = cfg.obstacles``, nothing changes when it is None):
+
+* reset: ``omap = reset_map(o, NumpySampler(rng).draw(map_draw_spec(o), (M,)), given)`` (``given``
+  = ``options["obstacles"]`` / ``init_state["obstacles"]`` (M, 2), else None); keep ``omap`` and
+  ``prev_contact = detect(pos, ...)[0]`` (or zeros) per world; move the columns:
+  ``arena.place_obstacles(arena, data.mocap_pos, omap.centres, omap.valid, H)`` (+
+  ``set_obstacle_radius`` under size randomization) on CPU, ``arena.obstacle_mocap_pos`` on MJX;
+  scenario goals and spawns through ``scenarios.obstacle_scenarios.scenario_init`` /
+  ``scenario_spawn`` with ``obstacles=omap``;
+* step, after the quad-quad response (paper model; ``respond=False`` with MuJoCo contacts):
+  ``r = obstacle_step(pos, vel, omega, prev_contact, *omap, cfg.quad.arm, draws)`` with
+  ``draws = sampler(noise.stochastic_collisions).draw(response_draw_spec(N), (B,))``;
+  write ``r["vel"]``, ``r["omega"]`` back, ``prev_contact = r["contact"]``;
+* observation: ``concatenate([obs, obstacle_features(true_pos, *omap)], -1)`` (last 9), bounds
+  ``feature_bounds(cfg)`` appended to ``observations.obs_bounds``;
+* reward: ``terms["obstacle_collision"] = obstacle_penalty(r["new_contact"], o.collision_reward,
+  anneal)`` added to the total; metrics: :func:`metrics_update` / :func:`metrics_finalize`
+  (threshold ``obstacle_scenarios.approach_threshold``); ``info["obstacles"] = active_centres(omap)``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from quadswarm_mj._xp import array_namespace, safe_normalize
+from quadswarm_mj.config import EnvConfig, ObstacleConfig
+from quadswarm_mj.random_draws import DrawSpec, Normal, Uniform
+
+#: spacing (m) of the 3 x 3 grid of sample points of the distance features (A.2)
+SDF_RESOLUTION = 0.1
+NUM_FEATURES = 9
+#: distance (m) used when a world has no column (the original's placeholder; the radius is subtracted)
+NO_OBSTACLE_DIST = 100.0
+#: normal of a quad exactly on a column axis: divided by this instead of 0 (A.3 step 1)
+NORMAL_EPS = 1e-5
+#: decay range U(low, high) of the obstacle response (A.3 step 4); the inside branch uses 1.0
+OBSTACLE_DECAY = (0.2, 0.8)
+#: omega kick magnitude range (rad/s) of the obstacle response (A.3 step 5)
+OBSTACLE_KICK = (0.5 * math.pi, math.pi)
+#: std of the two Gaussian parts of the direction noise, and the number of tries (A.3 step 3)
+ETA_STDS = (0.1, 0.05)
+ETA_TRIES = 3
+#: grace period (s) of the obstacle metrics (A.4: tick >= 150 at 100 Hz)
+GRACE_S = 1.5
+
+
+class ObstacleMap(NamedTuple):
+    """Columns of one or more worlds (see the module docstring)."""
+
+    centres: Any  # (..., M_max, 2) m
+    valid: Any  # (..., M_max) bool
+    radius: Any  # (...,) m
+
+
+# ------------------------------------------------------------------------------------ the map
+
+
+@functools.lru_cache(maxsize=32)
+def cell_centers(ocfg: ObstacleConfig) -> np.ndarray:
+    """(gx * gy, 2) centres (m) of the cells, indexed by flat cell id (module docstring)."""
+    gx, gy = ocfg.grid
+    k = np.arange(gx * gy)
+    r, c = k // gx, k % gx
+    out = np.stack([(c + 0.5 - gx / 2) * ocfg.cell, (gy - 1 - r + 0.5 - gy / 2) * ocfg.cell], axis=-1)
+    out.setflags(write=False)
+    return out
+
+
+def cell_of(ocfg: ObstacleConfig, row: int, col: int) -> int:
+    """Flat cell id of grid cell (row, col)."""
+    return int(row) * ocfg.grid[0] + int(col)
+
+
+def map_draw_spec(ocfg: ObstacleConfig) -> DrawSpec:
+    """Uniforms of one map: one per cell (the permutation that picks the cells without replacement),
+    one for the density and one for the size (used only when randomized). These are always drawn
+    from the generator (they are not noise: ``without_noise`` keeps random maps)."""
+    return {"cells": Uniform(0.0, 1.0, (ocfg.num_cells,)), "density": Uniform(0.0, 1.0), "size": Uniform(0.0, 1.0)}
+
+
+def _pick(xp: Any, u: Any, values: tuple[float, ...]) -> Any:
+    """values[int(u * len)] for uniforms u (...), as an array."""
+    idx = xp.clip(xp.floor(u * len(values)), 0, len(values) - 1).astype(xp.int32)
+    return xp.asarray(np.asarray(values, dtype=np.float64))[idx], idx
+
+
+def generate_map(ocfg: ObstacleConfig, draws: dict[str, Any]) -> tuple[ObstacleMap, Any]:
+    """A random map from :func:`map_draw_spec` draws (A.1, A.6): ``int(cells * density)`` distinct
+    cells, uniformly without replacement (the first cells of the permutation sorting ``cells``),
+    one column at each cell centre. Returns ``(map, cell_ids)`` with ``cell_ids`` (..., M_max) int.
+    """
+    u = draws["cells"]
+    xp = array_namespace(u)
+    m = ocfg.slots
+    perm = xp.argsort(u, axis=-1)[..., :m]
+    batch = u.shape[:-1]
+    if ocfg.density_random:
+        counts = np.asarray([ocfg.num_columns(d) for d in ocfg.density_values])
+        _, i = _pick(xp, draws["density"], ocfg.density_values)
+        count = xp.asarray(counts)[i]
+    else:
+        count = xp.full(batch, ocfg.num_columns(), dtype=xp.int32)
+    if ocfg.size_random:
+        size, _ = _pick(xp, draws["size"], ocfg.size_values)
+        radius = (0.5 * size).astype(u.dtype)
+    else:
+        radius = xp.full(batch, 0.5 * ocfg.size, dtype=u.dtype)
+    valid = xp.arange(m) < count[..., None]
+    centres = xp.asarray(cell_centers(ocfg), dtype=u.dtype)[perm]
+    return ObstacleMap(centres=centres, valid=valid, radius=radius), perm
+
+
+def map_from_centres(ocfg: ObstacleConfig, centres: Any, radius: Any = None, xp: Any = np) -> ObstacleMap:
+    """A map with the given columns (M, 2) m (M <= M_max), padded to the M_max slots; ``radius``
+    defaults to ``ocfg.size / 2``. Used by ``reset(options={"obstacles": ...})``."""
+    c = xp.asarray(centres, dtype=xp.float64 if xp is np else None)
+    if c.ndim != 2 or c.shape[-1] not in (2, 3):
+        raise ValueError(f"obstacles must be an (M, 2) array of column centres (x, y) in m, got shape {c.shape}")
+    c = c[:, :2]
+    m, slots = c.shape[0], ocfg.slots
+    if m > slots:
+        raise ValueError(f"obstacles: {m} columns given, more than the {slots} column slots per world "
+                         f"(raise ObstacleConfig.max_columns, at most {ocfg.num_cells})")
+    if xp is np and not np.all(np.isfinite(c)):
+        raise ValueError("obstacles must hold finite column centres (m)")
+    pad = xp.zeros((slots - m, 2), dtype=c.dtype)
+    full = xp.concatenate([c, pad], axis=0)
+    valid = xp.arange(slots) < m
+    r = 0.5 * ocfg.size if radius is None else radius
+    return ObstacleMap(centres=full, valid=valid, radius=xp.asarray(r, dtype=full.dtype))
+
+
+def reset_map(ocfg: ObstacleConfig, draws: dict[str, Any], centres: Any = None, xp: Any = np) -> ObstacleMap:
+    """The map of a reset: the given columns ``centres`` (M, 2) m (``reset(options={"obstacles": ...})``,
+    radius ``size / 2``), else a random map from ``draws`` (:func:`map_draw_spec`, any batch dims)."""
+    if centres is not None:
+        return map_from_centres(ocfg, centres, xp=xp)
+    return generate_map(ocfg, draws)[0]
+
+
+def active_centres(omap: ObstacleMap) -> np.ndarray:
+    """(M, 2) centres of the valid columns of one world (NumPy; for ``info["obstacles"]``)."""
+    return np.asarray(omap.centres)[np.asarray(omap.valid)]
+
+
+def free_cells(ocfg: ObstacleConfig, omap: ObstacleMap, clearance: float = 0.0) -> Any:
+    """(..., gx * gy) bool: cells whose centre is farther than ``radius + clearance`` (m) from
+    every column axis (2D). On a generated map these are the cells without a column."""
+    xp = array_namespace(omap.centres)
+    cc = xp.asarray(cell_centers(ocfg), dtype=omap.centres.dtype)
+    d = _dist2d(xp, cc[..., :, None, :], omap.centres[..., None, :, :])  # (..., C, M)
+    d = xp.where(omap.valid[..., None, :], d, xp.inf)
+    return xp.min(d, axis=-1) > (omap.radius[..., None] + clearance)
+
+
+def _dist2d(xp: Any, a: Any, b: Any) -> Any:
+    d = a - b
+    return xp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1])
+
+
+# ------------------------------------------------------------------------------- features
+
+
+@functools.lru_cache(maxsize=4)
+def _sample_offsets(res: float) -> np.ndarray:
+    """(9, 2) offsets of the sample points, x-major: index 3 i + j <-> (dx_i, dy_j)."""
+    d = (-res, 0.0, res)
+    out = np.array([(dx, dy) for dx in d for dy in d])
+    out.setflags(write=False)
+    return out
+
+
+def obstacle_features(pos: Any, centres: Any, valid: Any, radius: Any) -> Any:
+    """The 9 distance features (..., N, 9) of each quad (A.2): at the 3 x 3 xy points
+    ``p + (dx, dy)``, dx, dy in (-0.1, 0, 0.1) m, x-major (index 3 i + j, i over dx, j over dy; the
+    centre is index 4), the 2D distance to the nearest valid column axis minus the radius (negative
+    inside a column; ``100 - radius`` without any column). ``pos`` (..., N, 3) are the TRUE
+    positions (m, world frame; no sensor noise); ``centres`` (..., M, 2), ``valid`` (..., M),
+    ``radius`` (...,). No clipping. Goes LAST in each quad's observation.
+    """
+    xp = array_namespace(pos, centres)
+    off = xp.asarray(_sample_offsets(SDF_RESOLUTION), dtype=pos.dtype)
+    pts = pos[..., :, None, :2] + off  # (..., N, 9, 2)
+    d = _dist2d(xp, pts[..., :, :, None, :], centres[..., None, None, :, :])  # (..., N, 9, M)
+    d = xp.where(valid[..., None, None, :], d, xp.inf)
+    dmin = xp.min(d, axis=-1)
+    dmin = xp.where(xp.isinf(dmin), NO_OBSTACLE_DIST, dmin)
+    r = xp.asarray(radius, dtype=pos.dtype)
+    return dmin - r[..., None, None]
+
+
+def feature_bounds(cfg: EnvConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Finite (low, high) float32 bounds (9,) of the features: +- max(room diagonal + 1 m, 100 m), so
+    no reachable value (nor the no-column placeholder) is ever clipped."""
+    b = max(math.sqrt(sum(x * x for x in cfg.room_size)) + 1.0, NO_OBSTACLE_DIST)
+    return np.full(NUM_FEATURES, -b, dtype=np.float32), np.full(NUM_FEATURES, b, dtype=np.float32)
+
+
+# ------------------------------------------------------------------------------ detection
+
+
+def detect(pos: Any, centres: Any, valid: Any, radius: Any, arm: float) -> tuple[Any, Any, Any]:
+    """Contacts (A.3): a quad touches column m if ``||p_xy - o_xy|| <= arm + radius`` (at any
+    height). Columns are scanned in index order and only the first hit is kept. Returns
+    ``contact`` (..., N) bool, ``index`` (..., N) int (0 without contact) and that column's centre
+    (..., N, 2)."""
+    xp = array_namespace(pos, centres)
+    d = _dist2d(xp, pos[..., :, None, :2], centres[..., None, :, :])  # (..., N, M)
+    r = xp.asarray(radius, dtype=pos.dtype)
+    hit = (d <= (arm + r)[..., None, None]) & valid[..., None, :]
+    index = xp.argmax(hit, axis=-1)  # first True (0 if none)
+    contact = xp.any(hit, axis=-1)
+    full = xp.broadcast_to(centres[..., None, :, :], d.shape + (2,))
+    centre = xp.take_along_axis(full, index[..., None, None], axis=-2)[..., 0, :]
+    return contact, index, centre
+
+
+def new_contacts(contact: Any, prev_contact: Any) -> Any:
+    """Quads in contact now and not at the previous control step (A.3: a quad that stays in
+    contact, even sliding onto another column, gets no new penalty or kick)."""
+    return contact & ~prev_contact
+
+
+# ------------------------------------------------------------------------------- response
+
+
+def response_draw_spec(num_quads: int, decay: tuple[float, float] = OBSTACLE_DECAY,
+                       kick_omega: tuple[float, float] = OBSTACLE_KICK) -> DrawSpec:
+    """Draws of the obstacle response per quad (budget: at most one column per quad per step):
+    ``eta_a``/``eta_b`` the two Gaussian parts of the direction noise for each of the 3 tries,
+    ``decay``, and the omega kick's uniform-cube direction and magnitude. With every draw at its
+    mean: no direction noise, decay 0.5, no kick."""
+    n = num_quads
+    return {
+        "eta_a": Normal(0.0, ETA_STDS[0], (n, ETA_TRIES, 3)),
+        "eta_b": Normal(0.0, ETA_STDS[1], (n, ETA_TRIES, 3)),
+        "decay": Uniform(decay[0], decay[1], (n,)),
+        "kick_dir": Uniform(-1.0, 1.0, (n, 3)),
+        "kick_mag": Uniform(kick_omega[0], kick_omega[1], (n,)),
+    }
+
+
+def collision_normal(pos: Any, centre: Any) -> Any:
+    """Horizontal unit normal (..., 3) from the column axis ``centre`` (..., 2) to ``pos`` (..., 3)
+    (A.3 step 1; exactly on the axis the difference is divided by 1e-5: the normal is 0)."""
+    xp = array_namespace(pos, centre)
+    d = pos[..., :2] - centre
+    n = xp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1])
+    d = d / xp.where(n > 0, n, NORMAL_EPS)[..., None]
+    return xp.concatenate([d, xp.zeros_like(d[..., :1])], axis=-1)
+
+
+def obstacle_response(pos: Any, vel: Any, omega: Any, centre: Any, radius: Any, hit: Any,
+                      draws: dict[str, Any]) -> tuple[Any, Any]:
+    """Velocity response of quads with a new contact (A.3 steps 1-5); others unchanged.
+
+    ``v_ref = |v| n``; the direction noise ``eta`` is the first of 3 tries with
+    ``(v_ref + eta) . n > 0`` (0 if none); ``v_new = unit(v_ref + eta) min(|v_ref + eta| decay, |v|)``
+    with ``decay`` = the draw, or 1.0 when the quad's centre is inside the column (2D distance
+    < radius; Decisions); ``omega += unit(kick_dir) kick_mag`` (body frame, rad/s).
+    ``centre`` (..., N, 2) is each quad's column, ``radius`` (...,), ``hit`` (..., N) bool.
+    Returns ``(vel, omega)``.
+    """
+    xp = array_namespace(pos, vel)
+    n = collision_normal(pos, centre)
+    speed = xp.sqrt(xp.sum(vel * vel, axis=-1))
+    v_ref = speed[..., None] * n
+    eta = draws["eta_a"] + draws["eta_b"]  # (..., N, T, 3)
+    ok = xp.sum((v_ref[..., None, :] + eta) * n[..., None, :], axis=-1) > 0  # (..., N, T)
+    chosen = xp.zeros_like(vel)
+    found = xp.zeros(ok.shape[:-1], dtype=bool)
+    for t in range(eta.shape[-2]):  # first accepted try (static, tiny loop)
+        take = ok[..., t] & ~found
+        chosen = xp.where(take[..., None], eta[..., t, :], chosen)
+        found = found | take
+    w = v_ref + chosen
+    wn = xp.sqrt(xp.sum(w * w, axis=-1))
+    d2 = xp.sqrt(xp.sum((pos[..., :2] - centre) ** 2, axis=-1))
+    r = xp.asarray(radius, dtype=pos.dtype)[..., None]
+    decay = xp.where(d2 < r, 1.0, draws["decay"])
+    new_speed = xp.minimum(wn * decay, speed)
+    v_new = w * (new_speed / xp.where(wn > 0, wn, 1.0))[..., None]
+    kick = safe_normalize(xp, draws["kick_dir"]) * draws["kick_mag"][..., None]
+    h = hit[..., None]
+    return xp.where(h, v_new, vel), xp.where(h, omega + kick, omega)
+
+
+def obstacle_step(pos: Any, vel: Any, omega: Any, prev_contact: Any, centres: Any, valid: Any, radius: Any,
+                  arm: float, draws: dict[str, Any] | None, respond: bool = True) -> dict[str, Any]:
+    """The obstacle stage of a control step (paper model, SPEC_obstacles A.3).
+
+    Where it goes: once per control step, after the physics sub-steps, with the velocity-level
+    models, in the original's order downwash -> quad-quad -> **obstacles** -> walls/ceiling
+    (a wall hit in the same step overwrites the velocity; omega kicks add up). The current engines
+    apply walls before quad-quad; call this right after quad-quad (so after walls, a difference
+    only for a quad touching a column and a wall in one step, which cannot happen geometrically
+    with the area inside the room and more than a column's radius from the walls).
+
+    Per world state: ``centres`` (M_max, 2), ``valid`` (M_max,), ``radius`` () of the map in force
+    and ``prev_contact`` (N,) bool (False at reset, or the contacts of the start state), all with
+    the engine's leading batch dims. ``pos`` (..., N, 3) m, ``vel`` (..., N, 3) m/s (world),
+    ``omega`` (..., N, 3) rad/s (body). ``draws``: :func:`response_draw_spec` draws (a
+    ``MeanSampler`` when ``noise.stochastic_collisions`` is False). ``respond=False`` (MuJoCo
+    contacts, collision_model "mujoco"/"blend") only detects (``draws`` may be None).
+
+    Returns ``vel``, ``omega`` (after the response), ``contact`` (..., N) bool (the next step's
+    ``prev_contact``), ``new_contact`` (..., N) bool (penalty, metrics), ``index`` (..., N) the
+    column touched. The env exposes ``info["obstacles"]`` (M, 2) (valid centres) after reset and
+    every step, the reward term ``"obstacle_collision"`` (:func:`obstacle_penalty`) in
+    ``info["reward_terms"]`` and the episode metrics of :func:`metrics_finalize`.
+    """
+    contact, index, centre = detect(pos, centres, valid, radius, arm)
+    new = new_contacts(contact, prev_contact)
+    if respond:
+        vel, omega = obstacle_response(pos, vel, omega, centre, radius, new, draws)
+    return {"vel": vel, "omega": omega, "contact": contact, "new_contact": new, "index": index}
+
+
+# --------------------------------------------------------------------------- reward, metrics
+
+
+def obstacle_penalty(new_contact: Any, scale: float, anneal: Any = 1.0) -> Any:
+    """Reward term ``obstacle_collision`` (..., N): ``-scale`` on the step of each new contact (A.4:
+    not multiplied by dt, no grace period; one per contact however long it lasts). ``anneal``
+    multiplies the scale like the other collision terms."""
+    xp = array_namespace(new_contact, anneal)
+    return xp.where(new_contact, -scale * anneal, 0.0)
+
+
+def metrics_init(like: Any, batch_shape: tuple[int, ...], n: int) -> dict[str, Any]:
+    """Zeroed obstacle accumulators (per quad): all new contacts, those after the grace period,
+    and the latched goal-reached flag."""
+    xp = array_namespace(like)
+    z = xp.zeros(tuple(batch_shape) + (n,), dtype=like.dtype)
+    return {"obstacle_contacts": z, "obstacle_collisions": z, "reached": xp.zeros(z.shape, dtype=bool)}
+
+
+def metrics_update(om: dict[str, Any], t: Any, new_contact: Any, last_dist: Any, steps: Any, threshold: Any,
+                   grace_s: float = GRACE_S, last_steps: int = 5) -> dict[str, Any]:
+    """Accumulate one control step at time ``t`` (s, after the step; (..., 1) or broadcastable).
+
+    ``new_contact`` (..., N) new obstacle contacts; ``last_dist`` (..., 5, N) the true distances to
+    the goals of the last steps (``metrics`` accumulator ``last_dist``, after its update), ``steps``
+    (...,) steps so far; ``threshold`` (...,) or scalar: the scenario's approach distance (m).
+    ``reached`` latches once the mean of the last 5 distances is below the threshold (A.4)."""
+    xp = array_namespace(last_dist)
+    f = last_dist.dtype
+    after = (t >= grace_s - 1e-9)
+    thr = xp.asarray(threshold, dtype=f)[..., None]
+    full = (xp.asarray(steps) >= last_steps)[..., None]
+    near = full & (xp.mean(last_dist, axis=-2) < thr)
+    return {"obstacle_contacts": om["obstacle_contacts"] + new_contact,
+            "obstacle_collisions": om["obstacle_collisions"] + (new_contact & after),
+            "reached": om["reached"] | near}
+
+
+def metrics_finalize(om: dict[str, Any], quad_collisions: Any) -> dict[str, Any]:
+    """Episode metrics per world (means over quads) with obstacles: ``obstacle_collisions`` (new
+    contacts after the grace period per quad), ``collision_rate`` (fraction of quads with at least
+    one quad-quad or obstacle collision after the grace period) and ``success`` (fraction that
+    reached the goal and had no collision of either kind). ``quad_collisions`` (..., N) is the
+    ``metrics`` accumulator ``collisions`` (quad-quad, after the grace period)."""
+    xp = array_namespace(quad_collisions)
+    f = quad_collisions.dtype
+    collided = (om["obstacle_collisions"] > 0) | (quad_collisions > 0)
+    return {"obstacle_collisions": xp.mean(om["obstacle_collisions"], axis=-1),
+            "collision_rate": xp.mean(collided.astype(f), axis=-1),
+            "success": xp.mean((om["reached"] & ~collided).astype(f), axis=-1)}
+
+
+# ------------------------------------------------------------------------------------ arena
+
+
+def geom_positions(centres: Any, valid: Any, room_h: float, park: Any) -> Any:
+    """(..., M_max, 3) positions (m, world-local) of the column geoms: valid columns at
+    ``(x, y, room_h / 2)``, the others at ``park`` (3,) (out of the room)."""
+    xp = array_namespace(centres)
+    z = xp.full(centres.shape[:-1] + (1,), 0.5 * room_h, dtype=centres.dtype)
+    p = xp.concatenate([centres, z], axis=-1)
+    return xp.where(valid[..., None], p, xp.asarray(park, dtype=centres.dtype))
