@@ -261,6 +261,24 @@ LN_EPS = 1e-6
 SELF_DIMS = {"base": 18, "floor": 19, "wall": 24}
 
 
+#: Named architectures. ``*_large`` are the original's sizes (H = 256); ``attention_sim2real`` is the
+#: original's deployable model exactly (one fc-tanh layer per embedding, OneHeadAttention H x H, head
+#: fc(3H, H)); ``attention_deployable`` narrows the query/key/value width to 4 so that K = 2 with
+#: obstacles fits 2,000 actor parameters (see :func:`count_params`).
+ARCH_PRESETS: dict[str, dict[str, Any]] = {
+    "deepsets_large": {"type": "deepsets", "self_layers": [256, 256], "neighbor_layers": [256, 256],
+                       "obstacle_layers": [256, 256], "head_layers": [512]},
+    "deepsets_deployable": {"type": "deepsets", "self_layers": [16], "neighbor_layers": [16],
+                            "obstacle_layers": [16], "head_layers": [16]},
+    "attention_large": {"type": "attention", "hidden": 256, "embed_layers": 2, "num_heads": 4, "attn_dim": 256,
+                        "head_layers": [512]},
+    "attention_sim2real": {"type": "attention", "hidden": 16, "embed_layers": 1, "num_heads": 1, "attn_dim": 16,
+                           "head_layers": [16]},
+    "attention_deployable": {"type": "attention", "hidden": 16, "embed_layers": 1, "num_heads": 1, "attn_dim": 4,
+                             "head_layers": [16]},
+}
+
+
 def _pos_int_list(arch: dict[str, Any], key: str, allow_empty: bool = False) -> list[int]:
     v = arch.get(key)
     if not isinstance(v, (list, tuple)) or (not v and not allow_empty) or not all(
