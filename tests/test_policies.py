@@ -497,7 +497,13 @@ def test_flax_networks_match_numpy_policy(tmp_path, name):
     import jax.numpy as jnp
     from brax.training.acme import running_statistics
 
-    from quadswarm_mj.training.networks import export_policy, flatten_params, make_ppo_networks
+    from quadswarm_mj.training.networks import (
+        export_policy,
+        flatten_params,
+        make_ppo_networks,
+        set_action_std,
+        to_numpy_policy,
+    )
 
     arch, lay = SMALL_ARCHS[name], LAYOUT_OBST
     d = layout_obs_dim(lay)
@@ -522,3 +528,7 @@ def test_flax_networks_match_numpy_policy(tmp_path, name):
     pol = load_policy_file(tmp_path / "p.npz")
     assert isinstance(pol, EncoderPolicy)
     np.testing.assert_allclose(pol(obs), np.asarray(expected), atol=1e-5)
+    # the trainer's std initialization leaves the deterministic action alone
+    p2 = set_action_std(params, 0.3)
+    assert np.allclose(flatten_params(p2)["action/bias"][4:], np.log(np.expm1(0.299)))
+    np.testing.assert_allclose(to_numpy_policy(arch, lay, p2, norm.mean, norm.std)(obs), pol(obs), atol=1e-6)

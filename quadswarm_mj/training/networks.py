@@ -184,3 +184,13 @@ def make_ppo_networks(arch: dict[str, Any], layout: dict[str, Any],
                                              activation=ACTIVATION_FNS[activation])
     return ppo_networks.PPONetworks(policy_network=make_policy_network(arch, layout, pre), value_network=value,
                                     parametric_action_distribution=NormalTanhDistribution(event_size=4))
+
+
+def set_action_std(params: Any, init_std: float, action_dim: int = 4) -> Any:
+    """Params with the action layer's std biases set so Brax's tanh-normal std starts at ``init_std``
+    (softplus^-1(init_std - 0.001), as ``ppo.py`` does for its MLP); the means are untouched."""
+    flat = flatten_params(params)
+    b = np.array(flat["action/bias"], np.float32)
+    b[action_dim:] = np.log(np.expm1(max(init_std - 0.001, 1e-4)))
+    flat["action/bias"] = b
+    return unflatten_params(flat)
