@@ -515,9 +515,11 @@ class EncoderPolicy:
         self.obs_layout = validate_layout(self.obs_layout)
         self.arch = validate_arch(self.arch, self.obs_layout)
         shapes = param_shapes(self.arch, self.obs_layout)
-        missing = sorted(set(shapes) - set(self.params))
+        missing, unknown = sorted(set(shapes) - set(self.params)), sorted(set(self.params) - set(shapes))
         if missing:
             raise ValueError(f"{self.arch['type']} policy lacks parameters {missing}")
+        if unknown:
+            raise ValueError(f"{self.arch['type']} policy has parameters its architecture does not use: {unknown}")
         self.params = {n: np.asarray(self.params[n], dtype=np.float64) for n in shapes}
         for n, shp in shapes.items():
             if self.params[n].shape != shp:

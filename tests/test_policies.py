@@ -430,6 +430,8 @@ def test_encoder_validation_errors(tmp_path):
     bad["head_0/kernel"] = bad["head_0/kernel"][:-1]
     with pytest.raises(ValueError, match="head_0/kernel"):
         EncoderPolicy(pol.arch, pol.obs_layout, bad, pol.obs_mean, pol.obs_std)
+    with pytest.raises(ValueError, match="does not use"):
+        EncoderPolicy(pol.arch, pol.obs_layout, {**pol.params, "head_9/bias": np.zeros(3)}, pol.obs_mean, pol.obs_std)
     del bad["head_0/kernel"]
     with pytest.raises(ValueError, match="lacks parameters"):
         EncoderPolicy(pol.arch, pol.obs_layout, bad, pol.obs_mean, pol.obs_std)
