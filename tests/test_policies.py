@@ -493,7 +493,7 @@ def test_new_mlp_files_record_architecture(tmp_path):
 
 @pytest.mark.parametrize("name", sorted(SMALL_ARCHS))
 def test_flax_networks_match_numpy_policy(tmp_path, name):
-    """Trained flax params exported to the policy file act as Brax's deterministic (mode) action."""
+    """Flax params exported to the policy file act as Brax's deterministic (mode) action of the same network."""
     pytest.importorskip("flax")
     import jax
     import jax.numpy as jnp
@@ -505,32 +505,40 @@ def test_flax_networks_match_numpy_policy(tmp_path, name):
         make_ppo_networks,
         set_action_std,
         to_numpy_policy,
+        unflatten_params,
     )
 
     arch, lay = SMALL_ARCHS[name], LAYOUT_OBST
     d = layout_obs_dim(lay)
     nets = make_ppo_networks(arch, lay, running_statistics.normalize, value_hidden_layer_sizes=(8,))
+    # the flax module's parameter tree (traced, not compiled) is the NumPy format's layout
+    shapes = jax.eval_shape(nets.policy_network.init, jax.random.PRNGKey(4))
+    from flax.traverse_util import flatten_dict
 
-    @jax.jit  # one compile (eager op-by-op dispatch of init/apply is much slower on a busy machine)
-    def run(batch, obs):
-        params = nets.policy_network.init(jax.random.PRNGKey(4))
-        norm = running_statistics.update(running_statistics.init_state(jax.ShapeDtypeStruct((d,), jnp.float32)),
-                                         batch)
-        logits = nets.policy_network.apply(norm, params, obs)
-        value = nets.value_network.apply(norm, nets.value_network.init(jax.random.PRNGKey(0)), obs)
-        return params, norm, logits, nets.parametric_action_distribution.mode(logits), value
+    assert {n: tuple(v.shape) for n, v in flatten_dict(shapes["params"], sep="/").items()} == param_shapes(arch, lay)
+    # weights drawn in NumPy (saves compiling the init on a busy machine), normalizer from data
+    mean, std = _random_stats(lay, seed=5)
+    params = unflatten_params(random_encoder_policy(arch, lay, seed=6).params)
+    norm = running_statistics.init_state(jax.ShapeDtypeStruct((d,), jnp.float32)).replace(
+        mean=jnp.asarray(mean, jnp.float32), std=jnp.asarray(std, jnp.float32))
+    obs = np.random.default_rng(0).normal(1.0, 2.0, (33, d)).astype(np.float32)
 
-    rng = np.random.default_rng(0)
-    obs = rng.normal(1.0, 2.0, (33, d)).astype(np.float32)
-    params, norm, logits, expected, value = run(jnp.asarray(rng.normal(1.0, 2.0, (256, d)), jnp.float32),
-                                                jnp.asarray(obs))
-    assert set(flatten_params(params)) == set(param_shapes(arch, lay))
-    assert logits.shape == (33, 8) and value.shape == (33,)
+    @jax.jit
+    def mode(p, o):
+        logits = nets.policy_network.apply(norm, p, o)
+        return logits, nets.parametric_action_distribution.mode(logits)
+
+    logits, expected = mode(params, jnp.asarray(obs))
+    assert logits.shape == (33, 8)
     export_policy(tmp_path / "p.npz", arch, lay, params, norm.mean, norm.std, meta={"env": {"num_quads": 3}})
     pol = load_policy_file(tmp_path / "p.npz")
     assert isinstance(pol, EncoderPolicy)
+    assert np.abs(np.asarray(expected)).max() > 0.1
     np.testing.assert_allclose(pol(obs), np.asarray(expected), atol=1e-5)
     # the trainer's std initialization leaves the deterministic action alone
     p2 = set_action_std(params, 0.3)
     assert np.allclose(flatten_params(p2)["action/bias"][4:], np.log(np.expm1(0.299)))
     np.testing.assert_allclose(to_numpy_policy(arch, lay, p2, norm.mean, norm.std)(obs), pol(obs), atol=1e-6)
+    value = jax.eval_shape(lambda: nets.value_network.apply(norm, nets.value_network.init(jax.random.PRNGKey(0)),
+                                                            jnp.asarray(obs)))
+    assert value.shape == (33,)
