@@ -13,15 +13,26 @@ import pytest
 
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.policies import (
+    ARCH_PRESETS,
+    ENCODER_FORMAT,
     FORMAT,
+    EncoderPolicy,
     MLPPolicy,
+    count_params,
+    encoder_policy_arrays,
+    layout_obs_dim,
     load_policy,
     load_policy_file,
     load_pretrained,
+    param_shapes,
     pretrained_dir,
+    random_encoder_policy,
     read_manifest,
+    save_encoder_policy,
     save_policy,
     sha256_file,
+    validate_arch,
+    validate_layout,
 )
 from quadswarm_mj.training.evaluation import evaluate
 
@@ -283,3 +294,251 @@ def test_pretrained_single_reproduces_recorded_metrics():
 
 def test_pretrained_swarm8_reproduces_recorded_metrics():
     _check_recorded("swarm8", ["static_diff_goal", "swap_goals"])
+
+
+# ---------------------------------------------------------------------------- encoder policies (deep sets, attention)
+LAYOUT_OBST = {"self_dim": 19, "num_neighbors": 2, "neighbor_dim": 6, "obstacle_dim": 9}
+LAYOUT_SWARM = {"self_dim": 18, "num_neighbors": 3, "neighbor_dim": 6, "obstacle_dim": 0}
+SMALL_ARCHS = {
+    "deepsets": {"type": "deepsets", "self_layers": [24, 20], "neighbor_layers": [12, 10], "obstacle_layers": [8],
+                 "head_layers": [16]},
+    "attention_sim2real": ARCH_PRESETS["attention_sim2real"],
+    "attention_multihead": {"type": "attention", "hidden": 12, "embed_layers": 2, "num_heads": 3, "attn_dim": 5,
+                            "head_layers": [20, 10]},
+}
+
+
+def _obs(layout, n=64, seed=0):
+    return np.random.default_rng(seed).normal(0.3, 2.0, (n, layout_obs_dim(layout))).astype(np.float32)
+
+
+def _random_stats(layout, seed=0):
+    rng = np.random.default_rng(seed)
+    d = layout_obs_dim(layout)
+    return rng.normal(0, 1, d), rng.uniform(0.5, 2.0, d)
+
+
+def _reference_attention_policy(pol, obs):
+    """An independent, per-sample loop implementation of the C.1 attention model (one observation at a time)."""
+    p, a, lay = pol.params, pol.arch, pol.obs_layout
+    sd, k = lay["self_dim"], lay["num_neighbors"]
+    out = []
+    for o in (obs.astype(np.float64) - pol.obs_mean) / pol.obs_std:
+        def emb(x, pre):
+            for i in range(a["embed_layers"]):
+                x = np.tanh(x @ p[f"{pre}_{i}/kernel"] + p[f"{pre}_{i}/bias"])
+            return x
+        toks = ([emb(o[sd:sd + 6 * k], "nbr")] if k else []) + ([emb(o[sd + 6 * k:], "obst")]
+                                                                if lay["obstacle_dim"] else [])
+        t = np.stack(toks)
+        heads = []
+        for h in range(a["num_heads"]):
+            sl = slice(h * a["attn_dim"], (h + 1) * a["attn_dim"])
+            q, kk, v = (t @ p[f"attn/w_{c}/kernel"][:, sl] for c in "qkv")
+            s = q @ kk.T / np.sqrt(a["attn_dim"])
+            w = np.exp(s) / np.exp(s).sum(1, keepdims=True)  # no max shift: a different computation path
+            heads.append(w @ v)
+        y = np.concatenate(heads, 1) @ p["attn/fc/kernel"] + t
+        y = (y - y.mean(1, keepdims=True)) / np.sqrt(y.var(1, keepdims=True) + 1e-6) * p["attn/ln/scale"] \
+            + p["attn/ln/bias"]
+        x = np.concatenate([emb(o[:sd], "self"), y.ravel()])
+        for i in range(len(a["head_layers"])):
+            x = np.tanh(x @ p[f"head_{i}/kernel"] + p[f"head_{i}/bias"])
+        out.append(np.tanh((x @ p["action/kernel"] + p["action/bias"])[:4]))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("layout", [LAYOUT_OBST, LAYOUT_SWARM, {**LAYOUT_OBST, "num_neighbors": 0}])
+def test_attention_policy_matches_loop_reference(layout):
+    for name in ("attention_sim2real", "attention_multihead"):
+        mean, std = _random_stats(layout)
+        pol = random_encoder_policy(SMALL_ARCHS[name], layout, seed=2, obs_mean=mean, obs_std=std)
+        obs = _obs(layout)
+        np.testing.assert_allclose(pol(obs), _reference_attention_policy(pol, obs), atol=1e-6)
+
+
+def test_deepsets_policy_is_neighbour_order_invariant_and_uses_every_block():
+    pol = random_encoder_policy(SMALL_ARCHS["deepsets"], LAYOUT_SWARM, seed=1)
+    obs = _obs(LAYOUT_SWARM)
+    sd = LAYOUT_SWARM["self_dim"]
+    perm = obs.copy()
+    perm[:, sd:] = obs[:, sd:].reshape(-1, 3, 6)[:, [2, 0, 1]].reshape(-1, 18)
+    np.testing.assert_allclose(pol(perm), pol(obs), atol=1e-6)
+    # a deep-sets policy is invariant to the order, not to the content: every block changes the action
+    for sl in (slice(0, sd), slice(sd, sd + 6)):
+        moved = obs.copy()
+        moved[:, sl] += 1.0
+        assert np.abs(pol(moved) - pol(obs)).max() > 1e-3
+    obst = random_encoder_policy(SMALL_ARCHS["deepsets"], LAYOUT_OBST, seed=1)
+    o = _obs(LAYOUT_OBST)
+    moved = o.copy()
+    moved[:, -9:] += 1.0
+    assert np.abs(obst(moved) - obst(o)).max() > 1e-3
+
+
+def test_encoder_file_roundtrip_records_architecture_and_layout(tmp_path):
+    for name, arch in SMALL_ARCHS.items():
+        mean, std = _random_stats(LAYOUT_OBST)
+        pol = random_encoder_policy(arch, LAYOUT_OBST, seed=3, obs_mean=mean, obs_std=std,
+                                    meta={"env": {"num_quads": 3, "num_neighbors": 2, "obs_self": "floor"}})
+        p = tmp_path / f"{name}.npz"
+        sha = save_encoder_policy(p, pol)
+        assert sha == sha256_file(p)
+        with np.load(p, allow_pickle=False) as z:
+            assert all(z[k].dtype != object for k in z.files)
+            meta = json.loads(str(z["meta"]))
+            assert {k for k in z.files if k.startswith("actor/")} == {f"actor/{n}" for n in param_shapes(arch,
+                                                                                                          LAYOUT_OBST)}
+            assert all(z[k].dtype == np.float32 for k in z.files if k.startswith("actor/"))
+        assert meta["format"] == ENCODER_FORMAT and meta["arch"]["type"] == arch["type"]
+        assert meta["obs_layout"] == LAYOUT_OBST and meta["obs_dim"] == 40
+        back = load_policy(str(p))
+        assert isinstance(back, EncoderPolicy) and back.obs_dim == 40
+        assert back.env_kwargs == {"num_quads": 3, "num_neighbors": 2, "obs_self": "floor"}
+        obs = _obs(LAYOUT_OBST)
+        np.testing.assert_allclose(back(obs), pol(obs), atol=1e-5)  # float32 storage
+        assert back(obs[0]).shape == (4,)
+
+
+def test_encoder_pretrained_is_hash_checked(tmp_path):
+    d = tmp_path / "pretrained"
+    pol = random_encoder_policy(SMALL_ARCHS["attention_sim2real"], LAYOUT_OBST, seed=0)
+    sha = save_encoder_policy(d / "att.npz", pol)
+    (d / "manifest.json").write_text(json.dumps({"format": 1, "policies": {"att": {
+        "file": "att.npz", "sha256": sha, "bytes": (d / "att.npz").stat().st_size}}}))
+    assert isinstance(load_pretrained("att", d), EncoderPolicy)
+    raw = bytearray((d / "att.npz").read_bytes())
+    raw[len(raw) // 2] ^= 0x01
+    (d / "att.npz").write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match="SHA-256"):
+        load_pretrained("att", d)
+
+
+def test_encoder_validation_errors(tmp_path):
+    with pytest.raises(ValueError, match="arch type"):
+        validate_arch({"type": "rnn"}, LAYOUT_OBST)
+    with pytest.raises(ValueError, match="neighbour or an obstacle token"):
+        validate_arch(SMALL_ARCHS["attention_sim2real"], {**LAYOUT_SWARM, "num_neighbors": 0})
+    with pytest.raises(ValueError, match="self_dim"):
+        validate_layout({**LAYOUT_OBST, "self_dim": 20})
+    with pytest.raises(ValueError, match="obstacle_dim"):
+        validate_layout({**LAYOUT_OBST, "obstacle_dim": 4})
+    with pytest.raises(ValueError, match="head_layers"):
+        validate_arch({**SMALL_ARCHS["deepsets"], "head_layers": [0]}, LAYOUT_OBST)
+    pol = random_encoder_policy(SMALL_ARCHS["deepsets"], LAYOUT_OBST)
+    bad = dict(pol.params)
+    bad["head_0/kernel"] = bad["head_0/kernel"][:-1]
+    with pytest.raises(ValueError, match="head_0/kernel"):
+        EncoderPolicy(pol.arch, pol.obs_layout, bad, pol.obs_mean, pol.obs_std)
+    with pytest.raises(ValueError, match="does not use"):
+        EncoderPolicy(pol.arch, pol.obs_layout, {**pol.params, "head_9/bias": np.zeros(3)}, pol.obs_mean, pol.obs_std)
+    del bad["head_0/kernel"]
+    with pytest.raises(ValueError, match="lacks parameters"):
+        EncoderPolicy(pol.arch, pol.obs_layout, bad, pol.obs_mean, pol.obs_std)
+    with pytest.raises(ValueError, match="shape"):
+        pol(np.zeros((2, 39)))
+    # a file whose meta lacks the layout is refused
+    arrays = encoder_policy_arrays(pol.arch, pol.obs_layout, pol.params, pol.obs_mean, pol.obs_std, {})
+    meta = json.loads(str(arrays["meta"]))
+    del meta["obs_layout"]
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez(tmp_path / "nolayout.npz", **arrays)
+    with pytest.raises(ValueError, match="obs_layout"):
+        load_policy_file(tmp_path / "nolayout.npz")
+
+
+def test_deployable_attention_parameter_count():
+    """Actor parameters (the action layer's mean part) of the C.1 attention model, by the formula
+    H (S + 1) + H (6K + 1) + H (9 + 1) [embeddings] + 3 H n d + n d H + 2 H [Q, K, V, fc, LayerNorm]
+    + (3H + 1) F [head] + (F + 1) 4 [action means]."""
+    def formula(s, k, h, nh, d, f):
+        return h * (s + 1) + h * (6 * k + 1) + h * 10 + 4 * h * nh * d + 2 * h + (3 * h + 1) * f + (f + 1) * 4
+
+    for name in ("attention_sim2real", "attention_deployable"):
+        a = ARCH_PRESETS[name]
+        pol = random_encoder_policy(a, LAYOUT_OBST)
+        assert pol.num_params == formula(19, 2, a["hidden"], a["num_heads"], a["attn_dim"], a["head_layers"][0])
+        # the trainer's action layer has 2 x 4 outputs (means, std parameters): (F + 1) 4 more
+        assert count_params(param_shapes(a, LAYOUT_OBST), deployed=False) == pol.num_params + 17 * 4
+    assert random_encoder_policy(ARCH_PRESETS["attention_deployable"], LAYOUT_OBST).num_params <= 2000
+    assert random_encoder_policy(ARCH_PRESETS["deepsets_deployable"], LAYOUT_OBST).num_params <= 2000
+    mlp = load_policy("pretrained:swarm8")
+    assert mlp.num_params == sum(k.size + b.size for k, b in zip(mlp.kernels, mlp.biases)) - 4 * 65
+
+
+def test_shipped_policies_act_as_their_arrays_say():
+    """The shipped MLP files still load as MLPs and act as a forward pass over their raw arrays."""
+    for name in ("single", "swarm8"):
+        pol = load_policy(f"pretrained:{name}")
+        assert isinstance(pol, MLPPolicy) and pol.meta["format"] == FORMAT
+        entry = read_manifest()["policies"][name]
+        with np.load(pretrained_dir() / entry["file"], allow_pickle=False) as z:
+            n = sum(1 for k in z.files if k.startswith("layer_") and k.endswith("/kernel"))
+            ks = [z[f"layer_{i}/kernel"].astype(np.float64) for i in range(n)]
+            bs = [z[f"layer_{i}/bias"].astype(np.float64) for i in range(n)]
+            mean, std = z["obs_mean"].astype(np.float64), z["obs_std"].astype(np.float64)
+        obs = np.random.default_rng(0).normal(0, 2, (32, pol.obs_dim))
+        np.testing.assert_allclose(pol(obs), _reference_forward(ks, bs, mean, std, obs), atol=1e-6)
+        assert pol.obs_layout == {"self_dim": 18, "num_neighbors": EnvConfig(**pol.env_kwargs).neighbors,
+                                  "neighbor_dim": 6, "obstacle_dim": 0}
+
+
+def test_new_mlp_files_record_architecture(tmp_path):
+    p = tmp_path / "m.npz"
+    _random_policy_file(p)
+    meta = load_policy_file(p).meta
+    assert meta["arch"] == {"type": "mlp", "activation": "tanh", "layers": [16, 16, 8]}
+    assert meta["obs_layout"] == {"self_dim": 18, "num_neighbors": 0, "neighbor_dim": 6, "obstacle_dim": 0}
+
+
+@pytest.mark.parametrize("name", sorted(SMALL_ARCHS))
+def test_flax_networks_match_numpy_policy(tmp_path, name):
+    """Flax params exported to the policy file act as Brax's deterministic (mode) action of the same network."""
+    pytest.importorskip("flax")
+    import jax
+    import jax.numpy as jnp
+    from brax.training.acme import running_statistics
+
+    from quadswarm_mj.training.networks import (
+        export_policy,
+        flatten_params,
+        make_ppo_networks,
+        set_action_std,
+        to_numpy_policy,
+        unflatten_params,
+    )
+
+    arch, lay = SMALL_ARCHS[name], LAYOUT_OBST
+    d = layout_obs_dim(lay)
+    nets = make_ppo_networks(arch, lay, running_statistics.normalize, value_hidden_layer_sizes=(8,))
+    # the flax module's parameter tree (traced, not compiled) is the NumPy format's layout
+    shapes = jax.eval_shape(nets.policy_network.init, jax.random.PRNGKey(4))
+    from flax.traverse_util import flatten_dict
+
+    assert {n: tuple(v.shape) for n, v in flatten_dict(shapes["params"], sep="/").items()} == param_shapes(arch, lay)
+    # weights drawn in NumPy (saves compiling the init on a busy machine), normalizer from data
+    mean, std = _random_stats(lay, seed=5)
+    params = unflatten_params(random_encoder_policy(arch, lay, seed=6).params)
+    norm = running_statistics.init_state(jax.ShapeDtypeStruct((d,), jnp.float32)).replace(
+        mean=jnp.asarray(mean, jnp.float32), std=jnp.asarray(std, jnp.float32))
+    obs = np.random.default_rng(0).normal(1.0, 2.0, (33, d)).astype(np.float32)
+
+    @jax.jit
+    def mode(p, o):
+        logits = nets.policy_network.apply(norm, p, o)
+        return logits, nets.parametric_action_distribution.mode(logits)
+
+    logits, expected = mode(params, jnp.asarray(obs))
+    assert logits.shape == (33, 8)
+    export_policy(tmp_path / "p.npz", arch, lay, params, norm.mean, norm.std, meta={"env": {"num_quads": 3}})
+    pol = load_policy_file(tmp_path / "p.npz")
+    assert isinstance(pol, EncoderPolicy)
+    assert np.abs(np.asarray(expected)).max() > 0.1
+    np.testing.assert_allclose(pol(obs), np.asarray(expected), atol=1e-5)
+    # the trainer's std initialization leaves the deterministic action alone
+    p2 = set_action_std(params, 0.3)
+    assert np.allclose(flatten_params(p2)["action/bias"][4:], np.log(np.expm1(0.299)))
+    np.testing.assert_allclose(to_numpy_policy(arch, lay, p2, norm.mean, norm.std)(obs), pol(obs), atol=1e-6)
+    value = jax.eval_shape(lambda: nets.value_network.apply(norm, nets.value_network.init(jax.random.PRNGKey(0)),
+                                                            jnp.asarray(obs)))
+    assert value.shape == (33,)
