@@ -5,8 +5,15 @@ of 200 Hz), paper defaults (collisions, noise, K = 6 neighbours, static_same_goa
 
 * ``QuadSwarmEnv`` (one world) at N = 1, 8, 32, 128 quads;
 * ``QuadSwarmVectorEnv`` at B = 64, 256, 1024 worlds x 8 quads (auto-reset);
-* the MJX env (``quadswarm_mj.envs.mjx_env.benchmark_mjx``) at 1, 64, 512 worlds x 8 quads, if it
-  imports (``--skip-mjx`` to leave it out);
+* the JAX engine (``quadswarm_mj.envs.mjx_env.benchmark_mjx``: a jitted ``lax.scan`` rollout with
+  auto-reset) at 1, 64, 512, 2048 worlds x 8 quads, paper defaults and ``without_noise()``; the
+  single env and the vector env on the JAX engine (``engine="jax"``) beside the MuJoCo engine; with
+  ``--ablations`` the JAX engine at 512 x 8 with stages switched on or off (where the time goes);
+  ``obstacles`` rows: the cost of 12 columns on each engine (``--skip-mjx`` leaves the JAX rows out);
+* the peer, crazyflow's ``Sim`` (first-principles dynamics, per-rotor control, 200 Hz physics, 2
+  physics steps per 100 Hz sample) when ``crazyflow`` is installed (``pip install crazyflow``; the
+  rows are skipped with a note otherwise): jitted scan (as ``benchmark_mjx``) and Python loop (as a
+  Gymnasium env), so every ratio to it is of figures of the same run;
 * for every row, the bare-MuJoCo ceiling for the same number of bodies: free bodies with the
   Crazyflie's inertia, contacts off, Euler, 2 sub-steps per control step; ``1 core`` steps one model
   holding all bodies with ``mj_step``, ``rollout`` steps them split in equal models on both cores
@@ -161,13 +168,93 @@ def bench_vector(B: int, n: int, workload: str, seconds: float, repeat: int, **k
         env.close()
 
 
-def bench_mjx(worlds: int, n: int, steps: int) -> dict[str, float] | None:
+def bench_jax_batch(cfg: EnvConfig, worlds: int, steps: int, **kw: Any) -> dict[str, float] | None:
+    """The JAX engine as a jitted rollout (``benchmark_mjx``: auto-reset, hover actions, lax.scan)."""
     try:
         from quadswarm_mj.envs.mjx_env import benchmark_mjx
     except Exception as e:  # noqa: BLE001
-        print(f"  MJX env not available ({e!r}); skipped", flush=True)
+        print(f"  JAX engine not available ({e!r}); skipped", flush=True)
         return None
-    return benchmark_mjx(EnvConfig(num_quads=n), worlds, steps)
+    return benchmark_mjx(cfg, worlds, steps, **kw)
+
+
+def bench_single_jax(n: int, seconds: float, repeat: int, cfg: EnvConfig | None = None) -> float:
+    """``QuadSwarmEnv(engine="jax")``: one world, one Python ``step`` per control step, hover actions."""
+    cfg = cfg or EnvConfig(num_quads=n)
+    env = QuadSwarmEnv(cfg, engine="jax")
+    env.reset(seed=0)
+    a = hover_like(env.action_space.shape)
+    for _ in range(3):  # compile
+        env.step(a)
+
+    def run(steps: int) -> float:
+        t = time.perf_counter()
+        for _ in range(steps):
+            _, _, _, trunc, _ = env.step(a)
+            if trunc:
+                env.reset()
+        return time.perf_counter() - t
+
+    try:
+        return cfg.num_quads * timed(run, seconds, repeat)
+    finally:
+        env.close()
+
+
+def crazyflow_rates(worlds: int, n: int, steps: int, seconds: float, repeat: int) -> dict[str, float] | None:
+    """crazyflow's ``Sim`` (first-principles dynamics, per-rotor ``rotor_vel`` control) at the same
+    protocol: 200 Hz physics, one control step = 2 physics steps, samples = drone-steps at 100 Hz.
+    ``scan``: a jitted ``lax.scan`` of (control, 2 physics steps), as ``benchmark_mjx``; ``loop``: one
+    Python call pair (``rotor_vel_control``, ``step(2)``) per control step, as a Gymnasium env."""
+    try:
+        import contextlib
+        import io
+
+        import jax
+        import jax.numpy as jnp
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            import crazyflow.sim.functional as cf_functional
+            from crazyflow.sim import Sim
+    except Exception as e:  # noqa: BLE001
+        print(f"  crazyflow not installed ({e!r}); peer rows skipped (pip install crazyflow)", flush=True)
+        return None
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sim = Sim(n_worlds=worlds, n_drones=n, control="rotor_vel", freq=200)
+    sim.reset()
+    rpm = jnp.full((worlds, n, 4), 15000.0)  # a constant per-rotor command
+    step_fn = sim._step
+
+    def rollout(data: Any) -> Any:
+        def body(d: Any, _: Any) -> tuple[Any, None]:
+            return step_fn(cf_functional.rotor_vel_control(d, rpm), n_steps=2), None
+
+        return jax.lax.scan(body, data, None, length=steps)[0]
+
+    t0 = time.perf_counter()
+    run_c = jax.jit(rollout).lower(sim.data).compile()
+    compile_s = time.perf_counter() - t0
+    data = jax.block_until_ready(run_c(sim.data))
+    times = []
+    for _ in range(max(repeat, 3)):
+        t = time.perf_counter()
+        data = jax.block_until_ready(run_c(data))
+        times.append(time.perf_counter() - t)
+    scan = worlds * n * steps / float(np.min(times))
+
+    def loop(k: int) -> float:
+        t = time.perf_counter()
+        for _ in range(k):
+            sim.rotor_vel_control(rpm)
+            sim.step(2)
+        jax.block_until_ready(sim.data)
+        return time.perf_counter() - t
+
+    loop(3)
+    looped = worlds * n * timed(loop, seconds, repeat)
+    return {"scan": scan, "loop": looped, "compile_s": compile_s}
 
 
 # -------------------------------------------------------------------------------------- ceiling
@@ -388,14 +475,124 @@ def fmt(x: float | None) -> str:
     return f"{x:.0f}"
 
 
+def _jax_rows(rows: set[str], args: Any, seconds: float, repeat: int, steps: int) -> str:
+    """The JAX engine's rows (batched rollouts, the single env, the vector env), crazyflow's and the
+    ratios between them, all measured in this run; a markdown table ('' if none asked)."""
+    out: list[tuple[str, float | None, str, str]] = []  # label, samples/s, compile, ratio note
+    peers: dict[int, dict[str, float] | None] = {}
+    if "peers" in rows:
+        for W in (int(x) for x in args.peer_worlds.split(",")):
+            peers[W] = crazyflow_rates(W, 8, steps, seconds, repeat)
+            print("crazyflow", W, peers[W], flush=True)
+            if peers[W] is None:
+                break
+    base = EnvConfig(num_quads=8)
+    if "jax" in rows:
+        for W in (int(x) for x in args.jax_worlds.split(",")):
+            for variant, cfg in (("paper defaults", base), ("without_noise()", base.without_noise())):
+                res = bench_jax_batch(cfg, W, steps)
+                if res is None:
+                    break
+                print("jax", W, variant, res, flush=True)
+                peer = peers.get(W)
+                note = f"{res['samples_per_s'] / peer['scan']:.2f}x crazyflow scan" if peer else ""
+                out.append((f"JAX engine, jitted rollout, {W} x 8, {variant}", res["samples_per_s"],
+                            f"{res['compile_s']:.1f}", note))
+    if args.ablations and "jax" in rows:
+        W = 512
+        for variant, cfg, kw in (
+                ("physics='mjx' (generic mjx.step)", base, {"physics": "mjx"}),
+                ("downwash on", base.replace(downwash=True), {}),
+                ("randomize on", base.replace(randomize=True), {}),
+                ("sensor noise off", base.replace(noise={"sensor_pos_std": 0.0, "sensor_vel_std": 0.0,
+                                                         "sensor_omega_std": 0.0}), {}),
+                ("motor noise off", base.replace(noise={"motor_noise_ratio": 0.0}), {}),
+                ("K = 0 neighbours", base.replace(num_neighbors=0), {}),
+        ):
+            try:
+                res = bench_jax_batch(cfg, W, steps, **kw)
+            except Exception as e:  # noqa: BLE001
+                print(f"  ablation {variant} failed: {e!r}", flush=True)
+                continue
+            if res is not None:
+                print("ablation", variant, res, flush=True)
+                out.append((f"JAX engine, {W} x 8, {variant}", res["samples_per_s"], f"{res['compile_s']:.1f}", ""))
+    if "obstacles" in rows:
+        from quadswarm_mj.config import ObstacleConfig
+
+        ocfg = base.replace(obstacles=ObstacleConfig(), scenario="o_random")
+        for W in (512,):
+            plain, obst = bench_jax_batch(base, W, steps), bench_jax_batch(ocfg, W, steps)
+            if plain and obst:
+                out.append((f"JAX engine, {W} x 8, obstacles (o_random, 12 columns)", obst["samples_per_s"],
+                            f"{obst['compile_s']:.1f}",
+                            f"{100 * (plain['samples_per_s'] / obst['samples_per_s'] - 1):.0f} % more step time "
+                            "than without obstacles"))
+        for label, engine in (("QuadSwarmEnv (MuJoCo engine)", "mujoco"),):
+            plain = bench_single(8, "hover", seconds, repeat)
+            env_o = _bench_single_cfg(ocfg, seconds, repeat, engine)
+            out.append((f"{label}, 1 x 8, obstacles", env_o, "",
+                        f"{100 * (plain / env_o - 1):.0f} % more step time than without obstacles"))
+    if "jaxsingle" in rows:
+        rate = bench_single_jax(8, seconds, repeat)
+        peer = peers.get(1)
+        note = f"{rate / peer['loop']:.2f}x crazyflow loop (1 x 8)" if peer else ""
+        ref = bench_single(8, "hover", seconds, repeat)
+        out.append(("QuadSwarmEnv(engine='jax'), 1 x 8, one step() per control step", rate, "", note))
+        out.append(("QuadSwarmEnv(engine='mujoco'), 1 x 8 (same run)", ref, "",
+                    f"{ref / peer['loop']:.2f}x crazyflow loop" if peer else ""))
+    if "jaxvector" in rows:
+        for B in (int(x) for x in args.jax_vector_b.split(",")):
+            jx = bench_vector(B, 8, "hover", seconds, repeat, engine="jax")
+            mj = bench_vector(B, 8, "hover", seconds, repeat)
+            floor = ceiling_rollout(8 * B, seconds, repeat)
+            out.append((f"QuadSwarmVectorEnv(engine='jax'), {B} x 8", jx, "",
+                        f"{jx / floor:.2f} of the bare-MuJoCo floor (mujoco.rollout, 2 threads: {fmt(floor)})"))
+            out.append((f"QuadSwarmVectorEnv(engine='mujoco'), {B} x 8", mj, "", f"{mj / floor:.2f} of the floor"))
+    for W, peer in peers.items():
+        if peer:
+            out.append((f"crazyflow 0.4 Sim, {W} x 8, jitted scan", peer["scan"], f"{peer['compile_s']:.1f}", "peer"))
+            out.append((f"crazyflow 0.4 Sim, {W} x 8, Python loop", peer["loop"], "", "peer"))
+    if not out:
+        return ""
+    lines = ["| configuration | samples/s | compile (s) | ratio (same run) |", "|---|---:|---:|---|"]
+    lines += [f"| {a} | {fmt(b)} | {c} | {d} |" for a, b, c, d in out]
+    return "\n".join(lines)
+
+
+def _bench_single_cfg(cfg: EnvConfig, seconds: float, repeat: int, engine: str = "mujoco") -> float:
+    env = QuadSwarmEnv(cfg, engine=engine) if engine != "mujoco" else QuadSwarmEnv(cfg)
+    env.reset(seed=0)
+    a = hover_like(env.action_space.shape)
+
+    def run(steps: int) -> float:
+        t = time.perf_counter()
+        for _ in range(steps):
+            _, _, _, trunc, _ = env.step(a)
+            if trunc:
+                env.reset()
+        return time.perf_counter() - t
+
+    try:
+        return cfg.num_quads * timed(run, seconds, repeat)
+    finally:
+        env.close()
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="short runs (0.5 s, 1 repeat, hover workload only)")
-    p.add_argument("--rows", default="single,vector,mjx", help="comma list of single, vector, mjx")
+    p.add_argument("--rows", default="single,vector,jax,jaxsingle,jaxvector,peers",
+                   help="comma list of single, vector, jax (mjx is an alias), jaxsingle, jaxvector, peers, obstacles")
     p.add_argument("--single-n", default="1,8,32,128")
     p.add_argument("--vector-b", default="64,256,1024")
-    p.add_argument("--mjx-worlds", default="1,64,512")
     p.add_argument("--mjx-steps", type=int, default=200)
+    p.add_argument("--jax-worlds", default="1,64,512,2048",
+                   help="worlds of the JAX-engine rows (rows 'jax': jitted rollouts, paper defaults and without_noise)")
+    p.add_argument("--jax-vector-b", default="1024", help="worlds of the JAX-engine vector env rows ('jaxvector')")
+    p.add_argument("--peer-worlds", default="1,512,2048", help="worlds of the crazyflow peer rows ('peers')")
+    p.add_argument("--ablations", action="store_true",
+                   help="JAX engine at 512 x 8 with stages switched off/on (where the time goes)")
     p.add_argument("--skip-mjx", action="store_true")
     p.add_argument("--workloads", default=None, help=f"comma list of {WORKLOADS} (default: all; --quick: hover)")
     p.add_argument("--seconds", type=float, default=None, help="length of one timed run (default 2, --quick 0.5)")
@@ -413,8 +610,10 @@ def main(argv: list[str] | None = None) -> int:
         if w not in WORKLOADS:
             p.error(f"unknown workload {w!r}; known: {WORKLOADS}")
     rows = set(args.rows.split(","))
+    if "mjx" in rows:
+        rows.add("jax")
     if args.skip_mjx:
-        rows.discard("mjx")
+        rows -= {"mjx", "jax", "jaxsingle", "jaxvector", "peers", "obstacles"}
     command = "/work/venv/bin/python scripts/benchmark.py " + " ".join(sys.argv[1:] if argv is None else argv)
     started = datetime.datetime.now().astimezone()
     load0 = load()
@@ -437,16 +636,8 @@ def main(argv: list[str] | None = None) -> int:
             r.update(ceiling(8 * B, seconds, repeat))
             print(r, flush=True)
             table.append(r)
-    if "mjx" in rows:
-        for W in (int(x) for x in args.mjx_worlds.split(",")):
-            res = bench_mjx(W, 8, args.mjx_steps if not args.quick else max(20, args.mjx_steps // 4))
-            if res is None:
-                break
-            r = {"label": f"MJX env (jit, CPU), {W} worlds x 8", "bodies": 8 * W, "mjx": res}
-            r["hover"] = res["samples_per_s"]
-            r.update(ceiling(8 * W, seconds, repeat))
-            print(r, flush=True)
-            table.append(r)
+    jax_steps = args.mjx_steps if not args.quick else max(20, args.mjx_steps // 4)
+    jax_table = _jax_rows(rows, args, seconds, repeat, jax_steps)
     prof = run_profile() if args.profile else None
     comp = compare_engines(args.compare, seconds, repeat) if args.compare else None
     load1 = load()
@@ -458,14 +649,14 @@ def main(argv: list[str] | None = None) -> int:
     for r in table:
         vals = [fmt(r.get(w)) for w in workloads]
         label = r["label"]
-        if "mjx" in r:
-            label += f" (compile {r['mjx']['compile_s']:.0f} s)"
         ratio = r.get(workloads[0])
         ratio_s = f"{100 * ratio / r['ceiling']:.0f} %" if ratio else "-"
         lines.append(f"| {label} | " + " | ".join(vals)
                      + f" | {fmt(r['one_core'])} | {fmt(r['rollout'])} | {ratio_s} |")
     tab = "\n".join(lines)
     print("\n" + tab)
+    if jax_table:
+        print("\n" + jax_table)
     vec = [r for r in table if r.get("vector")]
     summary = []
     for r in vec:
@@ -501,6 +692,8 @@ def main(argv: list[str] | None = None) -> int:
     ]
     if summary:
         doc += ["Vector env / ceiling, measured in this run:", ""] + summary + [""]
+    if jax_table:
+        doc += ["## The JAX engine and the peer (same run)", "", jax_table, ""]
     if prof:
         doc += ["## Where the time goes", "", prof, ""]
     if comp:
