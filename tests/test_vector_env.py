@@ -236,11 +236,11 @@ def test_gymnasium_vector_wrappers_and_views():
 
 def test_close_ends_worker_processes():
     env = QuadSwarmVectorEnv(EnvConfig(num_quads=2), num_envs=4, num_shards=2)
-    procs = [w.proc for w in env._workers]
-    assert procs and all(p.poll() is None for p in procs)
+    procs = [w.proc for w in env._res.workers]
+    assert procs and all(p.is_alive() for p in procs)
     env.reset(seed=0)
     env.close()
-    assert all(p.poll() is not None for p in procs)
+    assert all(p.exitcode == 0 for p in procs)  # they exited on their own when their pipes closed
 
 
 @pytest.mark.parametrize("collision_model", ["paper", "mujoco"])
