@@ -139,6 +139,12 @@ def test_exception_in_calling_process_mid_step_needs_reset(reference, shards, mo
         out = rollout(env)  # shard 0 is rebuilt too (the patched engine is gone)
         if shards == 2:
             assert_same(out, reference)
+        else:
+            fresh = QuadSwarmVectorEnv(CFG, num_envs=4, num_shards=1)
+            try:
+                assert_same(out, rollout(fresh))
+            finally:
+                fresh.close()
     finally:
         env.close()
 
