@@ -9,6 +9,13 @@ several worlds share the model). Quad bodies are contiguous, world-major, so the
 hitbox sphere and the room geoms collide, and worlds are placed apart along x so they never touch.
 With obstacles (``EnvConfig.obstacles``) each world also holds a fixed pool of column geoms
 (mocap bodies, :func:`add_obstacle_geoms`), moved onto the map at every reset (:func:`place_obstacles`).
+
+Several worlds in one model (contacts on): the floor is a MuJoCo ``plane``, which is infinite, so
+all worlds share world 0's floor plane (z = 0) and only the finite geoms (the walls and ceiling,
+boxes) are copied per world, ``L + 2`` m apart along x. Every quad therefore touches exactly one
+floor, one set of walls and one ceiling, as in a one-world model, and a multi-world run equals
+single-world runs up to round-off (contact positions carry the world offset). A copy of the floor
+per world would put B planes at z = 0 under every quad (B times the floor contacts).
 """
 
 from __future__ import annotations
@@ -229,9 +236,11 @@ def build_arena(cfg: EnvConfig, num_worlds: int = 1, visual: bool = True) -> Are
         for name in ROOM_GEOMS:
             g = spec.geom(name)
             g.contype, g.conaffinity = 1, 1
-        # Extra worlds get invisible copies of the room's collision geoms.
+        # Extra worlds get invisible copies of the finite room geoms; a plane (the floor) is infinite
+        # and already under every world (see the module doc).
+        finite = [name for name in ROOM_GEOMS if spec.geom(name).type != mujoco.mjtGeom.mjGEOM_PLANE]
         for b in range(1, num_worlds):
-            for name in ROOM_GEOMS:
+            for name in finite:
                 src = spec.geom(name)
                 spec.worldbody.add_geom(name=f"w{b}{name}", type=src.type, size=src.size,
                                         pos=np.asarray(src.pos) + offsets[b], contype=1, conaffinity=1,
