@@ -57,3 +57,14 @@ def check_state(state: Any, num_quads: int, lead: tuple[int, ...] = ()) -> dict[
         if err > 1e-4 or (np.linalg.det(R) < 0).any():
             raise ValueError("options['state']['rot'] must hold proper rotation matrices (orthonormal, det +1)")
     return out
+
+
+ENGINES = ("mujoco", "jax")
+
+
+def check_engine(engine: Any) -> str:
+    """``engine`` if it is one of :data:`ENGINES` ("mujoco": CPU MuJoCo, the reference; "jax": MJX), else
+    ValueError."""
+    if not isinstance(engine, str) or engine not in ENGINES:
+        raise ValueError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
+    return engine

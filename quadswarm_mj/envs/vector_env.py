@@ -31,6 +31,10 @@ Seeding: ``reset(seed=s)`` seeds shard k with ``SeedSequence(s).spawn(num_shards
 draws from its shard's generator (randomization, scenario, spawn, noise), so one seed fixes every
 world. Results depend on (seed, num_envs, num_shards, chunk_worlds); ``num_shards`` defaults to 2
 (1 for fewer than 16 worlds) whatever the machine, so seeded runs are reproducible anywhere.
+
+``engine="jax"`` runs the B worlds instead as one jitted, vmapped MJX step
+(:class:`quadswarm_mj.envs.jax_engine.JaxVectorBackend`, in this process; ``num_shards``, ``backend``
+and ``chunk_worlds`` do not apply), with the same spaces, info, auto-reset and reset options.
 """
 
 from __future__ import annotations
@@ -52,7 +56,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.envs.cpu_core import CpuSwarm
-from quadswarm_mj.envs.validation import check_action, check_state
+from quadswarm_mj.envs.validation import check_action, check_engine, check_state
 from quadswarm_mj.metrics import METRIC_KEYS
 from quadswarm_mj.observations import obs_bounds
 from quadswarm_mj.rewards import TERMS
@@ -314,16 +318,19 @@ class QuadSwarmVectorEnv(VectorEnv):
         backend, chunk_worlds: the shards' physics (``CpuSwarm``): "mjdata" (one MjData per shard,
             used up to ``chunk_worlds`` worlds) or "batch" (``mujoco.batch`` of ``chunk_worlds``-world
             models); "auto" picks.
+        engine: "mujoco" (default: CPU MuJoCo shards as above) or "jax" (MJX, all worlds in one jitted call).
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
     def __init__(self, cfg: EnvConfig | None = None, num_envs: int = 64, *, num_shards: int | None = None,
                  info_keys: tuple[str, ...] | None = None, copy: bool = True, backend: str = "auto",
-                 chunk_worlds: int = 64, **kwargs: Any):
+                 chunk_worlds: int = 64, engine: str = "mujoco", **kwargs: Any):
         from quadswarm_mj.envs.gym_env import make_config
 
         self.cfg = make_config(cfg, kwargs)
+        self.engine = check_engine(engine)
+        self._jax: Any = None
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be an int >= 1, got {num_envs!r}")
         B = self.num_envs = int(num_envs)
@@ -353,6 +360,13 @@ class QuadSwarmVectorEnv(VectorEnv):
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, B)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, B)
         self.render_mode = None
+        if self.engine == "jax":
+            from quadswarm_mj.envs.jax_engine import JaxVectorBackend
+
+            self._jax = JaxVectorBackend(self.cfg, B, info_keys=info_keys, copy=copy)
+            self._workers, self._needs_reset, self._seeded, self.closed = [], True, False, False
+            self._finalizer = weakref.finalize(self, _shutdown, self._workers)
+            return
         # shared arrays
         self._layout = _layout(self.cfg, B)
         bounds = np.linspace(0, B, self.num_shards + 1).round().astype(int)
@@ -472,6 +486,13 @@ class QuadSwarmVectorEnv(VectorEnv):
         if seed is not None and not isinstance(seed, (int, np.integer)):
             raise ValueError(f"seed must be an int or None (one seed seeds every world), got {seed!r}")
         super().reset(seed=None if seed is None else int(seed))
+        if self._jax is not None:
+            if seed is not None or not self._seeded:
+                self._jax.seed(int(seed) if seed is not None else int(self.np_random.integers(2**63 - 1)))
+                self._seeded = True
+            obs, info = self._jax.reset(mask, state)
+            self._needs_reset = False
+            return obs, info
         if seed is not None or not self._seeded:
             ss = np.random.SeedSequence(None if seed is None else int(seed)).spawn(self.num_shards)
             self._all(lambda k: ("seed", ss[k]))
@@ -493,6 +514,8 @@ class QuadSwarmVectorEnv(VectorEnv):
         if self._needs_reset:
             raise RuntimeError("call reset() before step()")
         a = check_action(actions, self.action_space.shape)
+        if self._jax is not None:
+            return self._jax.step(a)
         self._a["actions"][...] = a
         for w in self._workers:
             os.write(w.wfd, b"s")
@@ -513,6 +536,8 @@ class QuadSwarmVectorEnv(VectorEnv):
 
     def episode_metrics(self) -> dict[str, np.ndarray]:
         """Episode metrics (B,) of the running episodes so far."""
+        if self._jax is not None:
+            return self._jax.episode_metrics()
         parts = self._all(lambda k: ("episode_metrics",))
         return {k: np.concatenate([p[k] for p in parts]) for k in METRIC_KEYS}
 
