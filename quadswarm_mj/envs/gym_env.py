@@ -117,9 +117,9 @@ class QuadSwarmEnv(gym.Env):
             raise RuntimeError("call reset() before step() (and after an episode ends)")
         a = check_action(action, self.action_space.shape)
         if self._jax is not None:
-            obs, rewards, truncated, info = self._jax.step(a.reshape(self.cfg.num_quads, 4))
+            obs, reward, truncated, info = self._jax.step(a.reshape(self.cfg.num_quads, 4))
             self._needs_reset = truncated
-            return (obs[0] if self.single else obs), float(np.mean(rewards)), False, truncated, info
+            return (obs[0] if self.single else obs), reward, False, truncated, info
         out = self.core.step(a.reshape(1, self.cfg.num_quads, 4))
         truncated = bool(out["truncated"][0])
         info = self._info()

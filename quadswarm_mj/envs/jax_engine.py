@@ -107,12 +107,12 @@ class StatePacker:
 def _outputs(s: State, new_collisions: jax.Array, extra: dict[str, jax.Array]) -> dict[str, jax.Array]:
     """Everything the host reads after a reset or step of one world (unbatched)."""
     info = s.info
-    out = {"obs": s.obs, "rewards": s.reward}
-    out.update({f"terms/{k}": s.metrics[f"reward/{k}"] for k in TERMS})
+    out = {"obs": s.obs, "reward": jnp.mean(s.reward), "rewards": s.reward,
+           "terms": jnp.stack([s.metrics[f"reward/{k}"] for k in TERMS])}
     out.update({f"state/{k}": info["state"][k] for k in STATE_KEYS})
     out.update({"goals": info["goals"], "goal_vel": info["goal_vel"]})
     out.update({f"params/{k}": v for k, v in info["params"].items()})
-    out.update({f"metrics/{k}": info["episode_metrics"][k] for k in METRIC_KEYS})
+    out["metrics"] = jnp.stack([jnp.asarray(info["episode_metrics"][k], s.reward.dtype) for k in METRIC_KEYS])
     out.update({"time": info["time"], "on_floor": info["on_floor"], "new_collisions": new_collisions,
                 "done": s.done})
     out.update(extra)
@@ -132,13 +132,17 @@ class OutputLayout:
             self.slices[k] = slice(off, off + n)
             off += n
         self.size = off
+        self.items = [(k, self.slices[k], self.shapes[k]) for k in self.names]
+        self.params = tuple(k for k in self.names if k.startswith("params/"))
 
     def pack(self, out: dict[str, jax.Array], dtype: Any) -> jax.Array:
         return jnp.concatenate([jnp.ravel(out[k]).astype(dtype) for k in self.names])
 
     def split(self, flat: np.ndarray, lead: tuple[int, ...] = ()) -> dict[str, np.ndarray]:
         """NumPy views (*lead, *shape) of a packed (*lead, size) array."""
-        return {k: flat[..., self.slices[k]].reshape(lead + self.shapes[k]) for k in self.names}
+        if not lead:
+            return {k: flat[sl].reshape(shape) for k, sl, shape in self.items}
+        return {k: flat[..., sl].reshape(lead + shape) for k, sl, shape in self.items}
 
 
 def _init_variant(state: dict[str, Any] | None) -> tuple[tuple[str, ...], str | None]:
@@ -276,6 +280,7 @@ class JaxSingleBackend:
         self._keys: KeyStream | None = None
         self._bufs: tuple | None = None
         self._last: dict[str, np.ndarray] | None = None
+        self._params: dict[str, np.ndarray] = {}
         self._renderer: Any = None
 
     @property
@@ -285,9 +290,10 @@ class JaxSingleBackend:
     def seed(self, seed: int) -> None:
         self._keys = KeyStream(seed)
 
-    def _info(self, v: dict[str, np.ndarray]) -> dict[str, Any]:
-        return {"state": {k: v[f"state/{k}"] for k in STATE_KEYS}, "goals": v["goals"], "goal_vel": v["goal_vel"],
-                "params": {k[len("params/"):]: v[k] for k in v if k.startswith("params/")},
+    def _info(self, v: dict[str, np.ndarray], params: dict[str, np.ndarray]) -> dict[str, Any]:
+        return {"state": {"pos": v["state/pos"], "vel": v["state/vel"], "rot": v["state/rot"],
+                          "omega": v["state/omega"], "thrust": v["state/thrust"]},
+                "goals": v["goals"], "goal_vel": v["goal_vel"], "params": params,
                 "on_floor": v["on_floor"] > 0.5, "time": float(v["time"])}
 
     def _split(self, out: jax.Array) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -305,19 +311,22 @@ class JaxSingleBackend:
         obs, v = self._split(out)
         if self._renderer is not None:
             self._renderer.reset()
-        return obs, self._info(v)
+        # dynamics parameters are fixed for the episode: split once here, fresh copies per step
+        self._params = {k[len("params/"):]: v[k] for k in self.prog.layout.params}
+        return obs, self._info(v, self._params)
 
-    def step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool, dict[str, Any]]:
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict[str, Any]]:
+        """One control step; returns (obs, team reward (mean over quads), truncated, info)."""
         self._bufs, out = self.prog.step(self._bufs, action.astype(self.prog.float))
         obs, v = self._split(out)
-        info = self._info(v)
+        info = self._info(v, {k: x.copy() for k, x in self._params.items()})
         info["rewards"] = v["rewards"]
-        info["reward_terms"] = {k: v[f"terms/{k}"] for k in TERMS}
+        info["reward_terms"] = dict(zip(TERMS, v["terms"]))
         info["new_collisions"] = v["new_collisions"] > 0.5
         truncated = bool(v["done"] > 0.5)
         if truncated:
-            info["episode_metrics"] = {k: float(v[f"metrics/{k}"]) for k in METRIC_KEYS}
-        return obs, v["rewards"], truncated, info
+            info["episode_metrics"] = dict(zip(METRIC_KEYS, v["metrics"].tolist()))
+        return obs, float(v["reward"]), truncated, info
 
     def render(self) -> np.ndarray:
         """An RGB frame of the current state: the state's ``qpos`` copied into the renderer's
@@ -369,14 +378,14 @@ class JaxVectorBackend:
         if step and "rewards" in keys:
             out["rewards"] = v["rewards"]
         if step and "reward_terms" in keys:
-            out["reward_terms"] = {k: v[f"terms/{k}"] for k in TERMS}
+            out["reward_terms"] = {k: v["terms"][:, i] for i, k in enumerate(TERMS)}
         if "state" in keys:
             out["state"] = {k: v[f"state/{k}"] for k in STATE_KEYS}
         for k in ("goals", "goal_vel"):
             if k in keys:
                 out[k] = v[k]
         if "params" in keys:
-            out["params"] = {k[len("params/"):]: v[k] for k in v if k.startswith("params/")}
+            out["params"] = {k[len("params/"):]: v[k] for k in self.prog.layout.params}
         if "on_floor" in keys:
             out["on_floor"] = v["on_floor"] > 0.5
         if step and "new_collisions" in keys:
@@ -405,18 +414,17 @@ class JaxVectorBackend:
         info = self._info(v, step=True)
         done = v["done"] > 0.5
         if done.any():
-            info["episode_metrics"] = {k: np.where(done, v[f"metrics/{k}"], np.nan) for k in METRIC_KEYS}
+            info["episode_metrics"] = {k: np.where(done, v["metrics"][:, i], np.nan) for i, k in enumerate(METRIC_KEYS)}
             info["_episode_metrics"] = done.copy()
             info["final_obs"] = v["final_obs32"]
             info["_final_obs"] = done.copy()
-        reward = v["rewards"].mean(axis=-1)
-        return v["obs32"], reward, np.zeros(self.B, dtype=np.bool_), done, info
+        return v["obs32"], v["rewards"].mean(axis=-1), np.zeros(self.B, dtype=np.bool_), done, info
 
     def episode_metrics(self) -> dict[str, np.ndarray]:
         """Episode metrics (B,) of the running episodes so far (as of the last reset or step)."""
         if self._v is None:
             raise RuntimeError("call reset() first")
-        return {k: self._v[f"metrics/{k}"].copy() for k in METRIC_KEYS}
+        return {k: self._v["metrics"][:, i].copy() for i, k in enumerate(METRIC_KEYS)}
 
     def close(self) -> None:
         self._bufs = None

@@ -11,6 +11,10 @@ import numpy as np
 def check_action(action: Any, expected_shape: tuple[int, ...]) -> np.ndarray:
     """Return ``action`` as float64 of ``expected_shape``; raise ValueError on a wrong shape,
     NaN or inf. Out-of-range values are clipped later, as in the paper."""
+    if type(action) is np.ndarray and action.shape == tuple(expected_shape) and action.dtype.kind == "f":
+        a = action.astype(np.float64, copy=False)
+        if np.isfinite(np.add.reduce(a, axis=None)):  # fast path: a NaN or inf makes the sum non-finite
+            return a
     try:
         a = np.asarray(action, dtype=np.float64)
     except (TypeError, ValueError) as e:
