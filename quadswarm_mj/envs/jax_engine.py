@@ -7,9 +7,10 @@ spaces, ``info`` keys, seeding and auto-reset contracts. Only the MJX env's publ
 ``MjxQuadSwarmEnv(cfg)``, ``reset(key, init_state)``, ``step(state, action)``, the ``State`` fields
 and the ``info`` keys of its docstring.
 
-Speed: a step is ONE jitted call with the state donated. The state pytree (``mjx.Data`` has many
-leaves) is kept between calls as a few flat buffers, one per dtype (PRNG keys as their key data),
-so a call passes a handful of arrays instead of hundreds of leaves; everything the host needs
+Speed: a step is ONE jitted call with the state donated. For one world the state pytree (``mjx.Data``
+has many leaves) is kept between calls as a few flat buffers, one per dtype (PRNG keys as their key
+data), so a call passes a handful of arrays instead of ~150 leaves (B worlds pass the pytree: there
+the per-leaf cost is amortized and the concatenation would cost a copy); everything the host needs
 (observations, rewards, reward terms, state, goals, parameters, episode metrics, flags) is packed
 inside the jit into one flat float array per world and split on the host with NumPy views. Compiled
 programs are cached per (config, number of worlds), so envs of the same config share compiles.
@@ -103,6 +104,24 @@ class StatePacker:
         return jax.tree.unflatten(self.treedef, leaves)
 
 
+class PytreePacker:
+    """The state pytree itself as the carried buffers (for many worlds the per-leaf dispatch cost is
+    negligible and skipping the concatenation saves a copy); leaves cast to the reset's dtypes so
+    the jitted step sees one signature."""
+
+    def __init__(self, struct: Any):
+        self.struct = struct
+
+    def pack(self, state: Any) -> Any:
+        def cast(x: jax.Array, sd: Any) -> jax.Array:
+            return x if jax.dtypes.issubdtype(sd.dtype, jax.dtypes.prng_key) else x.astype(sd.dtype)
+
+        return jax.tree.map(cast, state, self.struct)
+
+    def unpack(self, bufs: Any) -> Any:
+        return bufs
+
+
 # ------------------------------------------------------------------------------- output packing
 def _outputs(s: State, new_collisions: jax.Array, extra: dict[str, jax.Array]) -> dict[str, jax.Array]:
     """Everything the host reads after a reset or step of one world (unbatched)."""
@@ -169,7 +188,7 @@ def _select(pred: jax.Array, a: Any, b: Any) -> Any:
 class _Program:
     """Jitted reset/step of B worlds (``batch=None``: one unbatched world) of one config."""
 
-    def __init__(self, cfg: EnvConfig, batch: int | None):
+    def __init__(self, cfg: EnvConfig, batch: int | None, pack_state: bool | None = None):
         self.cfg, self.batch = cfg, batch
         self.env = MjxQuadSwarmEnv(cfg)
         self.lead = () if batch is None else (batch,)
@@ -180,7 +199,10 @@ class _Program:
             struct = one
         else:
             struct = jax.eval_shape(jax.vmap(self.env.reset), jax.random.split(key0, batch))
-        self.packer = StatePacker(struct, self.lead)
+        # one world: flat buffers (measured ~4x faster than passing the ~150-leaf pytree); many worlds:
+        # the pytree (the concatenation copy costs more than the per-leaf dispatch, noisy measurement)
+        pack_state = batch is None if pack_state is None else pack_state
+        self.packer: Any = StatePacker(struct, self.lead) if pack_state else PytreePacker(struct)
         self.layout = OutputLayout(jax.eval_shape(lambda s: self._outs(s, s, s.obs), one))
         self._step = jax.jit(self._step_impl, donate_argnums=0)
         self._resets: dict[Any, Any] = {}
@@ -257,8 +279,8 @@ class _Program:
 
 
 @functools.lru_cache(maxsize=8)
-def _program(cfg: EnvConfig, batch: int | None) -> _Program:
-    return _Program(cfg, batch)
+def _program(cfg: EnvConfig, batch: int | None, pack_state: bool | None = None) -> _Program:
+    return _Program(cfg, batch, pack_state)
 
 
 def _init_arrays(state: dict[str, Any] | None, dtype: Any) -> dict[str, np.ndarray]:
