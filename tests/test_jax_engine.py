@@ -26,7 +26,7 @@ pytestmark = pytest.mark.slow
 
 N = 8
 T = 150
-PARITY_TOL = 2e-3  # m, as tests/test_mjx_env.py (float32 MJX vs float64 MuJoCo, 150 steps)
+PARITY_TOL = 1e-3  # m, float32 MJX vs float64 MuJoCo over 150 steps (measured: 3e-5 m)
 # noise-free, episodes of 160 steps: 150 parity steps, then the time limit (auto-reset)
 CFG = EnvConfig(num_quads=N, episode_seconds=1.6).without_noise()
 NOISY = EnvConfig(num_quads=3, episode_seconds=0.3)  # paper defaults (all noise on), short episodes
