@@ -4,6 +4,10 @@ Spaces: observation (N, obs_dim) float32 and action (N, 4) in [-1, 1]; flattened
 and (4,) when N = 1. ``step`` returns the team reward (mean over quads, a float) so any
 single-agent library works; per-quad rewards are in ``info["rewards"]``. Episodes end by
 truncation after ``episode_seconds`` (1500 control steps by default), never by termination.
+
+``engine="mujoco"`` (default, the reference) steps CPU MuJoCo; ``engine="jax"`` runs the same model
+on MJX through :class:`quadswarm_mj.envs.jax_engine.JaxSingleBackend` (same spaces, info keys,
+validation and seeding contract; float32, its own random streams).
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ from gymnasium import spaces
 
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.envs.cpu_core import CpuSwarm
-from quadswarm_mj.envs.validation import check_action, check_state
+from quadswarm_mj.envs.validation import check_action, check_engine, check_state
 from quadswarm_mj.observations import obs_bounds
 
 
@@ -35,13 +39,21 @@ class QuadSwarmEnv(gym.Env):
     #: ``render_fps`` is set per instance to the control rate (``cfg.control_hz``): one frame per step.
     metadata = {"render_modes": ["rgb_array"], "render_fps": 100}
 
-    def __init__(self, cfg: EnvConfig | None = None, render_mode: str | None = None, **kwargs: Any):
+    def __init__(self, cfg: EnvConfig | None = None, render_mode: str | None = None, engine: str = "mujoco",
+                 **kwargs: Any):
         self.cfg = make_config(cfg, kwargs)
+        self.engine = check_engine(engine)
         self.metadata = {**self.metadata, "render_fps": self.cfg.control_hz}
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         self.render_mode = render_mode
-        self.core = CpuSwarm(self.cfg, num_worlds=1)
+        self._jax: Any = None
+        if self.engine == "jax":
+            from quadswarm_mj.envs.jax_engine import JaxSingleBackend
+
+            self._jax = JaxSingleBackend(self.cfg)
+        else:
+            self.core = CpuSwarm(self.cfg, num_worlds=1)
         n, d = self.cfg.num_quads, self.cfg.obs_dim
         low, high = obs_bounds(self.cfg)
         if self.cfg.normalize_obs:
@@ -85,6 +97,12 @@ class QuadSwarmEnv(gym.Env):
             if options.get("state") is not None:
                 state = check_state(options["state"], self.cfg.num_quads, room=(self.cfg.room_low, self.cfg.room_high))
         super().reset(seed=seed)
+        if self._jax is not None:
+            if seed is not None or not self._jax.seeded:
+                self._jax.seed(seed if seed is not None else int(self.np_random.integers(2**63 - 1)))
+            obs, info = self._jax.reset(state)
+            self._needs_reset = False
+            return (obs[0] if self.single else obs), info
         if seed is not None:
             self.core.seed(seed)
         elif not self._seeded:
@@ -100,6 +118,10 @@ class QuadSwarmEnv(gym.Env):
         if self._needs_reset:
             raise RuntimeError("call reset() before step() (and after an episode ends)")
         a = check_action(action, self.action_space.shape)
+        if self._jax is not None:
+            obs, reward, truncated, info = self._jax.step(a.reshape(self.cfg.num_quads, 4))
+            self._needs_reset = truncated
+            return (obs[0] if self.single else obs), reward, False, truncated, info
         out = self.core.step(a.reshape(1, self.cfg.num_quads, 4))
         truncated = bool(out["truncated"][0])
         info = self._info()
@@ -116,6 +138,8 @@ class QuadSwarmEnv(gym.Env):
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
             return None
+        if self._jax is not None:
+            return self._jax.render()
         from quadswarm_mj.render import SwarmRenderer
 
         if self._renderer is None:
@@ -123,6 +147,8 @@ class QuadSwarmEnv(gym.Env):
         return self._renderer.render()
 
     def close(self) -> None:
+        if self._jax is not None:
+            self._jax.close()
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None

@@ -3,7 +3,8 @@
 Agents ``quad_0`` ... ``quad_{N-1}``; each has its own observation (obs_dim,), action (4,) in
 [-1, 1] and reward (its per-quad reward). ``state()`` is the global state: for every quad
 [p (3), v (3), R row-major (9), omega (3), goal (3)] concatenated, (21 N,). All agents are
-truncated together at the time limit; there is no termination. Built on ``QuadSwarmEnv``.
+truncated together at the time limit; there is no termination. Built on ``QuadSwarmEnv``
+(``engine="mujoco"`` or ``"jax"``, passed through).
 """
 
 from __future__ import annotations
@@ -25,10 +26,11 @@ class QuadSwarmParallelEnv(ParallelEnv):
 
     metadata = {"render_modes": ["rgb_array"], "name": "quadswarm_v0", "render_fps": 100, "is_parallelizable": True}
 
-    def __init__(self, cfg: EnvConfig | None = None, render_mode: str | None = None, **kwargs: Any):
+    def __init__(self, cfg: EnvConfig | None = None, render_mode: str | None = None, engine: str = "mujoco",
+                 **kwargs: Any):
         self.cfg = make_config(cfg, kwargs)
         self.metadata = {**self.metadata, "render_fps": self.cfg.control_hz}  # one frame per control step
-        self.env = QuadSwarmEnv(self.cfg, render_mode=render_mode)
+        self.env = QuadSwarmEnv(self.cfg, render_mode=render_mode, engine=engine)
         self.render_mode = render_mode
         n = self.cfg.num_quads
         self.possible_agents = [f"quad_{i}" for i in range(n)]

@@ -11,6 +11,10 @@ import numpy as np
 def check_action(action: Any, expected_shape: tuple[int, ...]) -> np.ndarray:
     """Return ``action`` as float64 of ``expected_shape``; raise ValueError on a wrong shape,
     NaN or inf. Out-of-range values are clipped later, as in the paper."""
+    if type(action) is np.ndarray and action.shape == tuple(expected_shape) and action.dtype.kind == "f":
+        a = action.astype(np.float64, copy=False)
+        if np.isfinite(np.add.reduce(a, axis=None)):  # fast path: a NaN or inf makes the sum non-finite
+            return a
     try:
         a = np.asarray(action, dtype=np.float64)
     except (TypeError, ValueError) as e:
@@ -71,3 +75,14 @@ def check_state(state: Any, num_quads: int, lead: tuple[int, ...] = (),
         if err > 1e-4 or (np.linalg.det(R) < 0).any():
             raise ValueError("options['state']['rot'] must hold proper rotation matrices (orthonormal, det +1)")
     return out
+
+
+ENGINES = ("mujoco", "jax")
+
+
+def check_engine(engine: Any) -> str:
+    """``engine`` if it is one of :data:`ENGINES` ("mujoco": CPU MuJoCo, the reference; "jax": MJX), else
+    ValueError."""
+    if not isinstance(engine, str) or engine not in ENGINES:
+        raise ValueError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
+    return engine

@@ -61,6 +61,10 @@ Seeding: ``reset(seed=s)`` seeds shard k with ``SeedSequence(s).spawn(num_shards
 draws from its shard's generator (randomization, scenario, spawn, noise), so one seed fixes every
 world. Results depend on (seed, num_envs, num_shards, chunk_worlds); ``num_shards`` defaults to 2
 (1 for fewer than 16 worlds) whatever the machine, so seeded runs are reproducible anywhere.
+
+``engine="jax"`` runs the B worlds instead as one jitted, vmapped MJX step
+(:class:`quadswarm_mj.envs.jax_engine.JaxVectorBackend`, in this process; ``num_shards``, ``backend``
+and ``chunk_worlds`` do not apply), with the same spaces, info, auto-reset and reset options.
 """
 
 from __future__ import annotations
@@ -86,7 +90,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.envs.cpu_core import CpuSwarm
-from quadswarm_mj.envs.validation import check_action, check_state
+from quadswarm_mj.envs.validation import check_action, check_engine, check_state
 from quadswarm_mj.metrics import METRIC_KEYS
 from quadswarm_mj.observations import obs_bounds
 from quadswarm_mj.rewards import TERMS
@@ -449,6 +453,7 @@ class QuadSwarmVectorEnv(VectorEnv):
         backend, chunk_worlds: the shards' physics (``CpuSwarm``): "mjdata" (one MjData per shard,
             used up to ``chunk_worlds`` worlds) or "batch" (``mujoco.batch`` of ``chunk_worlds``-world
             models); "auto" picks.
+        engine: "mujoco" (default: CPU MuJoCo shards as above) or "jax" (MJX, all worlds in one jitted call).
 
     Workers are spawned processes that never import the user's script (no ``__main__`` guard
     needed). A failed worker raises :class:`WorkerError`; the env then needs ``reset()``.
@@ -458,10 +463,12 @@ class QuadSwarmVectorEnv(VectorEnv):
 
     def __init__(self, cfg: EnvConfig | None = None, num_envs: int = 64, *, num_shards: int | None = None,
                  info_keys: tuple[str, ...] | None = None, copy: bool = True, backend: str = "auto",
-                 chunk_worlds: int = 64, **kwargs: Any):
+                 chunk_worlds: int = 64, engine: str = "mujoco", **kwargs: Any):
         from quadswarm_mj.envs.gym_env import make_config
 
         self.cfg = make_config(cfg, kwargs)
+        self.engine = check_engine(engine)
+        self._jax: Any = None
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be an int >= 1, got {num_envs!r}")
         B = self.num_envs = int(num_envs)
@@ -492,6 +499,15 @@ class QuadSwarmVectorEnv(VectorEnv):
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, B)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, B)
         self.render_mode = None
+        if self.engine == "jax":
+            from quadswarm_mj.envs.jax_engine import JaxVectorBackend
+
+            self._jax = JaxVectorBackend(self.cfg, B, info_keys=info_keys, copy=copy)
+            self._failure = None
+            self._needs_reset, self._seeded, self.closed = True, False, False
+            self._res = _Resources()
+            self._finalizer = weakref.finalize(self, self._res.release)
+            return
         # shards: worlds [lo, hi) each; shard 0 here, the others in workers
         self._layout = _layout(self.cfg, B)
         bounds = np.linspace(0, B, self.num_shards + 1).round().astype(int)
@@ -628,7 +644,7 @@ class QuadSwarmVectorEnv(VectorEnv):
             if unknown:
                 raise ValueError(f"unknown reset options {sorted(unknown)}; allowed: ['reset_mask', 'state']")
             if options.get("state") is not None:
-                state = check_state(options["state"], N, lead=(B,))
+                state = check_state(options["state"], N, lead=(B,), room=(self.cfg.room_low, self.cfg.room_high))
             if options.get("reset_mask") is not None:
                 mask = np.asarray(options["reset_mask"])
                 if mask.shape != (B,) or mask.dtype != np.bool_:
@@ -639,10 +655,17 @@ class QuadSwarmVectorEnv(VectorEnv):
                                      "(no reset_mask, or all True)")
         if seed is not None and not isinstance(seed, (int, np.integer)):
             raise ValueError(f"seed must be an int or None (one seed seeds every world), got {seed!r}")
-        if self._failure is not None:  # rebuild the workers and shard 0 from scratch
+        if self._failure is not None and self._jax is None:  # rebuild the workers and shard 0
             self._res.release()
             self._build()
         super().reset(seed=None if seed is None else int(seed))
+        if self._jax is not None:
+            if seed is not None or not self._seeded:
+                self._jax.seed(int(seed) if seed is not None else int(self.np_random.integers(2**63 - 1)))
+                self._seeded = True
+            obs, info = self._jax.reset(mask, state)
+            self._needs_reset = False
+            return obs, info
         if seed is not None or not self._seeded:
             ss = np.random.SeedSequence(None if seed is None else int(seed)).spawn(self.num_shards)
             self._run("seed", lambda k: ("seed", ss[k]))
@@ -664,6 +687,8 @@ class QuadSwarmVectorEnv(VectorEnv):
         if self._needs_reset:
             raise RuntimeError("call reset() before step()")
         a = check_action(actions, self.action_space.shape)
+        if self._jax is not None:
+            return self._jax.step(a)
         self._a["actions"][...] = a
         self._run("step", lambda k: STEP)
         A = self._a
@@ -680,6 +705,8 @@ class QuadSwarmVectorEnv(VectorEnv):
     def episode_metrics(self) -> dict[str, np.ndarray]:
         """Episode metrics (B,) of the running episodes so far."""
         self._check_usable()
+        if self._jax is not None:
+            return self._jax.episode_metrics()
         parts = self._run("episode_metrics", lambda k: ("episode_metrics",))
         return {k: np.concatenate([p[k] for p in parts]) for k in METRIC_KEYS}
 

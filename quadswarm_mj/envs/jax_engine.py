@@ -1,0 +1,452 @@
+"""The JAX engine behind the NumPy front ends (``engine="jax"`` of ``QuadSwarmEnv``,
+``QuadSwarmParallelEnv`` and ``QuadSwarmVectorEnv``).
+
+:class:`JaxSingleBackend` runs one world, :class:`JaxVectorBackend` B worlds, of
+:class:`~quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv`, with NumPy in and out and the MuJoCo engine's
+spaces, ``info`` keys, seeding and auto-reset contracts. Only the MJX env's public API is used:
+``MjxQuadSwarmEnv(cfg)``, ``reset(key, init_state)``, ``step(state, action)``, the ``State`` fields
+and the ``info`` keys of its docstring.
+
+Speed: a step is ONE jitted call with the state donated. For one world the state pytree (``mjx.Data``
+has many leaves) is kept between calls as a few flat buffers, one per dtype (PRNG keys as their key
+data), so a call passes a handful of arrays instead of ~150 leaves (B worlds pass the pytree: there
+the per-leaf cost is amortized and the concatenation would cost a copy); everything the host needs
+(observations, rewards, reward terms, state, goals, parameters, episode metrics, flags) is packed
+inside the jit into one flat float array per world and split on the host with NumPy views. Compiled
+programs are cached per (config, number of worlds), so envs of the same config share compiles.
+
+Seeding: ``reset(seed=s)`` derives the JAX keys from ``np.random.SeedSequence(s)`` (any int), so
+seeded runs are bit-identical; later unseeded resets continue that stream. Random streams differ
+from the MuJoCo engine's; noise-free runs agree within the MJX parity tolerance (float32).
+"""
+
+from __future__ import annotations
+
+import functools
+import types
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.envs.mjx_env import MjxQuadSwarmEnv, State
+from quadswarm_mj.metrics import METRIC_KEYS
+from quadswarm_mj.rewards import TERMS
+
+STATE_KEYS = ("pos", "vel", "rot", "omega", "thrust")
+VECTOR_INFO_KEYS = ("rewards", "reward_terms", "state", "goals", "goal_vel", "params", "on_floor",
+                    "new_collisions", "time")
+
+
+def _key_shape() -> tuple[int, ...]:
+    return tuple(jax.random.key_data(jax.random.key(0)).shape)
+
+
+def _wrap_keys(data: jax.Array) -> jax.Array:
+    return jax.random.wrap_key_data(data)
+
+
+class KeyStream:
+    """Host-side stream of JAX key data from a seed (``np.random.SeedSequence``, any int)."""
+
+    def __init__(self, seed: int):
+        self.rng = np.random.default_rng(np.random.SeedSequence(int(seed)))
+        self.shape = _key_shape()
+
+    def draw(self, lead: tuple[int, ...] = ()) -> np.ndarray:
+        """Key data (*lead, *key_shape) uint32."""
+        return self.rng.integers(0, 2**32, size=tuple(lead) + self.shape, dtype=np.uint32)
+
+
+# ------------------------------------------------------------------------------- state packing
+class StatePacker:
+    """Flatten a state pytree with leading axes ``lead`` into one buffer per dtype and back
+    (under jit: the slices and the concatenation are cheap XLA ops; the host sees few arrays)."""
+
+    def __init__(self, struct: Any, lead: tuple[int, ...]):
+        leaves, self.treedef = jax.tree.flatten(struct)
+        self.lead = tuple(lead)
+        self.entries: list[tuple[str, int, int, tuple[int, ...], Any, bool]] = []  # group, start, size, shape, dtype
+        sizes: dict[str, int] = {}
+        self.group_dtype: dict[str, Any] = {}
+        for leaf in leaves:
+            is_key = jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key)
+            shape = tuple(leaf.shape[len(self.lead):])
+            if is_key:
+                dt = np.dtype(np.uint32)
+                shape = shape + _key_shape()
+            else:
+                dt = np.dtype(leaf.dtype)
+            g = dt.name
+            size = int(np.prod(shape))
+            self.group_dtype[g] = dt
+            self.entries.append((g, sizes.get(g, 0), size, shape, dt, is_key))
+            sizes[g] = sizes.get(g, 0) + size
+        self.groups = tuple(sorted(sizes))
+        self.sizes = sizes
+
+    def pack(self, state: Any) -> tuple[jax.Array, ...]:
+        leaves = jax.tree.leaves(state)
+        parts: dict[str, list[jax.Array]] = {g: [] for g in self.groups}
+        for leaf, (g, _, _, _, dt, is_key) in zip(leaves, self.entries):
+            x = jax.random.key_data(leaf) if is_key else leaf
+            parts[g].append(jnp.reshape(x, self.lead + (-1,)).astype(dt))
+        return tuple(jnp.concatenate(parts[g], axis=-1) for g in self.groups)
+
+    def unpack(self, bufs: tuple[jax.Array, ...]) -> Any:
+        by_group = dict(zip(self.groups, bufs))
+        leaves = []
+        for g, start, size, shape, _, is_key in self.entries:
+            x = by_group[g][..., start:start + size].reshape(self.lead + shape)
+            leaves.append(_wrap_keys(x) if is_key else x)
+        return jax.tree.unflatten(self.treedef, leaves)
+
+
+class PytreePacker:
+    """The state pytree itself as the carried buffers (for many worlds the per-leaf dispatch cost is
+    negligible and skipping the concatenation saves a copy); leaves cast to the reset's dtypes so
+    the jitted step sees one signature."""
+
+    def __init__(self, struct: Any):
+        self.struct = struct
+
+    def pack(self, state: Any) -> Any:
+        def cast(x: jax.Array, sd: Any) -> jax.Array:
+            return x if jax.dtypes.issubdtype(sd.dtype, jax.dtypes.prng_key) else x.astype(sd.dtype)
+
+        return jax.tree.map(cast, state, self.struct)
+
+    def unpack(self, bufs: Any) -> Any:
+        return bufs
+
+
+# ------------------------------------------------------------------------------- output packing
+def _outputs(s: State, new_collisions: jax.Array, extra: dict[str, jax.Array]) -> dict[str, jax.Array]:
+    """Everything the host reads after a reset or step of one world (unbatched)."""
+    info = s.info
+    out = {"obs": s.obs, "reward": jnp.mean(s.reward), "rewards": s.reward,
+           "terms": jnp.stack([s.metrics[f"reward/{k}"] for k in TERMS])}
+    out.update({f"state/{k}": info["state"][k] for k in STATE_KEYS})
+    out.update({"goals": info["goals"], "goal_vel": info["goal_vel"]})
+    out.update({f"params/{k}": v for k, v in info["params"].items()})
+    out["metrics"] = jnp.stack([jnp.asarray(info["episode_metrics"][k], s.reward.dtype) for k in METRIC_KEYS])
+    out.update({"time": info["time"], "on_floor": info["on_floor"], "new_collisions": new_collisions,
+                "done": s.done})
+    out.update(extra)
+    return out
+
+
+class OutputLayout:
+    """Names, shapes and offsets of the packed per-world output (one float array)."""
+
+    def __init__(self, struct: dict[str, Any]):
+        self.names = tuple(struct)
+        self.shapes = {k: tuple(v.shape) for k, v in struct.items()}
+        self.slices: dict[str, slice] = {}
+        off = 0
+        for k in self.names:
+            n = int(np.prod(self.shapes[k]))
+            self.slices[k] = slice(off, off + n)
+            off += n
+        self.size = off
+        self.items = [(k, self.slices[k], self.shapes[k]) for k in self.names]
+        self.params = tuple(k for k in self.names if k.startswith("params/"))
+
+    def pack(self, out: dict[str, jax.Array], dtype: Any) -> jax.Array:
+        return jnp.concatenate([jnp.ravel(out[k]).astype(dtype) for k in self.names])
+
+    def split(self, flat: np.ndarray, lead: tuple[int, ...] = ()) -> dict[str, np.ndarray]:
+        """NumPy views (*lead, *shape) of a packed (*lead, size) array."""
+        if not lead:
+            return {k: flat[sl].reshape(shape) for k, sl, shape in self.items}
+        return {k: flat[..., sl].reshape(lead + shape) for k, sl, shape in self.items}
+
+
+def _init_variant(state: dict[str, Any] | None) -> tuple[tuple[str, ...], str | None]:
+    """Static part of a reset: the array keys given and the motors string (or None)."""
+    if state is None:
+        return (), None
+    motors = state.get("motors")
+    keys = tuple(sorted(k for k, v in state.items() if v is not None and not isinstance(v, str)))
+    return keys, motors if isinstance(motors, str) else None
+
+
+def _select(pred: jax.Array, a: Any, b: Any) -> Any:
+    """``where(pred, a, b)`` broadcast from the leading axis, also for typed PRNG keys."""
+    def one(x: jax.Array, y: jax.Array) -> jax.Array:
+        if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
+            return _wrap_keys(one(jax.random.key_data(x), jax.random.key_data(y)))
+        p = jnp.reshape(pred, pred.shape + (1,) * (x.ndim - pred.ndim))
+        return jnp.where(p, x, y)
+
+    return jax.tree.map(one, a, b)
+
+
+# ------------------------------------------------------------------------------- programs
+class _Program:
+    """Jitted reset/step of B worlds (``batch=None``: one unbatched world) of one config."""
+
+    def __init__(self, cfg: EnvConfig, batch: int | None, pack_state: bool | None = None):
+        self.cfg, self.batch = cfg, batch
+        self.env = MjxQuadSwarmEnv(cfg)
+        self.lead = () if batch is None else (batch,)
+        key0 = jax.random.key(0)
+        one = jax.eval_shape(self.env.reset, key0)
+        self.float = one.obs.dtype
+        if batch is None:
+            struct = one
+        else:
+            struct = jax.eval_shape(jax.vmap(self.env.reset), jax.random.split(key0, batch))
+        # one world: flat buffers (measured ~4x faster than passing the ~150-leaf pytree); many worlds:
+        # the pytree (the concatenation copy costs more than the per-leaf dispatch, noisy measurement)
+        pack_state = batch is None if pack_state is None else pack_state
+        self.packer: Any = StatePacker(struct, self.lead) if pack_state else PytreePacker(struct)
+        self.layout = OutputLayout(jax.eval_shape(lambda s: self._outs(s, s, s.obs), one))
+        self._step = jax.jit(self._step_impl, donate_argnums=0)
+        self._resets: dict[Any, Any] = {}
+
+    def _outs(self, s: State, prev: State, final_obs: jax.Array) -> dict[str, jax.Array]:
+        new = jnp.any(s.info["contact"] & ~prev.info["contact"], axis=-1)
+        extra = {"qpos": s.data.qpos} if self.batch is None else {"final_obs": final_obs}
+        return _outputs(s, new, extra)
+
+    def _pack_out(self, s: State, prev: State, final_obs: jax.Array) -> jax.Array:
+        if self.batch is None:
+            return self.layout.pack(self._outs(s, prev, final_obs), self.float)
+        return jax.vmap(lambda a, b, c: self.layout.pack(self._outs(a, b, c), self.float))(s, prev, final_obs)
+
+    # ---------------------------------------------------------------- reset
+    def reset_fn(self, variant: tuple[tuple[str, ...], str | None], masked: bool) -> Any:
+        """The jitted reset for this static variant (cached)."""
+        key = (variant, masked)
+        if key not in self._resets:
+            motors = variant[1]
+
+            def one_reset(k: jax.Array, arrays: dict[str, jax.Array]) -> State:
+                init = dict(arrays)
+                if motors is not None:
+                    init["motors"] = motors
+                return self.env.reset(_wrap_keys(k), init or None)
+
+            if self.batch is None:
+                def impl(key_data: jax.Array, arrays: dict[str, jax.Array]) -> tuple:
+                    s = one_reset(key_data, arrays)
+                    return self.packer.pack(s), self._pack_out(s, s, s.obs)
+                self._resets[key] = jax.jit(impl)
+            elif not masked:
+                def impl(key_data: jax.Array, arrays: dict[str, jax.Array]) -> tuple:
+                    s = jax.vmap(one_reset)(key_data, arrays)
+                    return self.packer.pack(s), self._pack_out(s, s, s.obs)
+                self._resets[key] = jax.jit(impl)
+            else:
+                def impl(bufs: tuple, key_data: jax.Array, arrays: dict[str, jax.Array], mask: jax.Array) -> tuple:
+                    old = self.packer.unpack(bufs)
+                    fresh = jax.vmap(one_reset)(key_data, arrays)
+                    fresh = fresh.replace(info={**fresh.info, "total_steps": old.info["total_steps"]})
+                    s = _select(mask, fresh, old)
+                    return self.packer.pack(s), self._pack_out(s, s, s.obs)
+                self._resets[key] = jax.jit(impl, donate_argnums=0)
+        return self._resets[key]
+
+    # ---------------------------------------------------------------- step
+    def _renew(self, s: State) -> State:
+        """Fresh episodes for the finished worlds (the rules of ``AutoResetWrapper``): the new
+        episode's state and info, except ``done``, ``reward``, ``metrics`` (the last step's),
+        ``episode_metrics`` (the finished episode's) and ``total_steps`` (carried over)."""
+        def one(w: State) -> State:
+            fresh = self.env.reset(jax.random.fold_in(w.info["rng"], 1))
+            info = {**fresh.info, "total_steps": w.info["total_steps"], "episode_metrics": w.info["episode_metrics"],
+                    "truncation": w.info["truncation"]}
+            return w.replace(data=_select(w.done, fresh.data, w.data), obs=_select(w.done, fresh.obs, w.obs),
+                             info=_select(w.done, info, w.info))
+
+        return jax.vmap(one)(s)
+
+    def _step_impl(self, bufs: tuple, action: jax.Array) -> tuple:
+        prev = self.packer.unpack(bufs)
+        if self.batch is None:
+            s = self.env.step(prev, action)
+            return self.packer.pack(s), self._pack_out(s, prev, s.obs)
+        s = jax.vmap(self.env.step)(prev, action)
+        final_obs = s.obs
+        s = jax.lax.cond(jnp.any(s.done), self._renew, lambda x: x, s)
+        return self.packer.pack(s), self._pack_out(s, prev, final_obs)
+
+    def step(self, bufs: tuple, action: np.ndarray) -> tuple:
+        return self._step(bufs, action)
+
+
+@functools.lru_cache(maxsize=8)
+def _program(cfg: EnvConfig, batch: int | None, pack_state: bool | None = None) -> _Program:
+    return _Program(cfg, batch, pack_state)
+
+
+def _init_arrays(state: dict[str, Any] | None, dtype: Any) -> dict[str, np.ndarray]:
+    if state is None:
+        return {}
+    return {k: np.asarray(v, dtype) for k, v in state.items() if v is not None and not isinstance(v, str)}
+
+
+# ------------------------------------------------------------------------------- single world
+class JaxSingleBackend:
+    """One world on the JAX engine with ``QuadSwarmEnv``'s ``info`` (NumPy in and out).
+
+    ``reset(seed, state) -> (obs_flat (N, obs_dim) float32, info)`` and
+    ``step(action (N, 4)) -> (obs, rewards (N,), truncated, info)``; the caller validates inputs."""
+
+    def __init__(self, cfg: EnvConfig):
+        self.cfg = cfg
+        self.prog = _program(cfg, None)
+        self._keys: KeyStream | None = None
+        self._bufs: tuple | None = None
+        self._last: dict[str, np.ndarray] | None = None
+        self._params: dict[str, np.ndarray] = {}
+        self._renderer: Any = None
+
+    @property
+    def seeded(self) -> bool:
+        return self._keys is not None
+
+    def seed(self, seed: int) -> None:
+        self._keys = KeyStream(seed)
+
+    def _info(self, v: dict[str, np.ndarray], params: dict[str, np.ndarray]) -> dict[str, Any]:
+        return {"state": {"pos": v["state/pos"], "vel": v["state/vel"], "rot": v["state/rot"],
+                          "omega": v["state/omega"], "thrust": v["state/thrust"]},
+                "goals": v["goals"], "goal_vel": v["goal_vel"], "params": params,
+                "on_floor": v["on_floor"] > 0.5, "time": float(v["time"])}
+
+    def _split(self, out: jax.Array) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        o = np.array(out)  # one transfer, writable
+        v = self.prog.layout.split(o.astype(np.float64))
+        self._last = v
+        return o[self.prog.layout.slices["obs"]].reshape(self.prog.layout.shapes["obs"]), v
+
+    def reset(self, state: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        if self._keys is None:
+            raise RuntimeError("seed() before reset()")
+        variant = _init_variant(state)
+        fn = self.prog.reset_fn(variant, masked=False)
+        self._bufs, out = fn(self._keys.draw(), _init_arrays(state, self.prog.float))
+        obs, v = self._split(out)
+        if self._renderer is not None:
+            self._renderer.reset()
+        # dynamics parameters are fixed for the episode: split once here, fresh copies per step
+        self._params = {k[len("params/"):]: v[k] for k in self.prog.layout.params}
+        return obs, self._info(v, self._params)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict[str, Any]]:
+        """One control step; returns (obs, team reward (mean over quads), truncated, info)."""
+        self._bufs, out = self.prog.step(self._bufs, action.astype(self.prog.float))
+        obs, v = self._split(out)
+        info = self._info(v, {k: x.copy() for k, x in self._params.items()})
+        info["rewards"] = v["rewards"]
+        info["reward_terms"] = dict(zip(TERMS, v["terms"]))
+        info["new_collisions"] = v["new_collisions"] > 0.5
+        truncated = bool(v["done"] > 0.5)
+        if truncated:
+            info["episode_metrics"] = dict(zip(METRIC_KEYS, v["metrics"].tolist()))
+        return obs, float(v["reward"]), truncated, info
+
+    def render(self) -> np.ndarray:
+        """An RGB frame of the current state: the state's ``qpos`` copied into the renderer's
+        ``MjData`` (:class:`quadswarm_mj.render.SwarmRenderer` on ``build_arena(cfg, 1)``)."""
+        from quadswarm_mj.arena import build_arena
+        from quadswarm_mj.render import SwarmRenderer
+
+        if self._last is None:
+            raise RuntimeError("call reset() before render()")
+        if self._renderer is None:
+            arena = build_arena(self.cfg, 1)
+            self._renderer = SwarmRenderer(types.SimpleNamespace(arena=arena, model=arena.model))
+        return self._renderer.render(qpos=self._last["qpos"], goals=self._last["goals"])
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+
+# ------------------------------------------------------------------------------- B worlds
+class JaxVectorBackend:
+    """B worlds on the JAX engine with ``QuadSwarmVectorEnv``'s outputs (NumPy in and out,
+    SAME_STEP auto-reset inside the jitted step, ``final_obs`` and ``episode_metrics`` with masks)."""
+
+    def __init__(self, cfg: EnvConfig, num_envs: int, info_keys: tuple[str, ...] = VECTOR_INFO_KEYS,
+                 copy: bool = True):
+        self.cfg, self.B = cfg, int(num_envs)
+        self.info_keys, self.copy = tuple(info_keys), bool(copy)
+        self.prog = _program(cfg, self.B)
+        self._keys: KeyStream | None = None
+        self._bufs: tuple | None = None
+        self._v: dict[str, np.ndarray] | None = None
+
+    def seed(self, seed: int) -> None:
+        self._keys = KeyStream(seed)
+
+    def _split(self, out: jax.Array) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        o = np.array(out)  # (B, size) float32, one transfer
+        lay = self.prog.layout
+        v = lay.split(o.astype(np.float64), (self.B,))
+        obs = o[:, lay.slices["obs"]].reshape((self.B,) + lay.shapes["obs"])
+        fin = o[:, lay.slices["final_obs"]].reshape((self.B,) + lay.shapes["final_obs"])
+        self._v = v
+        return obs, {**v, "obs32": obs, "final_obs32": fin}
+
+    def _info(self, v: dict[str, np.ndarray], step: bool) -> dict[str, Any]:
+        keys, out = self.info_keys, {}
+        if step and "rewards" in keys:
+            out["rewards"] = v["rewards"]
+        if step and "reward_terms" in keys:
+            out["reward_terms"] = {k: v["terms"][:, i] for i, k in enumerate(TERMS)}
+        if "state" in keys:
+            out["state"] = {k: v[f"state/{k}"] for k in STATE_KEYS}
+        for k in ("goals", "goal_vel"):
+            if k in keys:
+                out[k] = v[k]
+        if "params" in keys:
+            out["params"] = {k[len("params/"):]: v[k] for k in self.prog.layout.params}
+        if "on_floor" in keys:
+            out["on_floor"] = v["on_floor"] > 0.5
+        if step and "new_collisions" in keys:
+            out["new_collisions"] = v["new_collisions"] > 0.5
+        if "time" in keys:
+            out["time"] = v["time"]
+        return out
+
+    def reset(self, mask: np.ndarray | None, state: dict[str, Any] | None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset every world, or those in ``mask`` (B,) bool (the first reset must reset all)."""
+        if self._keys is None:
+            raise RuntimeError("seed() before reset()")
+        variant = _init_variant(state)
+        arrays = _init_arrays(state, self.prog.float)
+        keys = self._keys.draw((self.B,))
+        if mask is None or self._bufs is None:
+            self._bufs, out = self.prog.reset_fn(variant, masked=False)(keys, arrays)
+        else:
+            self._bufs, out = self.prog.reset_fn(variant, masked=True)(self._bufs, keys, arrays, np.asarray(mask))
+        v = self._split(out)[1]
+        return v["obs32"], self._info(v, step=False)
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        self._bufs, out = self.prog.step(self._bufs, actions.astype(self.prog.float))
+        v = self._split(out)[1]
+        info = self._info(v, step=True)
+        done = v["done"] > 0.5
+        if done.any():
+            info["episode_metrics"] = {k: np.where(done, v["metrics"][:, i], np.nan) for i, k in enumerate(METRIC_KEYS)}
+            info["_episode_metrics"] = done.copy()
+            info["final_obs"] = v["final_obs32"]
+            info["_final_obs"] = done.copy()
+        return v["obs32"], v["rewards"].mean(axis=-1), np.zeros(self.B, dtype=np.bool_), done, info
+
+    def episode_metrics(self) -> dict[str, np.ndarray]:
+        """Episode metrics (B,) of the running episodes so far (as of the last reset or step)."""
+        if self._v is None:
+            raise RuntimeError("call reset() first")
+        return {k: self._v["metrics"][:, i].copy() for i, k in enumerate(METRIC_KEYS)}
+
+    def close(self) -> None:
+        self._bufs = None
