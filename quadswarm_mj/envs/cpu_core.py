@@ -70,7 +70,6 @@ from quadswarm_mj.scenarios import ScenarioState, get_scenario
 from quadswarm_mj.scenarios.base import spawn_num_uniforms, spawn_state
 from quadswarm_mj.spatial import norm_last, quat_to_rotmat, rotmat_to_quat, yaw_rotmat
 
-STATE_KEYS = ("pos", "vel", "rot", "omega", "motors", "goals")
 BACKENDS = ("mjdata", "batch")
 _ALL = slice(None)
 
@@ -89,7 +88,9 @@ class _MjDataPhysics:
         self.xfrc = self.data.xfrc_applied[fb:fb + B * N].reshape(B, N, 6)
         assert np.shares_memory(self.qpos, self.data.qpos) and np.shares_memory(self.xfrc, self.data.xfrc_applied)
         self.offsets = self.arena.world_offsets[:, None, :]
-        self.dirty = False  # unused: qpos/qvel are MjData itself
+
+    def touch(self) -> None:
+        """The engine wrote qpos/qvel: nothing to do, they are MjData itself."""
 
     def step(self, max_omega: float) -> None:
         """One physics sub-step, then angular velocity clipped to +-max_omega per body axis."""
@@ -153,6 +154,10 @@ class _BatchPhysics:
         self._pad_qpos = self._qpos[B:].copy()
         self.qpos, self.qvel, self.xfrc = self._qpos[:B], self._qvel[:B], self._xfrc[:B]
         self.offsets = np.tile(self.arena.world_offsets, (K, 1))[:B, None, :]
+
+    def touch(self) -> None:
+        """The engine wrote qpos/qvel: copy them into the state rows before the next step."""
+        self.dirty = True
 
     def step(self, max_omega: float) -> None:
         """One physics sub-step, angular velocity clipped to +-max_omega (in the state rows, so the
@@ -266,7 +271,6 @@ class CpuSwarm:
         self.steps = np.zeros(B, np.int64)
         self.sstate: ScenarioState | None = None
         self.metrics = metrics_lib.init(zeros, (B,), N)
-        self.last_action = np.zeros((B, N, 4))
         self._R: np.ndarray | None = None  # rotations of the current qpos (None: recompute)
 
     # ------------------------------------------------------------------ samplers
@@ -280,7 +284,7 @@ class CpuSwarm:
     def state_changed(self) -> None:
         """Tell the engine that ``qpos``/``qvel`` were written from outside."""
         self._R = None
-        self.phys.dirty = True
+        self.phys.touch()
 
     # ------------------------------------------------------------------ state access
     def _rotations(self) -> np.ndarray:
@@ -361,13 +365,12 @@ class CpuSwarm:
         self.qpos[idx, :, 3:7] = rotmat_to_quat(R)
         self.qvel[idx, :, :3] = vel
         self.qvel[idx, :, 3:] = omega
-        self.phys.dirty = True
+        self.phys.touch()
         self._R = None
         self.u = _put(self.u, idx, u0)
         self.motor_eps = _put(self.motor_eps, idx, 0.0)
         self.f_norm = _put(self.f_norm, idx, u0**2)
         self.prev_f_norm = self.f_norm.copy()
-        self.last_action = _put(self.last_action, idx, 0.0)
         cur_pos = self.qpos[idx, :, :3] - offsets
         self.on_floor = _put(self.on_floor, idx, cur_pos[..., 2] <= self.floor_z + FLOOR_TOL)
         self.at_wall = _put(self.at_wall, idx, np.any((cur_pos[..., :2] <= self.room_low[:2]) |
@@ -465,7 +468,7 @@ class CpuSwarm:
             self.qpos[..., :3] = pos + self.offsets
             self.qvel[..., :3] = vel
             self.qvel[..., 3:] = omega
-            self.phys.dirty = True
+            self.phys.touch()
         return {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": new_contact,
                 "hit_floor": hit_floor, "hit_wall": hit_wall, "hit_ceiling": hit_ceiling}
 
@@ -496,7 +499,7 @@ class CpuSwarm:
         self.qpos[w, :, 3:7] = r["quat"]
         self.qvel[w, :, :3] = r["vel"]
         self.qvel[w, :, 3:] = r["omega"]
-        self.phys.dirty = True
+        self.phys.touch()
         self.u = _put(self.u, w, r["u"])
         self.on_floor = _put(self.on_floor, w, r["on_floor"])
         self._any_on_floor = bool(self.on_floor.any())
@@ -526,7 +529,6 @@ class CpuSwarm:
         rewards = total_reward(terms, self._zero_terms)
         self.metrics = metrics_lib.update(self.metrics, t[:, None], dist_goal, k["new_contact"], k["hit_floor"],
                                           k["hit_wall"], k["hit_ceiling"], jump, cfg.grace_period_s)
-        self.last_action = action
         truncated = self.steps >= cfg.episode_steps
         return {"obs": self.observe(k), "rewards": rewards, "terms": terms, "truncated": truncated,
                 "kin": k, "t": t}

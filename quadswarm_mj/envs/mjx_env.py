@@ -52,7 +52,7 @@ passes thrust, torque and motor constants to the actuation functions.
   ``at_ceiling`` (N,) bool; ``contact`` (N, N) bool (pairs inside the hitbox);
   ``scenario`` (:class:`~quadswarm_mj.scenarios.ScenarioState`); ``metrics_acc`` (accumulators of
   :mod:`quadswarm_mj.metrics`); ``episode_metrics`` (episode metrics so far, per world);
-  ``last_action`` (N, 4); ``step`` () int control steps in this episode; ``time`` () s;
+  ``step`` () int control steps in this episode; ``time`` () s;
   ``total_steps`` () int across episodes (reward annealing; kept by :class:`AutoResetWrapper`);
   ``truncation`` () float (1.0 at the time limit); ``rng`` (the key for the next step's draws).
 
@@ -72,25 +72,45 @@ import numpy as np
 from mujoco import mjx
 
 from quadswarm_mj import metrics as metrics_lib
+from quadswarm_mj import pipeline
 from quadswarm_mj.actuation import (
+    SPIN,
     action_to_command,
     hover_motor_state,
     motor_noise_draw_spec,
     motor_noise_step,
     rotor_positions,
     substep_wrench,
+    wrench_matrix,
 )
 from quadswarm_mj.arena import build_arena
 from quadswarm_mj.collisions import (
+    FLOOR_BUDGET,
+    QUAD_PAIR_BUDGET,
+    WALL_BUDGET,
     collision_draw_specs,
+    expand_per_quad,
+    expand_quad_draws,
+    floor_draw_spec,
     floor_impact,
     floor_wrench,
+    new_pairs_upper,
     pairwise_contacts,
+    quad_collision_slot_spec,
     quad_collisions,
+    wall_bounces,
     wall_collisions,
+    wall_draw_spec,
 )
 from quadswarm_mj.config import EnvConfig
-from quadswarm_mj.downwash import apply_downwash, downwash_draw_spec
+from quadswarm_mj.downwash import (
+    DOWNWASH_BUDGET,
+    apply_downwash,
+    downwash_mask,
+    downwash_slot_spec,
+    expand_downwash_draws,
+)
+from quadswarm_mj.envs.validation import check_state
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.random_draws import DrawSpec, JaxSampler, MeanSampler, Normal, Uniform
 from quadswarm_mj.randomization import nominal_draws, params_from_draws, randomization_draw_spec
@@ -100,6 +120,14 @@ from quadswarm_mj.scenarios.base import spawn_num_uniforms, spawn_state
 from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat, yaw_rotmat
 
 INIT_STATE_KEYS = ("pos", "vel", "rot", "omega", "motors", "goals")
+PHYSICS = ("freebody", "mjx")
+
+
+def _have_freebody() -> bool:
+    """True when :mod:`quadswarm_mj.freebody` (the exact free-body step) is importable."""
+    import importlib.util
+
+    return importlib.util.find_spec("quadswarm_mj.freebody") is not None
 
 
 @jax.tree_util.register_dataclass
@@ -163,15 +191,28 @@ class MjxQuadSwarmEnv:
     The model is ``quadswarm_mj.arena.build_arena(cfg, 1)`` put on the default device with
     ``mjx.put_model``. ``action`` is (N, 4) raw per-rotor commands in [-1, 1] (clipped; -1 no
     thrust, 1 full thrust). Actions are not validated under ``jit``: a NaN action yields NaN state.
+
+    ``physics`` chooses the rigid-body integrator of the sub-steps: ``"freebody"`` (the default
+    where it is available: :func:`quadswarm_mj.freebody.freebody_step`, MuJoCo's Euler step of
+    contact-free free bodies, exact) or ``"mjx"`` (``mjx.step``, generic: builds and factors the
+    dense mass matrix). Both keep ``mjx.Data`` as the state; with "freebody" the derived fields
+    (``xpos``...) are not recomputed (``mjx.get_data`` + ``mj_forward`` for rendering).
     """
 
-    def __init__(self, cfg: EnvConfig | None = None):
+    def __init__(self, cfg: EnvConfig | None = None, physics: str | None = None):
         cfg = EnvConfig() if cfg is None else cfg
         if not isinstance(cfg, EnvConfig):
             raise ValueError(f"cfg must be an EnvConfig, got {type(cfg).__name__}")
         if cfg.collision_model != "paper":
             raise ValueError(f"MjxQuadSwarmEnv supports collision_model='paper' only, got "
                              f"{cfg.collision_model!r}; use the CPU env (QuadSwarmEnv) for 'mujoco'/'blend'")
+        if physics is None:
+            physics = "freebody" if _have_freebody() else "mjx"
+        if physics not in PHYSICS:
+            raise ValueError(f"physics must be one of {PHYSICS}, got {physics!r}")
+        if physics == "freebody" and not _have_freebody():
+            raise ValueError("physics='freebody' needs quadswarm_mj.freebody (not available); use physics='mjx'")
+        self.physics = physics
         self.cfg = cfg
         self.N = n = cfg.num_quads
         self.arena = build_arena(cfg, 1)
@@ -180,32 +221,38 @@ class MjxQuadSwarmEnv:
         self._data0 = mjx.make_data(self.mjx_model)
         self._qs, self._vs = self.arena.qpos_start, self.arena.qvel_start
         self._fb = self.arena.first_body
+        # the quads' free joints are the whole qpos/qvel: read and write them with reshapes, no scatter
+        self._whole = self._qs == 0 and self._vs == 0 and self.mj_model.nq == 7 * n and self.mj_model.nv == 6 * n
         self.scenario = get_scenario(cfg.scenario)
         self._n_scn = self.scenario.num_uniforms(n)
         self._rotor_pos = rotor_positions(cfg.quad)
+        self._mix = wrench_matrix(self._rotor_pos)
         low, high = obs_bounds(cfg)
         self._obs_low, self._obs_high = np.asarray(low, np.float64), np.asarray(high, np.float64)
         self._obs_scale = obs_scale(cfg) if cfg.normalize_obs else None
-        specs = collision_draw_specs(cfg)
-        self._spec_quad, self._spec_wall, self._spec_floor = specs["quad"], specs["wall"], specs["floor"]
-        self._spec_down = downwash_draw_spec(n)
-        self._spec_motor = motor_noise_draw_spec(n)
+        self._spec_wall = collision_draw_specs(cfg)["wall"]
         self._spec_sensor = sensor_noise_spec(cfg)
         self._sensor_on = any(d.std > 0 for d in self._spec_sensor.values())
         # All random numbers of one reset / one step come from one fused draw of these specs;
-        # sources whose cfg.noise.stochastic_* flag is off take their means instead.
+        # sources whose cfg.noise.stochastic_* flag is off take their means instead. Event models
+        # draw for a bounded number of events per step (the draw budget, see collisions.py).
         stoch_coll, stoch_down = cfg.noise.stochastic_collisions, cfg.noise.stochastic_downwash
-        floor_spec = _prefixed("floor", self._spec_floor, (cfg.substeps,))  # one yaw draw per sub-step
+        c = cfg.collision
         self._reset_spec = {
             **(_prefixed("rand", randomization_draw_spec(cfg)) if cfg.randomize else {}),
             "scenario": Uniform(0.0, 1.0, (self._n_scn,)),
             "spawn": Uniform(0.0, 1.0, (spawn_num_uniforms(n),)),
             **(_prefixed("sensor", self._spec_sensor) if self._sensor_on else {}),
         }
-        coll_spec = {**floor_spec, **_prefixed("wall", self._spec_wall), **_prefixed("quad", self._spec_quad)}
-        down_spec = _prefixed("down", self._spec_down) if cfg.downwash else {}
+        coll_spec = {
+            **_prefixed("floor", floor_draw_spec(FLOOR_BUDGET), (cfg.substeps,)),  # slots per sub-step
+            **_prefixed("wall", wall_draw_spec(WALL_BUDGET, cfg.collision_decay, c.kick_omega)),
+            **_prefixed("quad", quad_collision_slot_spec(c.tries, QUAD_PAIR_BUDGET, c.shared_noise_std,
+                                                         c.own_noise_std, n, cfg.collision_decay, c.kick_omega)),
+        }
+        down_spec = _prefixed("down", downwash_slot_spec(DOWNWASH_BUDGET)) if cfg.downwash else {}
         self._step_spec = {
-            **(_prefixed("motor", self._spec_motor) if cfg.noise.motor_noise_ratio > 0 else {}),
+            **(_prefixed("motor", motor_noise_draw_spec(n)) if cfg.noise.motor_noise_ratio > 0 else {}),
             **(coll_spec if stoch_coll else {}),
             **(down_spec if stoch_down else {}),
             "scenario": Uniform(0.0, 1.0, (self._n_scn,)),
@@ -245,21 +292,22 @@ class MjxQuadSwarmEnv:
             out.update(MeanSampler(dtype=_float(), xp=jnp).draw(mean_spec))
         return out
 
-    def _kinematics(self, data: mjx.Data) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array, jax.Array]:
-        """(pos m world, quat wxyz, vel m/s world, omega rad/s body) of the quads, and R body->world."""
+    def _read(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        """The quads' free joints: qpos (N, 7) (pos m world, quat wxyz body->world), qvel (N, 6)
+        (linear m/s world, angular rad/s body)."""
         n = self.N
-        q = data.qpos[self._qs:self._qs + 7 * n].reshape(n, 7)
-        v = data.qvel[self._vs:self._vs + 6 * n].reshape(n, 6)
-        return q[:, :3], q[:, 3:7], v[:, :3], v[:, 3:], quat_to_rotmat(q[:, 3:7])
+        if self._whole:
+            return data.qpos.reshape(n, 7), data.qvel.reshape(n, 6)
+        return (data.qpos[self._qs:self._qs + 7 * n].reshape(n, 7), data.qvel[self._vs:self._vs + 6 * n].reshape(n, 6))
 
-    def _write(self, data: mjx.Data, pos: Any = None, quat: Any = None, vel: Any = None, omega: Any = None) -> mjx.Data:
+    def _write(self, data: mjx.Data, q: jax.Array, v: jax.Array) -> mjx.Data:
+        """``data`` with the quads' qpos (N, 7) and qvel (N, 6) replaced."""
         n = self.N
-        q = data.qpos[self._qs:self._qs + 7 * n].reshape(n, 7)
-        v = data.qvel[self._vs:self._vs + 6 * n].reshape(n, 6)
-        q = jnp.concatenate([q[:, :3] if pos is None else pos, q[:, 3:7] if quat is None else quat], axis=-1)
-        v = jnp.concatenate([v[:, :3] if vel is None else vel, v[:, 3:] if omega is None else omega], axis=-1)
-        return data.replace(qpos=data.qpos.at[self._qs:self._qs + 7 * n].set(q.ravel().astype(data.qpos.dtype)),
-                            qvel=data.qvel.at[self._vs:self._vs + 6 * n].set(v.ravel().astype(data.qvel.dtype)))
+        q, v = q.astype(data.qpos.dtype), v.astype(data.qvel.dtype)
+        if self._whole:
+            return data.replace(qpos=q.reshape(-1), qvel=v.reshape(-1))
+        return data.replace(qpos=data.qpos.at[self._qs:self._qs + 7 * n].set(q.ravel()),
+                            qvel=data.qvel.at[self._vs:self._vs + 6 * n].set(v.ravel()))
 
     def _params(self, info: dict[str, Any]) -> dict[str, Any]:
         return {**info["params"], "gravity": self.cfg.quad.gravity}
@@ -270,12 +318,42 @@ class MjxQuadSwarmEnv:
         return m.replace(body_mass=m.body_mass.at[sl].set(params["mass"].astype(m.body_mass.dtype)),
                          body_inertia=m.body_inertia.at[sl].set(params["inertia"].astype(m.body_inertia.dtype)))
 
-    def _observe(self, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, draws: dict[str, Any]) -> jax.Array:
+    def _integrator(self, params: dict[str, Any]) -> Any:
+        """The rigid-body stage: ``integrate(q (N, 7), v (N, 6), wrench (N, 6) world force N and torque
+        N m at the CoM, aux) -> (q, v, aux)``, one physics sub-step of ``cfg.sim_dt`` (``aux``: the
+        ``mjx.Data`` carried through the sub-steps by "mjx", None for "freebody")."""
+        n, fb = self.N, self._fb
+        if self.physics == "freebody":
+            from quadswarm_mj.freebody import freebody_step
+
+            m = self.mjx_model
+            ipos, iquat = m.body_ipos[fb:fb + n], m.body_iquat[fb:fb + n]
+            gravity, dt = m.opt.gravity, self.cfg.sim_dt
+
+            def integrate_fb(q: Any, v: Any, wrench: Any, aux: Any) -> tuple[Any, Any, Any]:
+                q2, v2 = freebody_step(q, v, wrench, params["mass"], params["inertia"], ipos.astype(q.dtype),
+                                       iquat.astype(q.dtype), gravity.astype(q.dtype), dt)
+                return q2, v2, aux
+
+            return integrate_fb
+        model = self._model(params)
+
+        def integrate_mjx(q: Any, v: Any, wrench: Any, data: Any) -> tuple[Any, Any, Any]:
+            data = self._write(data, q, v)
+            xfrc = data.xfrc_applied.at[fb:fb + n].set(wrench.astype(data.xfrc_applied.dtype))
+            data = mjx.step(model, data.replace(xfrc_applied=xfrc))
+            q2, v2 = self._read(data)
+            return q2.astype(q.dtype), v2.astype(v.dtype), data
+
+        return integrate_mjx
+
+    def _observe(self, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, draws: dict[str, Any],
+                 dist: Any = None) -> jax.Array:
         f = _float()
         noise = _sub(draws, "sensor") if self._sensor_on else None
         scale = None if self._obs_scale is None else jnp.asarray(self._obs_scale, f)
         return build_obs(self.cfg, pos, vel, R, omega, goals, noise, jnp.asarray(self._obs_low, f),
-                         jnp.asarray(self._obs_high, f), scale)
+                         jnp.asarray(self._obs_high, f), scale, dist=dist)
 
     def _surface_flags(self, pos: Any, vel: Any, omega: Any) -> tuple[Any, Any, Any]:
         """(on_floor, at_wall, at_ceiling) of quads at ``pos``, from the collision functions
@@ -300,22 +378,17 @@ class MjxQuadSwarmEnv:
         m and ``motors``: "zero" or "hover" (a Python string, so static: known at trace time,
         e.g. close over it), or (N, 4) normalized rotor thrusts in [0, 1]. Missing keys take the
         defaults (scenario goals, spawn near the goals at rest, ``cfg.motor_start``).
+
+        ``init_state`` is checked as the CPU env checks it (:func:`~quadswarm_mj.envs.validation.
+        check_state`: keys, shapes, finite values, proper rotations, ``pos`` and ``goals`` inside
+        the room), raising ValueError naming the key; values that are tracers (``init_state``
+        passed through ``jit``/``vmap``) get the shape checks only.
         """
         cfg, n = self.cfg, self.N
         f = _float()
-        init_state = {} if init_state is None else {k: v for k, v in init_state.items() if v is not None}
-        unknown = set(init_state) - set(INIT_STATE_KEYS)
-        if unknown:
-            raise ValueError(f"init_state has unknown keys {sorted(unknown)}; allowed: {list(INIT_STATE_KEYS)}")
+        init_state = check_state({} if init_state is None else init_state, n, name="init_state",
+                                 room=(cfg.room_low, cfg.room_high))
         motors = init_state.get("motors", cfg.motor_start)
-        if isinstance(motors, str) and motors not in ("zero", "hover"):
-            raise ValueError(f"init_state['motors'] must be 'zero', 'hover' or an (N, 4) array, got {motors!r}")
-        for name, tail in (("pos", (3,)), ("vel", (3,)), ("rot", (3, 3)), ("omega", (3,)), ("goals", (3,)),
-                           ("motors", (4,))):
-            v = init_state.get(name)
-            if v is not None and not isinstance(v, str) and tuple(np.shape(v)) != (n,) + tail:
-                raise ValueError(f"init_state['{name}'] has the wrong shape: expected {(n,) + tail}, "
-                                 f"got {tuple(np.shape(v))}")
         k_draw, k_next = jax.random.split(key)
         rnd = self._draw(self._reset_spec, k_draw)
         # 1. dynamics parameters (drawn at every reset, under jit)
@@ -338,15 +411,17 @@ class MjxQuadSwarmEnv:
             u0 = hover_motor_state(params).astype(f) if motors == "hover" else jnp.zeros((n, 4), f)
         else:
             u0 = jnp.sqrt(jnp.clip(jnp.asarray(motors, f).reshape(n, 4), 0.0, 1.0))
-        data = self._write(self._data0, pos, rotmat_to_quat(R), vel, omega)
+        data = self._write(self._data0, jnp.concatenate([pos, rotmat_to_quat(R)], -1),
+                           jnp.concatenate([vel, omega], -1))
         data = data.replace(time=jnp.zeros_like(data.time))
-        pos, quat, vel, omega, R = self._kinematics(data)  # as stored (quaternion round trip), like the CPU env
-        pos, vel, omega, R = pos.astype(f), vel.astype(f), omega.astype(f), R.astype(f)
+        q, v = self._read(data)  # as stored (quaternion round trip), like the CPU env
+        pos, vel, omega = q[:, :3].astype(f), v[:, :3].astype(f), v[:, 3:].astype(f)
+        R = quat_to_rotmat(q[:, 3:7]).astype(f)
         on_floor, at_wall, at_ceiling = self._surface_flags(pos, vel, omega)
-        contact, _ = pairwise_contacts(pos, cfg.hitbox)
+        contact, dist = pairwise_contacts(pos, cfg.hitbox)
         acc = metrics_lib.init(jnp.zeros((n,), f), (), n)
         f_norm = u0 * u0
-        obs = self._observe(pos, vel, R, omega, goals, rnd)
+        obs = self._observe(pos, vel, R, omega, goals, rnd, dist)
         zero_n = jnp.zeros((n,), f)
         info = {
             "state": {"pos": pos, "vel": vel, "rot": R, "omega": omega, "thrust": f_norm},
@@ -356,7 +431,6 @@ class MjxQuadSwarmEnv:
             "on_floor": on_floor, "at_wall": at_wall, "at_ceiling": at_ceiling, "contact": contact,
             "scenario": sstate, "metrics_acc": acc,
             "episode_metrics": metrics_lib.finalize(acc, jnp.zeros((), f)),
-            "last_action": jnp.zeros((n, 4), f),
             "step": jnp.zeros((), jnp.int32), "time": jnp.zeros((), f), "total_steps": jnp.zeros((), jnp.int32),
             "truncation": jnp.zeros((), f), "rng": k_next,
         }
@@ -366,52 +440,67 @@ class MjxQuadSwarmEnv:
     # ------------------------------------------------------------------ physics
     def _physics(self, data: mjx.Data, info: dict[str, Any], action: jax.Array,
                  rnd: dict[str, Any]) -> tuple[mjx.Data, dict[str, Any]]:
-        """One control step of the simulator, in the order of ``CpuSwarm._physics``."""
+        """One control step of the simulator, in the order of ``CpuSwarm._physics``; the stages and
+        their extension points are those of :mod:`quadswarm_mj.pipeline`."""
         cfg, n = self.cfg, self.N
         f = _float()
         params = self._params(info)
-        model = self._model(params)
+        integrate = self._integrator(params)
         rotor_pos = jnp.asarray(self._rotor_pos, f)
+        mix = jnp.asarray(self._mix, f)
+        torque_spin = params["torque_max"] * jnp.asarray(SPIN, f)
         cmd = action_to_command(action)
         eps = info["motor_eps"]
         if cfg.noise.motor_noise_ratio > 0:
             eps = motor_noise_step(eps, params["motor_sigma"], cfg.noise.motor_noise_theta, rnd["motor/motor"])
         max_w = cfg.quad.max_omega
+        floor_z = cfg.quad.arm
 
-        def substep(carry: tuple, yaw: jax.Array) -> tuple[tuple, None]:
-            data, u, f_norm, on_floor, hit_floor = carry
-            _, _, vel, _, R = self._kinematics(data)
-            u, f_norm, force, torque = substep_wrench(u, cmd, eps, params, R, rotor_pos)
-            force, torque = floor_wrench(on_floor, force, torque, vel, params["mass"], params["gravity"],
+        def substep(carry: tuple, yaw_slots: jax.Array) -> tuple[tuple, None]:
+            q, v, R, u, f_norm, on_floor, hit_floor, aux = carry
+            cmd_s = pipeline.control_stage(cmd, q, v, R)  # extension point: control modes
+            u, f_norm, force, torque = substep_wrench(u, cmd_s, eps, params, R, rotor_pos, mix, torque_spin)
+            force, torque = pipeline.aero_stage(force, torque, f_norm, q, v, R)  # extension point: aerodynamics
+            force, torque = floor_wrench(on_floor, force, torque, v[:, :3], params["mass"], params["gravity"],
                                          cfg.collision.floor_friction, cfg.sim_dt)
-            wrench = jnp.concatenate([force, torque], axis=-1).astype(data.xfrc_applied.dtype)
-            data = data.replace(xfrc_applied=data.xfrc_applied.at[self._fb:self._fb + n].set(wrench))
-            data = mjx.step(model, data)
-            pos, quat, vel, omega, R = self._kinematics(data)
-            omega = jnp.clip(omega, -max_w, max_w)
-            r = floor_impact(pos, vel, omega, quat, R, u, on_floor, cfg.quad.arm, yaw)
-            data = self._write(data, r["pos"], r["quat"], r["vel"], r["omega"])
-            return (data, r["u"], f_norm, r["on_floor"], hit_floor | r["hit_floor"]), None
+            q, v, aux = integrate(q, v, jnp.concatenate([force, torque], axis=-1), aux)
+            omega = jnp.clip(v[:, 3:], -max_w, max_w)
+            R = quat_to_rotmat(q[:, 3:7])
+            landing = (q[:, 2] <= floor_z) & ~on_floor
+            yaw = expand_per_quad(landing, {"yaw": yaw_slots})["yaw"]
+            r = floor_impact(q[:, :3], v[:, :3], omega, q[:, 3:7], R, u, on_floor, floor_z, yaw)
+            q = jnp.concatenate([r["pos"], r["quat"]], -1)
+            v = jnp.concatenate([r["vel"], r["omega"]], -1)
+            return (q, v, r["R"], r["u"], f_norm, r["on_floor"], hit_floor | r["hit_floor"], aux), None
 
-        carry0 = (data, info["motor_u"], info["state"]["thrust"], info["on_floor"], jnp.zeros((n,), bool))
-        (data, u, f_norm, on_floor, hit_floor), _ = jax.lax.scan(
-            substep, carry0, rnd["floor/yaw"])
-        # once per control step: walls, ceiling, quad-quad, downwash (velocity-level models)
-        pos, _, vel, omega, R = self._kinematics(data)
-        pos, vel, omega, R = pos.astype(f), vel.astype(f), omega.astype(f), R.astype(f)
-        w = wall_collisions(pos, vel, omega, info["at_wall"], info["at_ceiling"], jnp.asarray(cfg.room_low, f),
-                            jnp.asarray(cfg.room_high, f), _sub(rnd, "wall"),
-                            cfg.collision.wall_speed_limits)
+        q0, v0 = self._read(data)
+        aux0 = data if self.physics == "mjx" else None
+        carry0 = (q0.astype(f), v0.astype(f), info["state"]["rot"], info["motor_u"], info["state"]["thrust"],
+                  info["on_floor"], jnp.zeros((n,), bool), aux0)
+        (q, v, R, u, f_norm, on_floor, hit_floor, aux), _ = jax.lax.scan(substep, carry0, rnd["floor/yaw"])
+        data = data if aux is None else aux
+        # once per control step: walls, ceiling, quad-quad, (obstacles), downwash (velocity-level models)
+        pos, vel, omega = q[:, :3], v[:, :3], v[:, 3:]
+        room_low, room_high = jnp.asarray(cfg.room_low, f), jnp.asarray(cfg.room_high, f)
+        bounce = wall_bounces(pos, info["at_wall"], info["at_ceiling"], room_low, room_high)
+        w = wall_collisions(pos, vel, omega, info["at_wall"], info["at_ceiling"], room_low, room_high,
+                            expand_per_quad(bounce, _sub(rnd, "wall")), cfg.collision.wall_speed_limits)
         pos, vel, omega = w["pos"], w["vel"], w["omega"]
-        q = quad_collisions(pos, vel, omega, info["contact"], cfg.hitbox,
-                            _sub(rnd, "quad"))
-        vel, omega = q["vel"], q["omega"]
+        new_upper = new_pairs_upper(pos, info["contact"], cfg.hitbox)
+        q_draws = expand_quad_draws(new_upper, _sub(rnd, "quad"))
+        qc = quad_collisions(pos, vel, omega, info["contact"], cfg.hitbox, q_draws)
+        vel, omega = qc["vel"], qc["omega"]
+        pos, vel, omega = pipeline.obstacle_stage(pos, vel, omega)  # extension point: obstacles
         _, dist = pairwise_contacts(pos, cfg.hitbox)
         if cfg.downwash:
-            vel, omega = apply_downwash(pos, vel, omega, R, cfg.control_dt, _sub(rnd, "down"))
-        data = self._write(data, pos, None, vel, omega)
-        k = {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": q["new_contact"],
-             "contact": q["contact"], "hit_floor": hit_floor, "hit_wall": w["hit_wall"],
+            dmask, _ = downwash_mask(pos, R)
+            vel, omega = apply_downwash(pos, vel, omega, R, cfg.control_dt,
+                                        expand_downwash_draws(dmask, _sub(rnd, "down")))
+        data = self._write(data, jnp.concatenate([pos, q[:, 3:7]], -1), jnp.concatenate([vel, omega], -1))
+        if aux is None:
+            data = data.replace(time=data.time + cfg.control_dt)
+        k = {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": qc["new_contact"],
+             "contact": qc["contact"], "hit_floor": hit_floor, "hit_wall": w["hit_wall"],
              "hit_ceiling": w["hit_ceiling"], "at_wall": w["at_wall"], "at_ceiling": w["at_ceiling"],
              "on_floor": on_floor, "u": u, "f_norm": f_norm, "eps": eps}
         return data, k
@@ -437,17 +526,17 @@ class MjxQuadSwarmEnv:
         sstate = self.scenario.step(cfg, info["scenario"], t, k["pos"], rnd["scenario"])
         goals, goal_vel = sstate.goals, sstate.goal_vel
         jump = metrics_lib.goal_jump(prev_goals, goals, goal_vel, cfg.control_dt)
+        dist_goal = jnp.sqrt(jnp.sum((goals - k["pos"]) ** 2, axis=-1))
         terms = reward_terms(cfg, k["pos"], k["vel"], k["R"], k["omega"], goals, action, k["f_norm"], prev_f_norm,
                              k["on_floor"], k["hit_floor"], k["hit_wall"], k["hit_ceiling"], k["new_contact"],
-                             k["dist"], anneal_factor(cfg, total_steps))
+                             k["dist"], anneal_factor(cfg, total_steps), goal_dist=dist_goal)
         # explicit dtype: a zero-scale term may come back weakly typed, and a state whose leaf types
         # change between reset and step would make jit compile step twice
         terms = {name: v.astype(f) for name, v in terms.items()}
         reward = total_reward(terms)
-        dist_goal = jnp.sqrt(jnp.sum((goals - k["pos"]) ** 2, axis=-1))
         acc = metrics_lib.update(info["metrics_acc"], t, dist_goal, k["new_contact"], k["hit_floor"], k["hit_wall"],
                                  k["hit_ceiling"], jump, cfg.grace_period_s)
-        obs = self._observe(k["pos"], k["vel"], k["R"], k["omega"], goals, rnd)
+        obs = self._observe(k["pos"], k["vel"], k["R"], k["omega"], goals, rnd, k["dist"])
         done = steps >= cfg.episode_steps
         new_info = {
             "state": {"pos": k["pos"], "vel": k["vel"], "rot": k["R"], "omega": k["omega"], "thrust": k["f_norm"]},
@@ -457,7 +546,6 @@ class MjxQuadSwarmEnv:
             "on_floor": k["on_floor"], "at_wall": k["at_wall"], "at_ceiling": k["at_ceiling"],
             "contact": k["contact"], "scenario": sstate, "metrics_acc": acc,
             "episode_metrics": metrics_lib.finalize(acc, t),
-            "last_action": action,
             "step": steps, "time": t, "total_steps": total_steps,
             "truncation": done.astype(f), "rng": k_next,
         }
