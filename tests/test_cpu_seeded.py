@@ -12,6 +12,7 @@ import pathlib
 import sys
 
 import numpy as np
+
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.envs.cpu_core import CpuSwarm
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv

@@ -46,8 +46,8 @@ def _parity_setup(cfg: EnvConfig) -> tuple[dict, np.ndarray]:
     return init, acts
 
 
-@pytest.fixture(scope="module")
-def parity_run():
+@pytest.fixture(scope="module", params=["freebody", "mjx"])
+def parity_run(request):
     cfg = EnvConfig(num_quads=N).without_noise()
     init, acts = _parity_setup(cfg)
     cpu = QuadSwarmEnv(cfg)
@@ -58,7 +58,7 @@ def parity_run():
         cpu_pos.append(info["state"]["pos"])
         cpu_rew.append(info["rewards"])
         cpu_floor.append(info["on_floor"])
-    env = MjxQuadSwarmEnv(cfg)
+    env = MjxQuadSwarmEnv(cfg, physics=request.param)
     reset = jax.jit(lambda key, s: env.reset(key, {**s, "motors": "hover"}))  # "hover" is static
     step = jax.jit(env.step)
     state0 = reset(jax.random.key(0), init)
@@ -239,7 +239,7 @@ _X64_SCRIPT = textwrap.dedent("""
     acts = cfg.quad.hover_action + 0.05 * np.sin(2 * np.pi * 1.3 * t + phase)
     cpu = QuadSwarmEnv(cfg)
     cpu.reset(seed=0, options={"state": init})
-    env = MjxQuadSwarmEnv(cfg)
+    env = MjxQuadSwarmEnv(cfg, physics=sys.argv[1])
     s = jax.jit(env.reset)(jax.random.key(0), init)
     step = jax.jit(env.step)
     err_p = err_r = 0.0
@@ -265,11 +265,12 @@ _X64_SCRIPT = textwrap.dedent("""
 
 
 @pytest.mark.slow
-def test_parity_x64_through_floor_wall_ceiling_and_quad_collisions():
+@pytest.mark.parametrize("physics", ["freebody", "mjx"])
+def test_parity_x64_through_floor_wall_ceiling_and_quad_collisions(physics):
     """With float64 on both sides the two engines agree to round-off through every contact model
     (paper floor with landing, wall and ceiling bounces, quad-quad responses), motors given as an
     (N, 4) array."""
-    out = subprocess.run([sys.executable, "-c", _X64_SCRIPT], capture_output=True, text=True, timeout=300,
+    out = subprocess.run([sys.executable, "-c", _X64_SCRIPT, physics], capture_output=True, text=True, timeout=300,
                          env={**os.environ, "JAX_PLATFORMS": "cpu"})
     assert out.returncode == 0, out.stderr[-3000:]
     r = json.loads(out.stdout.strip().splitlines()[-1])

@@ -324,15 +324,14 @@ class MjxQuadSwarmEnv:
         ``mjx.Data`` carried through the sub-steps by "mjx", None for "freebody")."""
         n, fb = self.N, self._fb
         if self.physics == "freebody":
-            from quadswarm_mj.freebody import freebody_step
+            from quadswarm_mj.freebody import freebody_constants, freebody_step
 
-            m = self.mjx_model
-            ipos, iquat = m.body_ipos[fb:fb + n], m.body_iquat[fb:fb + n]
-            gravity, dt = m.opt.gravity, self.cfg.sim_dt
+            c = freebody_constants(self.mj_model, self.arena)  # checks the model's assumptions
+            dt = c.dt
 
             def integrate_fb(q: Any, v: Any, wrench: Any, aux: Any) -> tuple[Any, Any, Any]:
-                q2, v2 = freebody_step(q, v, wrench, params["mass"], params["inertia"], ipos.astype(q.dtype),
-                                       iquat.astype(q.dtype), gravity.astype(q.dtype), dt)
+                q2, v2 = freebody_step(q, v, wrench, params["mass"], params["inertia"], c.ipos, c.iquat,
+                                       c.gravity, dt)
                 return q2, v2, aux
 
             return integrate_fb
