@@ -253,7 +253,7 @@ def collision_draw_specs(cfg: Any) -> dict[str, DrawSpec]:
 # the r-th event takes slot r mod budget (beyond the budget, events repeat an earlier event's draws
 # of the same step; each event's own draws keep SPEC §5's distributions exactly).
 
-QUAD_PAIR_BUDGET = 4
+QUAD_PAIR_BUDGET = 2
 WALL_BUDGET = 2
 FLOOR_BUDGET = 2
 

@@ -586,7 +586,25 @@ class AutoResetWrapper:
     def vstep(self, state: State, action: jax.Array) -> State:
         """A batch of worlds: (State with leading axis W, (W, N, 4)) -> State."""
         s = jax.vmap(self.env.step)(state, action)
-        return jax.lax.cond(jnp.any(s.done), jax.vmap(self._renew), lambda x: x, s)
+        if self.env.physics == "mjx":
+            return jax.lax.cond(jnp.any(s.done), jax.vmap(self._renew), lambda x: x, s)
+        # freebody: only qpos, qvel, time of mjx.Data change; the (large) Data stays out of the cond
+        small = (s.done, s.obs, s.info, s.data.qpos, s.data.qvel, s.data.time)
+        _, obs, info, qpos, qvel, t = jax.lax.cond(jnp.any(s.done), jax.vmap(self._renew_small), lambda x: x, small)
+        return s.replace(obs=obs, info=info, data=s.data.replace(qpos=qpos, qvel=qvel, time=t))
+
+    def _renew_small(self, small: tuple) -> tuple:
+        """:meth:`_renew` of (done, obs, info, qpos, qvel, time) (freebody physics: the rest of Data is constant)."""
+        done, obs, info, qpos, qvel, t = small
+        fresh = self.env.reset(jax.random.fold_in(info["rng"], 1))
+        fresh_info = {**fresh.info, "total_steps": info["total_steps"],
+                      "episode_metrics": info["episode_metrics"], "truncation": info["truncation"]}
+
+        def pick(a: Any, b: Any) -> Any:
+            return _select(done, a, b)
+
+        return (done, pick(fresh.obs, obs), jax.tree.map(pick, fresh_info, info), pick(fresh.data.qpos, qpos),
+                pick(fresh.data.qvel, qvel), pick(fresh.data.time, t))
 
     def _renew(self, s: State) -> State:
         """Replace a finished world's state by a fresh episode (identity where not done)."""
@@ -600,7 +618,12 @@ class AutoResetWrapper:
             return _select(s.done, a, b)
 
         info = jax.tree.map(pick, fresh_info, s.info)
-        return s.replace(data=jax.tree.map(pick, fresh.data, s.data), obs=pick(fresh.obs, s.obs), info=info)
+        if self.env.physics == "mjx":
+            data = jax.tree.map(pick, fresh.data, s.data)
+        else:  # the other fields of Data are the constants of the model's initial data
+            data = s.data.replace(qpos=pick(fresh.data.qpos, s.data.qpos), qvel=pick(fresh.data.qvel, s.data.qvel),
+                                  time=pick(fresh.data.time, s.data.time))
+        return s.replace(data=data, obs=pick(fresh.obs, s.obs), info=info)
 
 
 def _select(pred: jax.Array, a: Any, b: Any) -> Any:
@@ -614,20 +637,22 @@ def _select(pred: jax.Array, a: Any, b: Any) -> Any:
 # ---------------------------------------------------------------------------------- benchmark
 
 
-def benchmark_mjx(cfg: EnvConfig, num_worlds: int, num_steps: int, seed: int = 0) -> dict[str, float]:
+def benchmark_mjx(cfg: EnvConfig, num_worlds: int, num_steps: int, seed: int = 0,
+                  physics: str | None = None) -> dict[str, float]:
     """Time ``num_steps`` control steps of ``num_worlds`` worlds (auto-reset, hover actions).
 
     Worlds are sharded over all JAX devices when their number divides ``num_worlds``. The rollout
     is one jitted ``lax.scan``; ``compile_s`` is the time to trace and compile it (reset and
     rollout), ``samples_per_s`` counts quad-steps (worlds x quads x steps) per second of the
     compiled rollout (median of 3 runs). Returns also ``steps_per_s`` (world-steps per second),
-    ``num_worlds``, ``num_quads``, ``num_steps``, ``devices``.
+    ``num_worlds``, ``num_quads``, ``num_steps``, ``devices``. ``physics``: see
+    :class:`MjxQuadSwarmEnv` (None: its default).
     """
     from quadswarm_mj.envs.sharding import WorldSharding
 
     if num_worlds < 1 or num_steps < 1:
         raise ValueError(f"num_worlds and num_steps must be >= 1, got {num_worlds}, {num_steps}")
-    env = AutoResetWrapper(MjxQuadSwarmEnv(cfg))
+    env = AutoResetWrapper(MjxQuadSwarmEnv(cfg, physics=physics))
     shard = WorldSharding(num_worlds)
     hover = jnp.full((num_worlds, cfg.num_quads, 4), cfg.quad.hover_action, _float())
 
