@@ -43,3 +43,44 @@ def obstacle_stage(pos: Any, vel: Any, omega: Any) -> tuple[Any, Any, Any]:
     vel m/s world, omega rad/s body). The obstacle helper also appends SDF features to the
     observations and an ``obstacle_collision`` reward term. Identity (no obstacles)."""
     return pos, vel, omega
+
+
+def initial_state(cfg: Any, scenario: Any, rand_draws: dict[str, Any], scenario_u: Any, spawn_u: Any,
+                  overrides: dict[str, Any], xp: Any, dtype: Any) -> dict[str, Any]:
+    """The reset math of both engines: dynamics parameters, scenario start, spawn, and the overrides of
+    ``options["state"]`` / ``init_state`` (already validated, rows of the reset worlds).
+
+    ``rand_draws`` are the randomization draws (or the nominal ones), ``scenario_u`` and ``spawn_u``
+    the scenario's and the spawn's uniforms (leading dims (..., ) of the worlds reset). ``overrides``
+    may hold ``pos``, ``vel``, ``rot``, ``omega``, ``goals`` arrays (..., N, ...) and ``motors`` ("zero",
+    "hover" or (..., N, 4) normalized thrusts; default ``cfg.motor_start``). Returns ``params``,
+    ``scenario`` (ScenarioState), ``pos`` m world, ``vel`` m/s world, ``rot`` body->world, ``omega``
+    rad/s body and ``u0`` (normalized rotor speeds)."""
+    from quadswarm_mj.actuation import hover_motor_state
+    from quadswarm_mj.randomization import params_from_draws
+    from quadswarm_mj.scenarios.base import spawn_state
+    from quadswarm_mj.spatial import yaw_rotmat
+
+    params = params_from_draws(cfg, rand_draws)
+    sstate = scenario.init(cfg, scenario_u)
+    if overrides.get("goals") is not None:
+        sstate = sstate._replace(goals=xp.asarray(overrides["goals"], dtype=dtype).reshape(sstate.goals.shape))
+    sp = spawn_state(cfg, sstate.goals, spawn_u)
+    pos, R = sp["pos"], yaw_rotmat(sp["yaw"])
+    shape = pos.shape
+
+    def pick(key: str, default: Any, tail: tuple[int, ...]) -> Any:
+        v = overrides.get(key)
+        return default if v is None else xp.asarray(v, dtype=dtype).reshape(shape[:-1] + tail)
+
+    pos = pick("pos", pos, (3,))
+    vel = pick("vel", xp.zeros(shape, dtype=dtype), (3,))
+    R = pick("rot", R, (3, 3))
+    omega = pick("omega", xp.zeros(shape, dtype=dtype), (3,))
+    motors = overrides.get("motors", cfg.motor_start)
+    if isinstance(motors, str):
+        u0 = (xp.asarray(hover_motor_state(params), dtype=dtype) if motors == "hover"
+              else xp.zeros(shape[:-1] + (4,), dtype=dtype))
+    else:
+        u0 = xp.sqrt(xp.clip(xp.asarray(motors, dtype=dtype).reshape(shape[:-1] + (4,)), 0.0, 1.0))
+    return {"params": params, "scenario": sstate, "pos": pos, "vel": vel, "rot": R, "omega": omega, "u0": u0}

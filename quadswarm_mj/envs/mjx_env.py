@@ -76,7 +76,6 @@ from quadswarm_mj import pipeline
 from quadswarm_mj.actuation import (
     SPIN,
     action_to_command,
-    hover_motor_state,
     motor_noise_draw_spec,
     motor_noise_step,
     rotor_positions,
@@ -113,11 +112,11 @@ from quadswarm_mj.downwash import (
 from quadswarm_mj.envs.validation import check_state
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.random_draws import DrawSpec, JaxSampler, MeanSampler, Normal, Uniform
-from quadswarm_mj.randomization import nominal_draws, params_from_draws, randomization_draw_spec
+from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
 from quadswarm_mj.rewards import TERMS, anneal_factor, reward_terms, total_reward
 from quadswarm_mj.scenarios import get_scenario
-from quadswarm_mj.scenarios.base import spawn_num_uniforms, spawn_state
-from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat, yaw_rotmat
+from quadswarm_mj.scenarios.base import spawn_num_uniforms
+from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
 
 INIT_STATE_KEYS = ("pos", "vel", "rot", "omega", "motors", "goals")
 PHYSICS = ("freebody", "mjx")
@@ -387,29 +386,12 @@ class MjxQuadSwarmEnv:
         f = _float()
         init_state = check_state({} if init_state is None else init_state, n, name="init_state",
                                  room=(cfg.room_low, cfg.room_high))
-        motors = init_state.get("motors", cfg.motor_start)
         k_draw, k_next = jax.random.split(key)
         rnd = self._draw(self._reset_spec, k_draw)
-        # 1. dynamics parameters (drawn at every reset, under jit)
         draws = _sub(rnd, "rand") if cfg.randomize else nominal_draws(cfg, jnp.zeros((n,), f))
-        params = params_from_draws(cfg, draws)
-        # 2. scenario
-        sstate = self.scenario.init(cfg, rnd["scenario"])
-        if init_state.get("goals") is not None:
-            sstate = sstate._replace(goals=jnp.asarray(init_state["goals"], f).reshape(n, 3))
-        goals = sstate.goals
-        # 3. start state
-        sp = spawn_state(cfg, goals, rnd["spawn"])
-        pos, R = sp["pos"], yaw_rotmat(sp["yaw"])
-        vel, omega = jnp.zeros((n, 3), f), jnp.zeros((n, 3), f)
-        pos = jnp.asarray(init_state.get("pos", pos), f).reshape(n, 3)
-        vel = jnp.asarray(init_state.get("vel", vel), f).reshape(n, 3)
-        R = jnp.asarray(init_state.get("rot", R), f).reshape(n, 3, 3)
-        omega = jnp.asarray(init_state.get("omega", omega), f).reshape(n, 3)
-        if isinstance(motors, str):
-            u0 = hover_motor_state(params).astype(f) if motors == "hover" else jnp.zeros((n, 4), f)
-        else:
-            u0 = jnp.sqrt(jnp.clip(jnp.asarray(motors, f).reshape(n, 4), 0.0, 1.0))
+        init = pipeline.initial_state(cfg, self.scenario, draws, rnd["scenario"], rnd["spawn"], init_state, jnp, f)
+        params, sstate, goals = init["params"], init["scenario"], init["scenario"].goals
+        pos, vel, R, omega, u0 = init["pos"], init["vel"], init["rot"], init["omega"], init["u0"]
         data = self._write(self._data0, jnp.concatenate([pos, rotmat_to_quat(R)], -1),
                            jnp.concatenate([vel, omega], -1))
         data = data.replace(time=jnp.zeros_like(data.time))
