@@ -56,8 +56,10 @@ passes thrust, torque and motor constants to the actuation functions.
   ``total_steps`` () int across episodes (reward annealing; kept by :class:`AutoResetWrapper`);
   ``truncation`` () float (1.0 at the time limit); ``rng`` (the key for the next step's draws).
 
-Not supported on MJX (``ValueError``): ``collision_model`` "mujoco" and "blend" (contacts through
-MJX's solver); use the CPU env for those.
+``collision_model`` "mujoco" and "blend" run with ``physics="mjx"`` (MJX's contact solver: the quads'
+hitbox spheres against each other and the room's floor plane and wall/ceiling boxes; "blend" keeps
+the paper's quad-quad response), gated as in ``CpuSwarm``: MuJoCo resolves the surfaces and the
+flags come from the proximity to them.
 """
 
 from __future__ import annotations
@@ -202,15 +204,18 @@ class MjxQuadSwarmEnv:
         cfg = EnvConfig() if cfg is None else cfg
         if not isinstance(cfg, EnvConfig):
             raise ValueError(f"cfg must be an EnvConfig, got {type(cfg).__name__}")
-        if cfg.collision_model != "paper":
-            raise ValueError(f"MjxQuadSwarmEnv supports collision_model='paper' only, got "
-                             f"{cfg.collision_model!r}; use the CPU env (QuadSwarmEnv) for 'mujoco'/'blend'")
         if physics is None:
-            physics = "freebody" if _have_freebody() else "mjx"
+            physics = "freebody" if cfg.collision_model == "paper" and _have_freebody() else "mjx"
         if physics not in PHYSICS:
             raise ValueError(f"physics must be one of {PHYSICS}, got {physics!r}")
+        if physics == "freebody" and cfg.collision_model != "paper":
+            raise ValueError(f"physics='freebody' has no contacts: collision_model must be 'paper' with it, got "
+                             f"{cfg.collision_model!r}; use physics='mjx' for 'mujoco'/'blend'")
         if physics == "freebody" and not _have_freebody():
             raise ValueError("physics='freebody' needs quadswarm_mj.freebody (not available); use physics='mjx'")
+        # which events the paper's model handles (the others are MuJoCo contacts, as in CpuSwarm)
+        self._paper_floor = cfg.collision_model == "paper"
+        self._paper_quads = cfg.collision_model in ("paper", "blend")
         self.physics = physics
         self.cfg = cfg
         self.N = n = cfg.num_quads
@@ -436,17 +441,22 @@ class MjxQuadSwarmEnv:
             eps = motor_noise_step(eps, params["motor_sigma"], cfg.noise.motor_noise_theta, rnd["motor/motor"])
         max_w = cfg.quad.max_omega
         floor_z = cfg.quad.arm
+        paper_floor = self._paper_floor
 
         def substep(carry: tuple, yaw_slots: jax.Array) -> tuple[tuple, None]:
             q, v, R, u, f_norm, on_floor, hit_floor, aux = carry
             cmd_s = pipeline.control_stage(cmd, q, v, R)  # extension point: control modes
             u, f_norm, force, torque = substep_wrench(u, cmd_s, eps, params, R, rotor_pos, mix, torque_spin)
             force, torque = pipeline.aero_stage(force, torque, f_norm, q, v, R)  # extension point: aerodynamics
-            force, torque = floor_wrench(on_floor, force, torque, v[:, :3], params["mass"], params["gravity"],
-                                         cfg.collision.floor_friction, cfg.sim_dt)
+            if paper_floor:
+                force, torque = floor_wrench(on_floor, force, torque, v[:, :3], params["mass"], params["gravity"],
+                                             cfg.collision.floor_friction, cfg.sim_dt)
             q, v, aux = integrate(q, v, jnp.concatenate([force, torque], axis=-1), aux)
             omega = jnp.clip(v[:, 3:], -max_w, max_w)
             R = quat_to_rotmat(q[:, 3:7])
+            if not paper_floor:  # MuJoCo's contacts act on the floor
+                v = jnp.concatenate([v[:, :3], omega], -1)
+                return (q, v, R, u, f_norm, on_floor, hit_floor, aux), None
             landing = (q[:, 2] <= floor_z) & ~on_floor
             yaw = expand_per_quad(landing, {"yaw": yaw_slots})["yaw"]
             r = floor_impact(q[:, :3], v[:, :3], omega, q[:, 3:7], R, u, on_floor, floor_z, yaw)
@@ -463,14 +473,28 @@ class MjxQuadSwarmEnv:
         # once per control step: walls, ceiling, quad-quad, (obstacles), downwash (velocity-level models)
         pos, vel, omega = q[:, :3], v[:, :3], v[:, 3:]
         room_low, room_high = jnp.asarray(cfg.room_low, f), jnp.asarray(cfg.room_high, f)
-        bounce = wall_bounces(pos, info["at_wall"], info["at_ceiling"], room_low, room_high)
-        w = wall_collisions(pos, vel, omega, info["at_wall"], info["at_ceiling"], room_low, room_high,
-                            expand_per_quad(bounce, _sub(rnd, "wall")), cfg.collision.wall_speed_limits)
-        pos, vel, omega = w["pos"], w["vel"], w["omega"]
-        new_upper = new_pairs_upper(pos, info["contact"], cfg.hitbox)
-        q_draws = expand_quad_draws(new_upper, _sub(rnd, "quad"))
-        qc = quad_collisions(pos, vel, omega, info["contact"], cfg.hitbox, q_draws)
-        vel, omega = qc["vel"], qc["omega"]
+        if paper_floor:
+            bounce = wall_bounces(pos, info["at_wall"], info["at_ceiling"], room_low, room_high)
+            w = wall_collisions(pos, vel, omega, info["at_wall"], info["at_ceiling"], room_low, room_high,
+                                expand_per_quad(bounce, _sub(rnd, "wall")), cfg.collision.wall_speed_limits)
+            pos, vel, omega = w["pos"], w["vel"], w["omega"]
+        else:  # MuJoCo resolves floor/walls/ceiling; flags from proximity to the surfaces (as CpuSwarm)
+            margin = cfg.quad.arm + 0.005
+            on_floor_now = pos[:, 2] <= margin
+            at_wall = jnp.any((pos[:, :2] <= room_low[:2] + margin) | (pos[:, :2] >= room_high[:2] - margin), -1)
+            at_ceiling = pos[:, 2] >= room_high[2] - margin
+            hit_floor = on_floor_now & ~info["on_floor"]
+            on_floor = on_floor_now
+            w = {"hit_wall": at_wall & ~info["at_wall"], "hit_ceiling": at_ceiling & ~info["at_ceiling"],
+                 "at_wall": at_wall, "at_ceiling": at_ceiling}
+        if self._paper_quads:
+            new_upper = new_pairs_upper(pos, info["contact"], cfg.hitbox)
+            q_draws = expand_quad_draws(new_upper, _sub(rnd, "quad"))
+            qc = quad_collisions(pos, vel, omega, info["contact"], cfg.hitbox, q_draws)
+            vel, omega = qc["vel"], qc["omega"]
+        else:
+            contact, _ = pairwise_contacts(pos, cfg.hitbox)
+            qc = {"contact": contact, "new_contact": contact & ~info["contact"]}
         pos, vel, omega = pipeline.obstacle_stage(pos, vel, omega)  # extension point: obstacles
         _, dist = pairwise_contacts(pos, cfg.hitbox)
         if cfg.downwash:
