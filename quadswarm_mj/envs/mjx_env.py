@@ -20,10 +20,23 @@ quad-quad collisions, downwash, scenarios, observations, rewards and episode met
 functions :mod:`quadswarm_mj.envs.cpu_core` calls, here on ``jax.numpy`` with random draws from
 :class:`FusedJaxSampler` (a :class:`~quadswarm_mj.random_draws.JaxSampler` that makes all draws of
 one reset or one step with one uniform and one normal call) or a ``MeanSampler`` where a
-``cfg.noise.stochastic_*`` flag is off. Rigid-body integration is ``mjx.step`` in a ``lax.scan``
-over the ``cfg.substeps`` physics sub-steps of one control step, in the same order as
-``CpuSwarm._physics``. Without noise, MJX (float32) and the CPU env (float64) agree to well under
-2 mm over 150 control steps (``tests/test_mjx_env.py``).
+``cfg.noise.stochastic_*`` flag is off. The stage order and its extension points (control modes,
+aerodynamics, obstacles) are described in :mod:`quadswarm_mj.pipeline`; the reset math is
+:func:`quadswarm_mj.pipeline.initial_state`, shared with the CPU engine. Rigid-body integration is
+``physics``: :func:`quadswarm_mj.freebody.freebody_step` (default with the paper's collision
+model) or ``mjx.step``, in a ``lax.scan`` over the ``cfg.substeps`` physics sub-steps of one
+control step whose carry holds the quads' qpos (N, 7) / qvel (N, 6); ``mjx.Data`` is written once
+per control step. Without noise, MJX (float32) and the CPU env (float64) agree to well under
+2 mm over 150 control steps with either physics (``tests/test_mjx_env.py``).
+
+Draw budget: the event models draw for a bounded number of events per step and world (new
+quad-quad pairs: ``collisions.QUAD_PAIR_BUDGET``; wall/ceiling bounces: ``WALL_BUDGET``; floor
+landings per sub-step: ``FLOOR_BUDGET``; downwash pairs: ``downwash.DOWNWASH_BUDGET``). Events
+are ranked in index order (pairs i < j row-major); event r takes slot r mod budget, so every
+event's draws have SPEC §5's distribution exactly, and only beyond the budget (more simultaneous
+events in one world and step) do events repeat the draws of an earlier event of that step. The
+CPU engine draws per event. ``tests/test_draw_budget.py`` compares post-collision speeds and spins
+of both engines with a KS test.
 
 The CPU engine skips a model function when nothing can happen (no quad near the floor, no new
 contact); here every function is always evaluated, which gives the same values because each one
