@@ -177,12 +177,43 @@ def _sub(draws: dict[str, Any], prefix: str) -> dict[str, Any]:
 
 
 class FusedJaxSampler(JaxSampler):
-    """A :class:`~quadswarm_mj.random_draws.JaxSampler` that draws a whole spec with ONE
-    ``jax.random.uniform`` and ONE ``jax.random.normal`` call (sliced per entry) instead of one
-    call per entry: same distributions, far less to compile (each threefry call is a large graph on
-    XLA:CPU) and fewer small kernels to run. Used under ``jit`` only."""
+    """A :class:`~quadswarm_mj.random_draws.JaxSampler` that draws a whole spec from ONE
+    ``jax.random.bits`` call (sliced per entry) instead of one call per entry: far less to compile
+    (each threefry call is a large graph on XLA:CPU) and fewer small kernels to run. The bits are
+    hashed with ``jax.extend.random.threefry_2x32`` on a counter, so one threefry block feeds two
+    numbers (with ``jax_threefry_partitionable``, ``jax.random.bits`` hashes one block per number). Uniforms and normals
+    are made from the words exactly as ``jax.random.uniform`` / ``jax.random.normal`` make them
+    (23 mantissa bits; normal = sqrt(2) erfinv(U(-1, 1))): the same distributions. Used under
+    ``jit`` only (float32 and threefry keys; otherwise one uniform and one normal call)."""
 
     def draw(self, spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
+        items = [(name, d, tuple(batch_shape) + tuple(d.shape)) for name, d in spec.items()]
+        sizes = [int(np.prod(shape)) for _, _, shape in items]
+        threefry = jax.random.key_impl(self.key) == jax.random.key_impl(jax.random.key(0, impl="threefry2x32"))
+        if jnp.dtype(self.dtype) != jnp.float32 or not items or not threefry:
+            return self._draw_two_calls(spec, batch_shape)
+        from jax.extend.random import threefry_2x32
+
+        self.key, k = jax.random.split(self.key)
+        total = sum(sizes)
+        # threefry_2x32 hashes the counter array's two halves as (x0, x1) pairs: 2 words per block
+        words = threefry_2x32(jax.random.key_data(k), jnp.arange(total + total % 2, dtype=jnp.uint32))[:total]
+        # U[0, 1) with 23 random mantissa bits, as jax.random.uniform
+        u01 = jax.lax.bitcast_convert_type((words >> 9) | jnp.uint32(0x3F800000), jnp.float32) - 1.0
+        out: dict[str, Any] = {}
+        start = 0
+        lo_n = np.nextafter(np.float32(-1.0), np.float32(0.0))
+        for (name, d, shape), size in zip(items, sizes):
+            x = u01[start:start + size].reshape(shape)
+            start += size
+            if isinstance(d, Uniform):
+                out[name] = jnp.maximum(d.low, d.low + (d.high - d.low) * x)
+            else:  # jax.random.normal: uniform on [nextafter(-1, 0), 1), then sqrt(2) erfinv
+                v = jnp.maximum(lo_n, lo_n + (1.0 - lo_n) * x)
+                out[name] = d.mean + d.std * (np.sqrt(2.0).astype(np.float32) * jax.lax.erf_inv(v))
+        return out
+
+    def _draw_two_calls(self, spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
         self.key, k_u, k_n = jax.random.split(self.key, 3)
         out: dict[str, Any] = {}
         for kind, key in ((Uniform, k_u), (Normal, k_n)):
