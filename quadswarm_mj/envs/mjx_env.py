@@ -53,7 +53,11 @@ passes thrust, torque and motor constants to the actuation functions.
 * ``data``: ``mjx.Data``. Quad ``i``'s free joint is ``qpos[7 i: 7 i + 7]`` (position m, world;
   quaternion w, x, y, z body->world) and ``qvel[6 i: 6 i + 6]`` (linear m/s world, angular rad/s
   body). Derived fields (``xpos``...) are those of the last physics sub-step; after ``reset`` and
-  the once-per-control-step velocity models they lag ``qpos``/``qvel`` until the next ``mjx.step``.
+  the once-per-control-step velocity models they lag ``qpos``/``qvel`` until the next ``mjx.step``
+  (with ``physics="freebody"`` they keep the values of the initial data: call ``mjx.forward`` or
+  ``mj_forward`` after ``mjx.get_data`` to render). ``info["state"]["rot"]`` must match the
+  quaternion in ``qpos``: ``step`` uses it as the first sub-step's rotation (code that edits
+  ``qpos`` writes ``rot`` too).
 * ``obs`` (N, obs_dim), ``reward`` (N,) per quad, ``done`` () bool (time limit; there is no
   termination), ``metrics`` {"reward/<term>": (N,)} for every term of
   :data:`quadswarm_mj.rewards.TERMS` (they sum to ``reward``).
