@@ -36,6 +36,23 @@ Array code is component-wise on (..., N) arrays (static slices and element-wise 
 inverse), so XLA fuses a step into a few loops. :func:`freebody_constants` reads ``ipos``, ``iquat``,
 ``mass``, ``inertia``, ``gravity`` and ``dt`` of the quads of a :class:`quadswarm_mj.arena.Arena` once
 and checks that the model satisfies the assumptions above.
+
+Use in an engine that keeps ``mjx.Data`` as its state (``qs``/``vs`` = ``arena.qpos_start``/``qvel_start``)::
+
+    k = freebody_constants(arena.model, arena)  # once, NumPy constants (closed over by jit)
+    q = data.qpos[qs:qs + 7 * n].reshape(n, 7)
+    v = data.qvel[vs:vs + 6 * n].reshape(n, 6)
+    q, v = freebody_step(q, v, wrench, mass, inertia, k.ipos, k.iquat, k.gravity, k.dt, max_omega=max_w)
+    data = data.replace(qpos=data.qpos.at[qs:qs + 7 * n].set(q.ravel()),
+                        qvel=data.qvel.at[vs:vs + 6 * n].set(v.ravel()), time=data.time + k.dt)
+
+``wrench`` (n, 6) is what would be written into ``xfrc_applied``; ``mass``/``inertia`` are read directly
+(no ``model.replace``). The derived ``Data`` fields (``xpos``, ``xquat``, ...) are not recomputed: a renderer
+going through ``mjx.get_data`` must run ``mj_forward``/``mj_kinematics`` on the copy. Note for the MuJoCo
+side: ``mj_step`` takes the mass matrix of a "simple" body (COM at the origin, principal axes = body axes,
+as the Crazyflie) from ``dof_M0``, computed at compile time; after writing ``body_mass``/``body_inertia``
+into an ``MjModel``, call ``mujoco.mj_setConst`` or ``mj_step`` mixes new bias forces with the old mass
+matrix (MuJoCo 4.0.0; ``tests/test_freebody.py`` shows it).
 """
 
 from __future__ import annotations
