@@ -269,6 +269,7 @@ def test_jit_float64_equals_numpy(name: str) -> None:
     assert err_q <= 1e-11 and err_v <= 1e-11, (err_q, err_v)
 
 
+@pytest.mark.slow  # compiles mjx.step: 13 s on an idle 2-core machine, 45 s under load
 def test_float32_matches_mjx_step() -> None:
     """float32 freebody vs float32 ``mjx.step`` on the arena model (random masses and inertias through
     ``model.replace``, as the MJX env does), 200 sub-steps: they agree within float32 round-off growth
