@@ -165,14 +165,13 @@ def freebody_step(qpos: Any, qvel: Any, xfrc: Any, mass: Any, inertia: Any, ipos
     w = tuple(w[k] + dt * alpha[k] for k in range(3))
     px, py, pz = px + dt * v[0], py + dt * v[1], pz + dt * v[2]
     # mju_quatIntegrate: q <- q * (cos(a/2), sin(a/2) axis), a = dt |w|, axis = w / |w|
-    # (|w| < mjMINVAL: MuJoCo's rotation is the identity to within dt * mjMINVAL; the limits sin(a/2) / |w|
-    # -> dt / 2 and cos(a/2) -> 1 are taken there, which keeps values and gradients finite at w = 0)
-    wn2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
-    tiny = wn2 < _MINVAL * _MINVAL
-    wn = xp.sqrt(xp.where(tiny, 1, wn2))
+    # |w| is taken as sqrt(|w|^2 + mjMINVAL^2): a relative change below 1e-16 for |w| > 1e-7 rad/s, and
+    # at w = 0 the identity rotation (sin(a/2) / |w| -> dt / 2) with finite values and gradients, where
+    # MuJoCo's own zero-vector branch gives the identity to within dt * mjMINVAL
+    wn = xp.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2] + _MINVAL * _MINVAL)
     half = 0.5 * dt * wn
-    s = xp.where(tiny, 0.5 * dt, xp.sin(half) / wn)  # sin(a/2) / |w|
-    rw, rx, ry, rz = xp.where(tiny, 1, xp.cos(half)), s * w[0], s * w[1], s * w[2]
+    s = xp.sin(half) / wn  # sin(a/2) / |w|
+    rw, rx, ry, rz = xp.cos(half), s * w[0], s * w[1], s * w[2]
     nw = qw * rw - qx * rx - qy * ry - qz * rz
     nx = qw * rx + qx * rw + qy * rz - qz * ry
     ny = qw * ry - qx * rz + qy * rw + qz * rx
