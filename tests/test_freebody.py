@@ -155,7 +155,8 @@ def test_matches_mj_step_with_omega_clip(name: str) -> None:
     k = freebody_constants(model, ids)
     c = _case(model, ids, seed=2)
     ref = _mj_rollout(model, ids, c, max_omega=40.0)
-    assert np.abs(_mj_rollout(model, ids, c)[1][..., 3:]).max() > 100.0  # unclipped, this seed spins up
+    with np.errstate(all="ignore"):  # unclipped, this seed spins up (to overflow on the arena model)
+        assert np.nanmax(np.abs(_np_rollout(k, c)[1][..., 3:])) > 100.0
     _check_spin(ref[1], high=40.0 + 1e-12)
     err_q, err_v = _err(_np_rollout(k, c, max_omega=40.0), ref)
     assert err_q <= 1e-9 and err_v <= 1e-9, (err_q, err_v)
