@@ -36,6 +36,23 @@ Array code is component-wise on (..., N) arrays (static slices and element-wise 
 inverse), so XLA fuses a step into a few loops. :func:`freebody_constants` reads ``ipos``, ``iquat``,
 ``mass``, ``inertia``, ``gravity`` and ``dt`` of the quads of a :class:`quadswarm_mj.arena.Arena` once
 and checks that the model satisfies the assumptions above.
+
+Use in an engine that keeps ``mjx.Data`` as its state (``qs``/``vs`` = ``arena.qpos_start``/``qvel_start``)::
+
+    k = freebody_constants(arena.model, arena)  # once, NumPy constants (closed over by jit)
+    q = data.qpos[qs:qs + 7 * n].reshape(n, 7)
+    v = data.qvel[vs:vs + 6 * n].reshape(n, 6)
+    q, v = freebody_step(q, v, wrench, mass, inertia, k.ipos, k.iquat, k.gravity, k.dt, max_omega=max_w)
+    data = data.replace(qpos=data.qpos.at[qs:qs + 7 * n].set(q.ravel()),
+                        qvel=data.qvel.at[vs:vs + 6 * n].set(v.ravel()), time=data.time + k.dt)
+
+``wrench`` (n, 6) is what would be written into ``xfrc_applied``; ``mass``/``inertia`` are read directly
+(no ``model.replace``). The derived ``Data`` fields (``xpos``, ``xquat``, ...) are not recomputed: a renderer
+going through ``mjx.get_data`` must run ``mj_forward``/``mj_kinematics`` on the copy. Note for the MuJoCo
+side: ``mj_step`` takes the mass matrix of a "simple" body (COM at the origin, principal axes = body axes,
+as the Crazyflie) from ``dof_M0``, computed at compile time; after writing ``body_mass``/``body_inertia``
+into an ``MjModel``, call ``mujoco.mj_setConst`` or ``mj_step`` mixes new bias forces with the old mass
+matrix (MuJoCo 4.0.0; ``tests/test_freebody.py`` shows it).
 """
 
 from __future__ import annotations
@@ -148,14 +165,13 @@ def freebody_step(qpos: Any, qvel: Any, xfrc: Any, mass: Any, inertia: Any, ipos
     w = tuple(w[k] + dt * alpha[k] for k in range(3))
     px, py, pz = px + dt * v[0], py + dt * v[1], pz + dt * v[2]
     # mju_quatIntegrate: q <- q * (cos(a/2), sin(a/2) axis), a = dt |w|, axis = w / |w|
-    # (|w| < mjMINVAL: MuJoCo's rotation is the identity to within dt * mjMINVAL; the limits sin(a/2) / |w|
-    # -> dt / 2 and cos(a/2) -> 1 are taken there, which keeps values and gradients finite at w = 0)
-    wn2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
-    tiny = wn2 < _MINVAL * _MINVAL
-    wn = xp.sqrt(xp.where(tiny, 1, wn2))
+    # |w| is taken as sqrt(|w|^2 + mjMINVAL^2): a relative change below 1e-16 for |w| > 1e-7 rad/s, and
+    # at w = 0 the identity rotation (sin(a/2) / |w| -> dt / 2) with finite values and gradients, where
+    # MuJoCo's own zero-vector branch gives the identity to within dt * mjMINVAL
+    wn = xp.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2] + _MINVAL * _MINVAL)
     half = 0.5 * dt * wn
-    s = xp.where(tiny, 0.5 * dt, xp.sin(half) / wn)  # sin(a/2) / |w|
-    rw, rx, ry, rz = xp.where(tiny, 1, xp.cos(half)), s * w[0], s * w[1], s * w[2]
+    s = xp.sin(half) / wn  # sin(a/2) / |w|
+    rw, rx, ry, rz = xp.cos(half), s * w[0], s * w[1], s * w[2]
     nw = qw * rw - qx * rx - qy * ry - qz * rz
     nx = qw * rx + qx * rw + qy * rz - qz * ry
     ny = qw * ry - qx * rz + qy * rw + qz * rx
