@@ -243,3 +243,76 @@ def collision_draw_specs(cfg: Any) -> dict[str, DrawSpec]:
         "wall": wall_draw_spec(n, cfg.collision_decay, c.kick_omega),
         "floor": floor_draw_spec(n),
     }
+
+
+# ------------------------------------------------------------------------------- draw budgets
+# The JAX engine's bounded draws (see :func:`quadswarm_mj.random_draws.event_slots`): per step it
+# draws the collision noise of QUAD_PAIR_BUDGET new quad-quad pairs, WALL_BUDGET wall/ceiling
+# bounces and FLOOR_BUDGET floor landings per sub-step, and expands them to the dense draws the
+# model functions take. Ranking rule: new pairs (i < j) in row-major order, quads in index order;
+# the r-th event takes slot r mod budget (beyond the budget, events repeat an earlier event's draws
+# of the same step; each event's own draws keep SPEC §5's distributions exactly).
+
+QUAD_PAIR_BUDGET = 2
+WALL_BUDGET = 2
+FLOOR_BUDGET = 2
+
+
+def quad_collision_slot_spec(tries: int, slots: int, shared_std: float, own_std: float, num_quads: int,
+                             decay: tuple[float, float], kick_omega: tuple[float, float]) -> DrawSpec:
+    """Per-slot draws of new quad-quad pairs (i < j): ``shared`` c, ``own_i`` e_i, ``own_j`` e_j per
+    try, the pair's spin kick, and the per-quad ``decay`` (as :func:`quad_collision_draw_spec`)."""
+    return {
+        "shared": Normal(0.0, shared_std, (tries, slots, 3)),
+        "own_i": Normal(0.0, own_std, (tries, slots, 3)),
+        "own_j": Normal(0.0, own_std, (tries, slots, 3)),
+        "kick_dir": Normal(0.0, 1.0, (slots, 3)),
+        "kick_mag": Uniform(kick_omega[0], kick_omega[1], (slots,)),
+        "decay": Uniform(decay[0], decay[1], (num_quads,)),
+    }
+
+
+def new_pairs_upper(pos: Any, prev_contact: Any, hitbox: float) -> Any:
+    """(N, N) mask of the new contact pairs with i < j (the events ranked by the budget)."""
+    contact, _ = pairwise_contacts(pos, hitbox)
+    n = pos.shape[-2]
+    return contact & ~prev_contact & np.triu(np.ones((n, n), bool), k=1)
+
+
+def expand_quad_draws(new_upper: Any, slots: dict[str, Any]) -> dict[str, Any]:
+    """Dense draws of :func:`quad_collisions` (one world) from per-slot draws (:func:`quad_collision_slot_spec`)."""
+    from quadswarm_mj.random_draws import event_slots, spread
+
+    xp = array_namespace(new_upper, slots["shared"])
+    n = new_upper.shape[-1]
+    S = slots["kick_mag"].shape[-1]
+    hot = event_slots(xp, new_upper.reshape(n * n), S)  # (N N, S)
+
+    def pairs(x: Any) -> Any:  # (S, *shape) -> (N, N, *shape), zero off the new upper pairs
+        return spread(xp, hot, x).reshape((n, n) + tuple(x.shape[1:]))
+
+    def tries(x: Any) -> Any:  # (T, S, 3) -> (T, N, N, 3)
+        return xp.stack([pairs(x[t]) for t in range(x.shape[0])])
+
+    own = tries(slots["own_i"]) + xp.swapaxes(tries(slots["own_j"]), -2, -3)
+    return {"shared": tries(slots["shared"]), "own": own, "decay": slots["decay"],
+            "kick_dir": pairs(slots["kick_dir"]), "kick_mag": pairs(slots["kick_mag"])}
+
+
+def wall_bounces(pos: Any, prev_wall: Any, prev_ceiling: Any, room_low: Any, room_high: Any) -> Any:
+    """(N,) mask of the quads that newly hit a wall or the ceiling (as :func:`wall_collisions`)."""
+    xp = array_namespace(pos, prev_wall)
+    lo = xp.asarray(room_low, dtype=pos.dtype)
+    hi = xp.asarray(room_high, dtype=pos.dtype)
+    at_wall = xp.any((pos[..., :2] <= lo[:2]) | (pos[..., :2] >= hi[:2]), axis=-1)
+    return (at_wall & ~prev_wall) | ((pos[..., 2] >= hi[2]) & ~prev_ceiling)
+
+
+def expand_per_quad(mask: Any, slots: dict[str, Any]) -> dict[str, Any]:
+    """Dense per-quad draws (N, *shape) from per-slot draws (S, *shape) for the quads in ``mask``."""
+    from quadswarm_mj.random_draws import event_slots, spread
+
+    xp = array_namespace(mask, *slots.values())
+    S = next(iter(slots.values())).shape[0]
+    hot = event_slots(xp, mask, S)
+    return {k: spread(xp, hot, v) for k, v in slots.items()}

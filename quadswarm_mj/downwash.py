@@ -54,3 +54,28 @@ def apply_downwash(pos: Any, vel: Any, omega: Any, R: Any, dt: float, draws: dic
     w_mag = xp.maximum(1e-6, 0.3 * (dist - 1.0) ** 2 + draws["omega_mag"])
     dw = xp.where(mask[..., None], w_mag[..., None] * safe_normalize(xp, draws["omega_dir"]) * dt, 0.0)
     return vel + xp.sum(dv, axis=-3), omega + xp.sum(dw, axis=-3)
+
+
+#: Downwash pairs (i above j) per step and world that get their own draws on the JAX engine.
+DOWNWASH_BUDGET = 4
+
+
+def downwash_slot_spec(slots: int) -> DrawSpec:
+    """Per-slot draws of :func:`downwash_draw_spec` (one downwash pair per slot)."""
+    return {
+        "acc": Uniform(-0.1, 0.1, (slots,)),
+        "z_dir": Uniform(-0.1, 0.1, (slots, 3)),
+        "omega_mag": Uniform(-0.01, 0.01, (slots,)),
+        "omega_dir": Normal(0.0, 1.0, (slots, 3)),
+    }
+
+
+def expand_downwash_draws(mask: Any, slots: dict[str, Any]) -> dict[str, Any]:
+    """Dense (N, N, ...) draws of :func:`apply_downwash` (one world) from per-slot draws; pairs
+    [i, j] in ``mask`` (from :func:`downwash_mask`) ranked in row-major order, slot = rank mod S."""
+    from quadswarm_mj.random_draws import event_slots, spread
+
+    xp = array_namespace(mask, slots["acc"])
+    n = mask.shape[-1]
+    hot = event_slots(xp, mask.reshape(n * n), slots["acc"].shape[0])
+    return {k: spread(xp, hot, v).reshape((n, n) + tuple(v.shape[1:])) for k, v in slots.items()}

@@ -107,3 +107,29 @@ class JaxSampler:
 
 
 Sampler = NumpySampler | MeanSampler | JaxSampler
+
+
+# ------------------------------------------------------------------------------- draw budgets
+# The JAX engine draws the noise of rare events (a new contact, a wall hit) for a fixed number of
+# *slots* per step instead of for every possible event. The events of one step are ranked in a fixed
+# order (flattened index order of their mask); event r takes the draws of slot r mod S. So every
+# event's draws have exactly the distribution of its dense draw spec; only when more than S events
+# happen at once in one world do some share (repeat) the draws of an earlier event of that step.
+
+
+def event_slots(xp: Any, mask: Any, num_slots: int) -> Any:
+    """(..., E, S) float one-hot: event e (mask[..., e] True) -> its slot (rank of e among the
+    events, in index order, modulo S); all zeros where the mask is False."""
+    rank = xp.cumsum(mask.astype(xp.int32), axis=-1) - 1
+    slot = rank % num_slots
+    hot = (slot[..., None] == xp.arange(num_slots)) & mask[..., None]
+    return hot.astype(xp.float32 if xp is not np else np.float64)
+
+
+def spread(xp: Any, hot: Any, slot_draws: Any) -> Any:
+    """Per-event draws (..., E, *shape) from per-slot draws (..., S, *shape) and a one-hot (..., E, S)
+    (zero where no event)."""
+    shape = slot_draws.shape[hot.ndim - 1:]
+    flat = slot_draws.reshape(slot_draws.shape[:hot.ndim - 2] + (hot.shape[-1], -1))
+    out = xp.matmul(hot.astype(flat.dtype), flat)
+    return out.reshape(out.shape[:-1] + tuple(shape))

@@ -46,8 +46,8 @@ def _parity_setup(cfg: EnvConfig) -> tuple[dict, np.ndarray]:
     return init, acts
 
 
-@pytest.fixture(scope="module")
-def parity_run():
+@pytest.fixture(scope="module", params=["freebody", "mjx"])
+def parity_run(request):
     cfg = EnvConfig(num_quads=N).without_noise()
     init, acts = _parity_setup(cfg)
     cpu = QuadSwarmEnv(cfg)
@@ -58,7 +58,7 @@ def parity_run():
         cpu_pos.append(info["state"]["pos"])
         cpu_rew.append(info["rewards"])
         cpu_floor.append(info["on_floor"])
-    env = MjxQuadSwarmEnv(cfg)
+    env = MjxQuadSwarmEnv(cfg, physics=request.param)
     reset = jax.jit(lambda key, s: env.reset(key, {**s, "motors": "hover"}))  # "hover" is static
     step = jax.jit(env.step)
     state0 = reset(jax.random.key(0), init)
@@ -124,9 +124,21 @@ def test_state_contract(parity_run):
 def test_bad_input_raises_before_any_work():
     cfg = EnvConfig(num_quads=2)
     with pytest.raises(ValueError, match="collision_model"):
-        MjxQuadSwarmEnv(cfg.replace(collision_model="mujoco"))
+        MjxQuadSwarmEnv(cfg.replace(collision_model="mujoco"), physics="freebody")
+    with pytest.raises(ValueError, match="physics must be one of"):
+        MjxQuadSwarmEnv(cfg, physics="euler")
     env = MjxQuadSwarmEnv(cfg)
     key = jax.random.key(0)
+    # init_state is validated outside jit as the CPU env validates options["state"], naming the key
+    with pytest.raises(ValueError, match=r"init_state\['pos'\] contains NaN"):
+        env.reset(key, {"pos": np.full((2, 3), np.nan)})
+    with pytest.raises(ValueError, match=r"init_state\['rot'\] must hold proper rotation"):
+        env.reset(key, {"rot": np.ones((2, 3, 3))})
+    with pytest.raises(ValueError, match=r"init_state\['goals'\] must be inside the room"):
+        env.reset(key, {"goals": np.full((2, 3), 100.0)})
+    with pytest.raises(ValueError, match=r"init_state\['vel'\] has the wrong shape"):  # under jit: shapes only
+        jax.jit(lambda k, v: env.reset(k, {"vel": v}))(key, jnp.zeros((3, 3)))
+    jax.eval_shape(lambda k, p: env.reset(k, {"pos": p}), key, jnp.zeros((2, 3)))  # tracers: no value checks
     with pytest.raises(ValueError, match="unknown keys"):
         env.reset(key, {"position": np.zeros((2, 3))})
     with pytest.raises(ValueError, match="motors"):
@@ -239,7 +251,7 @@ _X64_SCRIPT = textwrap.dedent("""
     acts = cfg.quad.hover_action + 0.05 * np.sin(2 * np.pi * 1.3 * t + phase)
     cpu = QuadSwarmEnv(cfg)
     cpu.reset(seed=0, options={"state": init})
-    env = MjxQuadSwarmEnv(cfg)
+    env = MjxQuadSwarmEnv(cfg, physics=sys.argv[1])
     s = jax.jit(env.reset)(jax.random.key(0), init)
     step = jax.jit(env.step)
     err_p = err_r = 0.0
@@ -265,11 +277,12 @@ _X64_SCRIPT = textwrap.dedent("""
 
 
 @pytest.mark.slow
-def test_parity_x64_through_floor_wall_ceiling_and_quad_collisions():
+@pytest.mark.parametrize("physics", ["freebody", "mjx"])
+def test_parity_x64_through_floor_wall_ceiling_and_quad_collisions(physics):
     """With float64 on both sides the two engines agree to round-off through every contact model
     (paper floor with landing, wall and ceiling bounces, quad-quad responses), motors given as an
     (N, 4) array."""
-    out = subprocess.run([sys.executable, "-c", _X64_SCRIPT], capture_output=True, text=True, timeout=300,
+    out = subprocess.run([sys.executable, "-c", _X64_SCRIPT, physics], capture_output=True, text=True, timeout=300,
                          env={**os.environ, "JAX_PLATFORMS": "cpu"})
     assert out.returncode == 0, out.stderr[-3000:]
     r = json.loads(out.stdout.strip().splitlines()[-1])
@@ -277,3 +290,43 @@ def test_parity_x64_through_floor_wall_ceiling_and_quad_collisions():
     assert r["err_p"] < 1e-9 and r["err_r"] < 1e-9, r
     assert r["coll_cpu"] == r["coll_mjx"]
     assert r["dist_mjx"] == pytest.approx(r["dist_cpu"], rel=1e-9)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model", ["mujoco", "blend"])
+def test_mujoco_contacts_headon_case_matches_cpu_env(model):
+    """collision_model 'mujoco'/'blend' through physics='mjx': the reference head-on case
+    (golden_d setup) on the JAX engine stays within 5 mm of the CPU env with the same model."""
+    from tests.test_reference_parity import load
+
+    ref, meta = load("golden_d_headon_collision_noisefree.npz")
+    n = meta["num_quads"]
+    cfg = EnvConfig(num_quads=n, room_size=tuple(meta["room_dims"]), scenario="static_same_goal",
+                    collision_model=model).without_noise()
+    motors = "hover" if meta["motors_prespun_to_hover"] else "zero"
+    init = {"pos": ref["init_pos"], "vel": ref["init_vel"], "rot": ref["init_rot"], "omega": ref["init_omega"]}
+    cpu = QuadSwarmEnv(cfg)
+    cpu.reset(seed=0, options={"state": {**init, "motors": motors}})
+    acts = ref["actions_raw"].reshape(-1, n, 4)
+    cpu_pos, cpu_vel = [], []
+    for a in acts:
+        _, _, _, _, info = cpu.step(a)
+        cpu_pos.append(info["state"]["pos"])
+        cpu_vel.append(info["state"]["vel"])
+    cpu_pos, cpu_vel = np.array(cpu_pos), np.array(cpu_vel)
+    with pytest.raises(ValueError, match="physics='mjx'"):
+        MjxQuadSwarmEnv(cfg, physics="freebody")
+    env = MjxQuadSwarmEnv(cfg)
+    assert env.physics == "mjx"
+    s = jax.jit(lambda k, st: env.reset(k, {**st, "motors": motors}))(jax.random.key(0), init)
+
+    def run(s, acts):
+        def body(s, a):
+            s = env.step(s, a)
+            return s, (s.info["state"]["pos"], s.info["state"]["vel"])
+        return jax.lax.scan(body, s, acts)[1]
+
+    pos, vel = jax.jit(run)(s, jnp.asarray(acts, jnp.float32))
+    pos, vel = np.asarray(pos), np.asarray(vel)
+    assert np.abs(cpu_vel[-1, :, 0] - cpu_vel[0, :, 0]).max() > 0.5  # the quads did collide (velocity reversed)
+    assert np.abs(pos - cpu_pos).max() < 5e-3

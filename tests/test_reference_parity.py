@@ -87,3 +87,57 @@ def test_floor_drop_rests_at_step_30():
     np.testing.assert_allclose(z[30:], 0.046, atol=5e-4)
     np.testing.assert_allclose(out["vel"][30:], 0.0, atol=1e-12)
     np.testing.assert_allclose(z[30:], ref["ctrl_pos"][30:, 0, 2], atol=1e-9)
+
+
+# ------------------------------------------------------------------------- the JAX engine, both physics
+CASES = ["golden_a_hover.npz", "golden_a2_hover_prespun.npz", "golden_b_motor0_step.npz", "golden_f_floor_drop.npz",
+         "golden_d_headon_collision_noisefree.npz"]
+
+
+def replay_mjx(name: str, physics: str) -> tuple[dict, dict, dict]:
+    """The case of :func:`replay` through ``MjxQuadSwarmEnv(cfg, physics=physics)`` (float32)."""
+    jax = pytest.importorskip("jax")
+    pytest.importorskip("mujoco.mjx")
+    import jax.numpy as jnp
+
+    from quadswarm_mj.envs.mjx_env import MjxQuadSwarmEnv
+
+    ref, meta = load(name)
+    n = meta["num_quads"]
+    cfg = EnvConfig(num_quads=n, room_size=tuple(meta["room_dims"]), scenario="static_same_goal").without_noise()
+    env = MjxQuadSwarmEnv(cfg, physics=physics)
+    motors = "hover" if meta["motors_prespun_to_hover"] else "zero"
+    state = {"pos": ref["init_pos"], "vel": ref["init_vel"], "rot": ref["init_rot"], "omega": ref["init_omega"]}
+    s = jax.jit(lambda k, st: env.reset(k, {**st, "motors": motors}))(jax.random.key(0), state)
+
+    def run(s, acts):
+        def body(s, a):
+            s = env.step(s, a)
+            return s, s.info["state"]
+        return jax.lax.scan(body, s, acts)[1]
+
+    acts = jnp.asarray(ref["actions_raw"].reshape(-1, n, 4), jnp.float32)
+    out = jax.jit(run)(s, acts)
+    return {k: np.asarray(v, np.float64) for k, v in out.items()}, ref, meta
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("physics", ["freebody", "mjx"])
+@pytest.mark.parametrize("name", CASES)
+def test_reference_cases_through_jax_engine(name, physics):
+    """Every reference case through the JAX engine with either physics agrees with the CPU engine's
+    replay (float32 vs float64) and passes the case's own check against the original simulator."""
+    out, ref, _ = replay_mjx(name, physics)
+    cpu, _, _ = replay(name)
+    assert np.abs(out["pos"] - cpu["pos"]).max() < 2e-3
+    assert np.abs(out["thrust"] - cpu["thrust"]).max() < 1e-5
+    if "hover" in name:
+        assert np.abs(out["pos"] - ref["ctrl_pos"]).max() < 5e-3
+    elif "headon" in name:
+        np.testing.assert_allclose(out["vel"][45, :, 0], [-0.5, 0.5], atol=1e-4)
+        np.testing.assert_allclose(out["pos"], ref["ctrl_pos"], atol=5e-3)
+    elif "floor" in name:
+        np.testing.assert_allclose(out["pos"][30:, 0, 2], 0.046, atol=5e-4)
+        np.testing.assert_allclose(out["vel"][30:], 0.0, atol=1e-6)
+    else:
+        assert np.linalg.norm(out["pos"] - ref["ctrl_pos"], axis=-1).max() < 0.03

@@ -41,10 +41,10 @@ import mujoco
 import numpy as np
 
 from quadswarm_mj import metrics as metrics_lib
+from quadswarm_mj import pipeline
 from quadswarm_mj.actuation import (
     SPIN,
     action_to_command,
-    hover_motor_state,
     motor_noise_step,
     rotor_positions,
     substep_wrench,
@@ -67,10 +67,9 @@ from quadswarm_mj.random_draws import MeanSampler, NumpySampler
 from quadswarm_mj.randomization import nominal_draws, params_from_draws, randomization_draw_spec
 from quadswarm_mj.rewards import anneal_factor, reward_terms, total_reward, zero_terms
 from quadswarm_mj.scenarios import ScenarioState, get_scenario
-from quadswarm_mj.scenarios.base import spawn_num_uniforms, spawn_state
-from quadswarm_mj.spatial import norm_last, quat_to_rotmat, rotmat_to_quat, yaw_rotmat
+from quadswarm_mj.scenarios.base import spawn_num_uniforms
+from quadswarm_mj.spatial import norm_last, quat_to_rotmat, rotmat_to_quat
 
-STATE_KEYS = ("pos", "vel", "rot", "omega", "motors", "goals")
 BACKENDS = ("mjdata", "batch")
 _ALL = slice(None)
 
@@ -89,7 +88,9 @@ class _MjDataPhysics:
         self.xfrc = self.data.xfrc_applied[fb:fb + B * N].reshape(B, N, 6)
         assert np.shares_memory(self.qpos, self.data.qpos) and np.shares_memory(self.xfrc, self.data.xfrc_applied)
         self.offsets = self.arena.world_offsets[:, None, :]
-        self.dirty = False  # unused: qpos/qvel are MjData itself
+
+    def touch(self) -> None:
+        """The engine wrote qpos/qvel: nothing to do, they are MjData itself."""
 
     def step(self, max_omega: float) -> None:
         """One physics sub-step, then angular velocity clipped to +-max_omega per body axis."""
@@ -153,6 +154,10 @@ class _BatchPhysics:
         self._pad_qpos = self._qpos[B:].copy()
         self.qpos, self.qvel, self.xfrc = self._qpos[:B], self._qvel[:B], self._xfrc[:B]
         self.offsets = np.tile(self.arena.world_offsets, (K, 1))[:B, None, :]
+
+    def touch(self) -> None:
+        """The engine wrote qpos/qvel: copy them into the state rows before the next step."""
+        self.dirty = True
 
     def step(self, max_omega: float) -> None:
         """One physics sub-step, angular velocity clipped to +-max_omega (in the state rows, so the
@@ -266,7 +271,6 @@ class CpuSwarm:
         self.steps = np.zeros(B, np.int64)
         self.sstate: ScenarioState | None = None
         self.metrics = metrics_lib.init(zeros, (B,), N)
-        self.last_action = np.zeros((B, N, 4))
         self._R: np.ndarray | None = None  # rotations of the current qpos (None: recompute)
 
     # ------------------------------------------------------------------ samplers
@@ -280,7 +284,7 @@ class CpuSwarm:
     def state_changed(self) -> None:
         """Tell the engine that ``qpos``/``qvel`` were written from outside."""
         self._R = None
-        self.phys.dirty = True
+        self.phys.touch()
 
     # ------------------------------------------------------------------ state access
     def _rotations(self) -> np.ndarray:
@@ -322,52 +326,44 @@ class CpuSwarm:
                 return None
             return np.asarray(state[key], dtype=np.float64).reshape((B, N) + tail)[idx]
 
-        # 1. dynamics parameters
+        # draws in a fixed order (randomization, scenario, spawn), then the shared reset math
         if cfg.randomize:
             draws = NumpySampler(self.rng).draw(randomization_draw_spec(cfg), (M,))
         else:
             draws = nominal_draws(cfg, np.zeros((M, N)), (M,))
-        new_params = params_from_draws(cfg, draws)
+        scenario_u = self.rng.uniform(size=(M, self._n_scn))
+        spawn_u = self.rng.uniform(size=(M, spawn_num_uniforms(N)))
+        overrides: dict[str, Any] = {k: r for k, tail in (("pos", (3,)), ("vel", (3,)), ("rot", (3, 3)),
+                                                         ("omega", (3,)), ("goals", (3,)))
+                                     if (r := rows(k, tail)) is not None}
+        motors: Any = cfg.motor_start if state is None or state.get("motors") is None else state["motors"]
+        overrides["motors"] = motors if isinstance(motors, str) else rows("motors", (4,))
+        init = pipeline.initial_state(cfg, self.scenario, draws, scenario_u, spawn_u, overrides, np, np.float64)
+        # 1. dynamics parameters
+        new_params = init["params"]
         self.params = {k: (v if k == "gravity" else _put(self.params[k], idx, v)) for k, v in new_params.items()}
         self.phys.write_params(idx, new_params["mass"], new_params["inertia"])
         self._torque_spin = self.params["torque_max"] * SPIN
         # 2. scenario
-        s_new = self.scenario.init(cfg, self.rng.uniform(size=(M, self._n_scn)))
-        goals_in = rows("goals", (3,))
-        if goals_in is not None:
-            s_new = s_new._replace(goals=goals_in)
+        s_new = init["scenario"]
         if self.sstate is None or isinstance(idx, slice):
             self.sstate = s_new if isinstance(idx, slice) else ScenarioState(
                 *(_put(np.zeros((B,) + np.shape(a)[1:], np.asarray(a).dtype), idx, a) for a in s_new))
         else:
             self.sstate = ScenarioState(*(_put(np.asarray(b), idx, a) for a, b in zip(s_new, self.sstate)))
-        goals = self.sstate.goals[idx]
         # 3. start state
-        sp = spawn_state(cfg, goals, self.rng.uniform(size=(M, spawn_num_uniforms(N))))
-        pos, R = sp["pos"], yaw_rotmat(sp["yaw"])
-        vel, omega = np.zeros((M, N, 3)), np.zeros((M, N, 3))
-        pos = p if (p := rows("pos", (3,))) is not None else pos
-        vel = v if (v := rows("vel", (3,))) is not None else vel
-        R = r if (r := rows("rot", (3, 3))) is not None else R
-        omega = w if (w := rows("omega", (3,))) is not None else omega
-        motors: Any = cfg.motor_start if state is None or state.get("motors") is None else state["motors"]
-        params_idx = {k: (v if k == "gravity" else v[idx]) for k, v in self.params.items()}
-        if isinstance(motors, str):
-            u0 = hover_motor_state(params_idx) if motors == "hover" else np.zeros((M, N, 4))
-        else:
-            u0 = np.sqrt(np.clip(np.asarray(motors, dtype=np.float64).reshape(B, N, 4)[idx], 0.0, 1.0))
+        pos, vel, R, omega, u0 = init["pos"], init["vel"], init["rot"], init["omega"], init["u0"]
         offsets = self.offsets if self.offsets.shape[0] == 1 else self.offsets[idx]
         self.qpos[idx, :, :3] = pos + offsets
         self.qpos[idx, :, 3:7] = rotmat_to_quat(R)
         self.qvel[idx, :, :3] = vel
         self.qvel[idx, :, 3:] = omega
-        self.phys.dirty = True
+        self.phys.touch()
         self._R = None
         self.u = _put(self.u, idx, u0)
         self.motor_eps = _put(self.motor_eps, idx, 0.0)
         self.f_norm = _put(self.f_norm, idx, u0**2)
         self.prev_f_norm = self.f_norm.copy()
-        self.last_action = _put(self.last_action, idx, 0.0)
         cur_pos = self.qpos[idx, :, :3] - offsets
         self.on_floor = _put(self.on_floor, idx, cur_pos[..., 2] <= self.floor_z + FLOOR_TOL)
         self.at_wall = _put(self.at_wall, idx, np.any((cur_pos[..., :2] <= self.room_low[:2]) |
@@ -465,7 +461,7 @@ class CpuSwarm:
             self.qpos[..., :3] = pos + self.offsets
             self.qvel[..., :3] = vel
             self.qvel[..., 3:] = omega
-            self.phys.dirty = True
+            self.phys.touch()
         return {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": new_contact,
                 "hit_floor": hit_floor, "hit_wall": hit_wall, "hit_ceiling": hit_ceiling}
 
@@ -496,7 +492,7 @@ class CpuSwarm:
         self.qpos[w, :, 3:7] = r["quat"]
         self.qvel[w, :, :3] = r["vel"]
         self.qvel[w, :, 3:] = r["omega"]
-        self.phys.dirty = True
+        self.phys.touch()
         self.u = _put(self.u, w, r["u"])
         self.on_floor = _put(self.on_floor, w, r["on_floor"])
         self._any_on_floor = bool(self.on_floor.any())
@@ -526,7 +522,6 @@ class CpuSwarm:
         rewards = total_reward(terms, self._zero_terms)
         self.metrics = metrics_lib.update(self.metrics, t[:, None], dist_goal, k["new_contact"], k["hit_floor"],
                                           k["hit_wall"], k["hit_ceiling"], jump, cfg.grace_period_s)
-        self.last_action = action
         truncated = self.steps >= cfg.episode_steps
         return {"obs": self.observe(k), "rewards": rewards, "terms": terms, "truncated": truncated,
                 "kin": k, "t": t}

@@ -20,10 +20,23 @@ quad-quad collisions, downwash, scenarios, observations, rewards and episode met
 functions :mod:`quadswarm_mj.envs.cpu_core` calls, here on ``jax.numpy`` with random draws from
 :class:`FusedJaxSampler` (a :class:`~quadswarm_mj.random_draws.JaxSampler` that makes all draws of
 one reset or one step with one uniform and one normal call) or a ``MeanSampler`` where a
-``cfg.noise.stochastic_*`` flag is off. Rigid-body integration is ``mjx.step`` in a ``lax.scan``
-over the ``cfg.substeps`` physics sub-steps of one control step, in the same order as
-``CpuSwarm._physics``. Without noise, MJX (float32) and the CPU env (float64) agree to well under
-2 mm over 150 control steps (``tests/test_mjx_env.py``).
+``cfg.noise.stochastic_*`` flag is off. The stage order and its extension points (control modes,
+aerodynamics, obstacles) are described in :mod:`quadswarm_mj.pipeline`; the reset math is
+:func:`quadswarm_mj.pipeline.initial_state`, shared with the CPU engine. Rigid-body integration is
+``physics``: :func:`quadswarm_mj.freebody.freebody_step` (default with the paper's collision
+model) or ``mjx.step``, in a ``lax.scan`` over the ``cfg.substeps`` physics sub-steps of one
+control step whose carry holds the quads' qpos (N, 7) / qvel (N, 6); ``mjx.Data`` is written once
+per control step. Without noise, MJX (float32) and the CPU env (float64) agree to well under
+2 mm over 150 control steps with either physics (``tests/test_mjx_env.py``).
+
+Draw budget: the event models draw for a bounded number of events per step and world (new
+quad-quad pairs: ``collisions.QUAD_PAIR_BUDGET``; wall/ceiling bounces: ``WALL_BUDGET``; floor
+landings per sub-step: ``FLOOR_BUDGET``; downwash pairs: ``downwash.DOWNWASH_BUDGET``). Events
+are ranked in index order (pairs i < j row-major); event r takes slot r mod budget, so every
+event's draws have SPEC §5's distribution exactly, and only beyond the budget (more simultaneous
+events in one world and step) do events repeat the draws of an earlier event of that step. The
+CPU engine draws per event. ``tests/test_draw_budget.py`` compares post-collision speeds and spins
+of both engines with a KS test.
 
 The CPU engine skips a model function when nothing can happen (no quad near the floor, no new
 contact); here every function is always evaluated, which gives the same values because each one
@@ -40,7 +53,11 @@ passes thrust, torque and motor constants to the actuation functions.
 * ``data``: ``mjx.Data``. Quad ``i``'s free joint is ``qpos[7 i: 7 i + 7]`` (position m, world;
   quaternion w, x, y, z body->world) and ``qvel[6 i: 6 i + 6]`` (linear m/s world, angular rad/s
   body). Derived fields (``xpos``...) are those of the last physics sub-step; after ``reset`` and
-  the once-per-control-step velocity models they lag ``qpos``/``qvel`` until the next ``mjx.step``.
+  the once-per-control-step velocity models they lag ``qpos``/``qvel`` until the next ``mjx.step``
+  (with ``physics="freebody"`` they keep the values of the initial data: call ``mjx.forward`` or
+  ``mj_forward`` after ``mjx.get_data`` to render). ``info["state"]["rot"]`` must match the
+  quaternion in ``qpos``: ``step`` uses it as the first sub-step's rotation (code that edits
+  ``qpos`` writes ``rot`` too).
 * ``obs`` (N, obs_dim), ``reward`` (N,) per quad, ``done`` () bool (time limit; there is no
   termination), ``metrics`` {"reward/<term>": (N,)} for every term of
   :data:`quadswarm_mj.rewards.TERMS` (they sum to ``reward``).
@@ -52,12 +69,14 @@ passes thrust, torque and motor constants to the actuation functions.
   ``at_ceiling`` (N,) bool; ``contact`` (N, N) bool (pairs inside the hitbox);
   ``scenario`` (:class:`~quadswarm_mj.scenarios.ScenarioState`); ``metrics_acc`` (accumulators of
   :mod:`quadswarm_mj.metrics`); ``episode_metrics`` (episode metrics so far, per world);
-  ``last_action`` (N, 4); ``step`` () int control steps in this episode; ``time`` () s;
+  ``step`` () int control steps in this episode; ``time`` () s;
   ``total_steps`` () int across episodes (reward annealing; kept by :class:`AutoResetWrapper`);
   ``truncation`` () float (1.0 at the time limit); ``rng`` (the key for the next step's draws).
 
-Not supported on MJX (``ValueError``): ``collision_model`` "mujoco" and "blend" (contacts through
-MJX's solver); use the CPU env for those.
+``collision_model`` "mujoco" and "blend" run with ``physics="mjx"`` (MJX's contact solver: the quads'
+hitbox spheres against each other and the room's floor plane and wall/ceiling boxes; "blend" keeps
+the paper's quad-quad response), gated as in ``CpuSwarm``: MuJoCo resolves the surfaces and the
+flags come from the proximity to them.
 """
 
 from __future__ import annotations
@@ -72,34 +91,61 @@ import numpy as np
 from mujoco import mjx
 
 from quadswarm_mj import metrics as metrics_lib
+from quadswarm_mj import pipeline
 from quadswarm_mj.actuation import (
+    SPIN,
     action_to_command,
-    hover_motor_state,
     motor_noise_draw_spec,
     motor_noise_step,
     rotor_positions,
     substep_wrench,
+    wrench_matrix,
 )
 from quadswarm_mj.arena import build_arena
 from quadswarm_mj.collisions import (
+    FLOOR_BUDGET,
+    QUAD_PAIR_BUDGET,
+    WALL_BUDGET,
     collision_draw_specs,
+    expand_per_quad,
+    expand_quad_draws,
+    floor_draw_spec,
     floor_impact,
     floor_wrench,
+    new_pairs_upper,
     pairwise_contacts,
+    quad_collision_slot_spec,
     quad_collisions,
+    wall_bounces,
     wall_collisions,
+    wall_draw_spec,
 )
 from quadswarm_mj.config import EnvConfig
-from quadswarm_mj.downwash import apply_downwash, downwash_draw_spec
+from quadswarm_mj.downwash import (
+    DOWNWASH_BUDGET,
+    apply_downwash,
+    downwash_mask,
+    downwash_slot_spec,
+    expand_downwash_draws,
+)
+from quadswarm_mj.envs.validation import check_state
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.random_draws import DrawSpec, JaxSampler, MeanSampler, Normal, Uniform
-from quadswarm_mj.randomization import nominal_draws, params_from_draws, randomization_draw_spec
+from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
 from quadswarm_mj.rewards import TERMS, anneal_factor, reward_terms, total_reward
 from quadswarm_mj.scenarios import get_scenario
-from quadswarm_mj.scenarios.base import spawn_num_uniforms, spawn_state
-from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat, yaw_rotmat
+from quadswarm_mj.scenarios.base import spawn_num_uniforms
+from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
 
 INIT_STATE_KEYS = ("pos", "vel", "rot", "omega", "motors", "goals")
+PHYSICS = ("freebody", "mjx")
+
+
+def _have_freebody() -> bool:
+    """True when :mod:`quadswarm_mj.freebody` (the exact free-body step) is importable."""
+    import importlib.util
+
+    return importlib.util.find_spec("quadswarm_mj.freebody") is not None
 
 
 @jax.tree_util.register_dataclass
@@ -135,12 +181,43 @@ def _sub(draws: dict[str, Any], prefix: str) -> dict[str, Any]:
 
 
 class FusedJaxSampler(JaxSampler):
-    """A :class:`~quadswarm_mj.random_draws.JaxSampler` that draws a whole spec with ONE
-    ``jax.random.uniform`` and ONE ``jax.random.normal`` call (sliced per entry) instead of one
-    call per entry: same distributions, far less to compile (each threefry call is a large graph on
-    XLA:CPU) and fewer small kernels to run. Used under ``jit`` only."""
+    """A :class:`~quadswarm_mj.random_draws.JaxSampler` that draws a whole spec from ONE
+    ``jax.random.bits`` call (sliced per entry) instead of one call per entry: far less to compile
+    (each threefry call is a large graph on XLA:CPU) and fewer small kernels to run. The bits are
+    hashed with ``jax.extend.random.threefry_2x32`` on a counter, so one threefry block feeds two
+    numbers (with ``jax_threefry_partitionable``, ``jax.random.bits`` hashes one block per number). Uniforms and normals
+    are made from the words exactly as ``jax.random.uniform`` / ``jax.random.normal`` make them
+    (23 mantissa bits; normal = sqrt(2) erfinv(U(-1, 1))): the same distributions. Used under
+    ``jit`` only (float32 and threefry keys; otherwise one uniform and one normal call)."""
 
     def draw(self, spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
+        items = [(name, d, tuple(batch_shape) + tuple(d.shape)) for name, d in spec.items()]
+        sizes = [int(np.prod(shape)) for _, _, shape in items]
+        threefry = jax.random.key_impl(self.key) == jax.random.key_impl(jax.random.key(0, impl="threefry2x32"))
+        if jnp.dtype(self.dtype) != jnp.float32 or not items or not threefry:
+            return self._draw_two_calls(spec, batch_shape)
+        from jax.extend.random import threefry_2x32
+
+        self.key, k = jax.random.split(self.key)
+        total = sum(sizes)
+        # threefry_2x32 hashes the counter array's two halves as (x0, x1) pairs: 2 words per block
+        words = threefry_2x32(jax.random.key_data(k), jnp.arange(total + total % 2, dtype=jnp.uint32))[:total]
+        # U[0, 1) with 23 random mantissa bits, as jax.random.uniform
+        u01 = jax.lax.bitcast_convert_type((words >> 9) | jnp.uint32(0x3F800000), jnp.float32) - 1.0
+        out: dict[str, Any] = {}
+        start = 0
+        lo_n = np.nextafter(np.float32(-1.0), np.float32(0.0))
+        for (name, d, shape), size in zip(items, sizes):
+            x = u01[start:start + size].reshape(shape)
+            start += size
+            if isinstance(d, Uniform):
+                out[name] = jnp.maximum(d.low, d.low + (d.high - d.low) * x)
+            else:  # jax.random.normal: uniform on [nextafter(-1, 0), 1), then sqrt(2) erfinv
+                v = jnp.maximum(lo_n, lo_n + (1.0 - lo_n) * x)
+                out[name] = d.mean + d.std * (np.sqrt(2.0).astype(np.float32) * jax.lax.erf_inv(v))
+        return out
+
+    def _draw_two_calls(self, spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
         self.key, k_u, k_n = jax.random.split(self.key, 3)
         out: dict[str, Any] = {}
         for kind, key in ((Uniform, k_u), (Normal, k_n)):
@@ -163,15 +240,31 @@ class MjxQuadSwarmEnv:
     The model is ``quadswarm_mj.arena.build_arena(cfg, 1)`` put on the default device with
     ``mjx.put_model``. ``action`` is (N, 4) raw per-rotor commands in [-1, 1] (clipped; -1 no
     thrust, 1 full thrust). Actions are not validated under ``jit``: a NaN action yields NaN state.
+
+    ``physics`` chooses the rigid-body integrator of the sub-steps: ``"freebody"`` (the default
+    where it is available: :func:`quadswarm_mj.freebody.freebody_step`, MuJoCo's Euler step of
+    contact-free free bodies, exact) or ``"mjx"`` (``mjx.step``, generic: builds and factors the
+    dense mass matrix). Both keep ``mjx.Data`` as the state; with "freebody" the derived fields
+    (``xpos``...) are not recomputed (``mjx.get_data`` + ``mj_forward`` for rendering).
     """
 
-    def __init__(self, cfg: EnvConfig | None = None):
+    def __init__(self, cfg: EnvConfig | None = None, physics: str | None = None):
         cfg = EnvConfig() if cfg is None else cfg
         if not isinstance(cfg, EnvConfig):
             raise ValueError(f"cfg must be an EnvConfig, got {type(cfg).__name__}")
-        if cfg.collision_model != "paper":
-            raise ValueError(f"MjxQuadSwarmEnv supports collision_model='paper' only, got "
-                             f"{cfg.collision_model!r}; use the CPU env (QuadSwarmEnv) for 'mujoco'/'blend'")
+        if physics is None:
+            physics = "freebody" if cfg.collision_model == "paper" and _have_freebody() else "mjx"
+        if physics not in PHYSICS:
+            raise ValueError(f"physics must be one of {PHYSICS}, got {physics!r}")
+        if physics == "freebody" and cfg.collision_model != "paper":
+            raise ValueError(f"physics='freebody' has no contacts: collision_model must be 'paper' with it, got "
+                             f"{cfg.collision_model!r}; use physics='mjx' for 'mujoco'/'blend'")
+        if physics == "freebody" and not _have_freebody():
+            raise ValueError("physics='freebody' needs quadswarm_mj.freebody (not available); use physics='mjx'")
+        # which events the paper's model handles (the others are MuJoCo contacts, as in CpuSwarm)
+        self._paper_floor = cfg.collision_model == "paper"
+        self._paper_quads = cfg.collision_model in ("paper", "blend")
+        self.physics = physics
         self.cfg = cfg
         self.N = n = cfg.num_quads
         self.arena = build_arena(cfg, 1)
@@ -180,32 +273,38 @@ class MjxQuadSwarmEnv:
         self._data0 = mjx.make_data(self.mjx_model)
         self._qs, self._vs = self.arena.qpos_start, self.arena.qvel_start
         self._fb = self.arena.first_body
+        # the quads' free joints are the whole qpos/qvel: read and write them with reshapes, no scatter
+        self._whole = self._qs == 0 and self._vs == 0 and self.mj_model.nq == 7 * n and self.mj_model.nv == 6 * n
         self.scenario = get_scenario(cfg.scenario)
         self._n_scn = self.scenario.num_uniforms(n)
         self._rotor_pos = rotor_positions(cfg.quad)
+        self._mix = wrench_matrix(self._rotor_pos)
         low, high = obs_bounds(cfg)
         self._obs_low, self._obs_high = np.asarray(low, np.float64), np.asarray(high, np.float64)
         self._obs_scale = obs_scale(cfg) if cfg.normalize_obs else None
-        specs = collision_draw_specs(cfg)
-        self._spec_quad, self._spec_wall, self._spec_floor = specs["quad"], specs["wall"], specs["floor"]
-        self._spec_down = downwash_draw_spec(n)
-        self._spec_motor = motor_noise_draw_spec(n)
+        self._spec_wall = collision_draw_specs(cfg)["wall"]
         self._spec_sensor = sensor_noise_spec(cfg)
         self._sensor_on = any(d.std > 0 for d in self._spec_sensor.values())
         # All random numbers of one reset / one step come from one fused draw of these specs;
-        # sources whose cfg.noise.stochastic_* flag is off take their means instead.
+        # sources whose cfg.noise.stochastic_* flag is off take their means instead. Event models
+        # draw for a bounded number of events per step (the draw budget, see collisions.py).
         stoch_coll, stoch_down = cfg.noise.stochastic_collisions, cfg.noise.stochastic_downwash
-        floor_spec = _prefixed("floor", self._spec_floor, (cfg.substeps,))  # one yaw draw per sub-step
+        c = cfg.collision
         self._reset_spec = {
             **(_prefixed("rand", randomization_draw_spec(cfg)) if cfg.randomize else {}),
             "scenario": Uniform(0.0, 1.0, (self._n_scn,)),
             "spawn": Uniform(0.0, 1.0, (spawn_num_uniforms(n),)),
             **(_prefixed("sensor", self._spec_sensor) if self._sensor_on else {}),
         }
-        coll_spec = {**floor_spec, **_prefixed("wall", self._spec_wall), **_prefixed("quad", self._spec_quad)}
-        down_spec = _prefixed("down", self._spec_down) if cfg.downwash else {}
+        coll_spec = {
+            **_prefixed("floor", floor_draw_spec(FLOOR_BUDGET), (cfg.substeps,)),  # slots per sub-step
+            **_prefixed("wall", wall_draw_spec(WALL_BUDGET, cfg.collision_decay, c.kick_omega)),
+            **_prefixed("quad", quad_collision_slot_spec(c.tries, QUAD_PAIR_BUDGET, c.shared_noise_std,
+                                                         c.own_noise_std, n, cfg.collision_decay, c.kick_omega)),
+        }
+        down_spec = _prefixed("down", downwash_slot_spec(DOWNWASH_BUDGET)) if cfg.downwash else {}
         self._step_spec = {
-            **(_prefixed("motor", self._spec_motor) if cfg.noise.motor_noise_ratio > 0 else {}),
+            **(_prefixed("motor", motor_noise_draw_spec(n)) if cfg.noise.motor_noise_ratio > 0 else {}),
             **(coll_spec if stoch_coll else {}),
             **(down_spec if stoch_down else {}),
             "scenario": Uniform(0.0, 1.0, (self._n_scn,)),
@@ -245,21 +344,22 @@ class MjxQuadSwarmEnv:
             out.update(MeanSampler(dtype=_float(), xp=jnp).draw(mean_spec))
         return out
 
-    def _kinematics(self, data: mjx.Data) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array, jax.Array]:
-        """(pos m world, quat wxyz, vel m/s world, omega rad/s body) of the quads, and R body->world."""
+    def _read(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        """The quads' free joints: qpos (N, 7) (pos m world, quat wxyz body->world), qvel (N, 6)
+        (linear m/s world, angular rad/s body)."""
         n = self.N
-        q = data.qpos[self._qs:self._qs + 7 * n].reshape(n, 7)
-        v = data.qvel[self._vs:self._vs + 6 * n].reshape(n, 6)
-        return q[:, :3], q[:, 3:7], v[:, :3], v[:, 3:], quat_to_rotmat(q[:, 3:7])
+        if self._whole:
+            return data.qpos.reshape(n, 7), data.qvel.reshape(n, 6)
+        return (data.qpos[self._qs:self._qs + 7 * n].reshape(n, 7), data.qvel[self._vs:self._vs + 6 * n].reshape(n, 6))
 
-    def _write(self, data: mjx.Data, pos: Any = None, quat: Any = None, vel: Any = None, omega: Any = None) -> mjx.Data:
+    def _write(self, data: mjx.Data, q: jax.Array, v: jax.Array) -> mjx.Data:
+        """``data`` with the quads' qpos (N, 7) and qvel (N, 6) replaced."""
         n = self.N
-        q = data.qpos[self._qs:self._qs + 7 * n].reshape(n, 7)
-        v = data.qvel[self._vs:self._vs + 6 * n].reshape(n, 6)
-        q = jnp.concatenate([q[:, :3] if pos is None else pos, q[:, 3:7] if quat is None else quat], axis=-1)
-        v = jnp.concatenate([v[:, :3] if vel is None else vel, v[:, 3:] if omega is None else omega], axis=-1)
-        return data.replace(qpos=data.qpos.at[self._qs:self._qs + 7 * n].set(q.ravel().astype(data.qpos.dtype)),
-                            qvel=data.qvel.at[self._vs:self._vs + 6 * n].set(v.ravel().astype(data.qvel.dtype)))
+        q, v = q.astype(data.qpos.dtype), v.astype(data.qvel.dtype)
+        if self._whole:
+            return data.replace(qpos=q.reshape(-1), qvel=v.reshape(-1))
+        return data.replace(qpos=data.qpos.at[self._qs:self._qs + 7 * n].set(q.ravel()),
+                            qvel=data.qvel.at[self._vs:self._vs + 6 * n].set(v.ravel()))
 
     def _params(self, info: dict[str, Any]) -> dict[str, Any]:
         return {**info["params"], "gravity": self.cfg.quad.gravity}
@@ -270,12 +370,41 @@ class MjxQuadSwarmEnv:
         return m.replace(body_mass=m.body_mass.at[sl].set(params["mass"].astype(m.body_mass.dtype)),
                          body_inertia=m.body_inertia.at[sl].set(params["inertia"].astype(m.body_inertia.dtype)))
 
-    def _observe(self, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, draws: dict[str, Any]) -> jax.Array:
+    def _integrator(self, params: dict[str, Any]) -> Any:
+        """The rigid-body stage: ``integrate(q (N, 7), v (N, 6), wrench (N, 6) world force N and torque
+        N m at the CoM, aux) -> (q, v, aux)``, one physics sub-step of ``cfg.sim_dt`` (``aux``: the
+        ``mjx.Data`` carried through the sub-steps by "mjx", None for "freebody")."""
+        n, fb = self.N, self._fb
+        if self.physics == "freebody":
+            from quadswarm_mj.freebody import freebody_constants, freebody_step
+
+            c = freebody_constants(self.mj_model, self.arena)  # checks the model's assumptions
+            dt = c.dt
+
+            def integrate_fb(q: Any, v: Any, wrench: Any, aux: Any) -> tuple[Any, Any, Any]:
+                q2, v2 = freebody_step(q, v, wrench, params["mass"], params["inertia"], c.ipos, c.iquat,
+                                       c.gravity, dt)
+                return q2, v2, aux
+
+            return integrate_fb
+        model = self._model(params)
+
+        def integrate_mjx(q: Any, v: Any, wrench: Any, data: Any) -> tuple[Any, Any, Any]:
+            data = self._write(data, q, v)
+            xfrc = data.xfrc_applied.at[fb:fb + n].set(wrench.astype(data.xfrc_applied.dtype))
+            data = mjx.step(model, data.replace(xfrc_applied=xfrc))
+            q2, v2 = self._read(data)
+            return q2.astype(q.dtype), v2.astype(v.dtype), data
+
+        return integrate_mjx
+
+    def _observe(self, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, draws: dict[str, Any],
+                 dist: Any = None) -> jax.Array:
         f = _float()
         noise = _sub(draws, "sensor") if self._sensor_on else None
         scale = None if self._obs_scale is None else jnp.asarray(self._obs_scale, f)
         return build_obs(self.cfg, pos, vel, R, omega, goals, noise, jnp.asarray(self._obs_low, f),
-                         jnp.asarray(self._obs_high, f), scale)
+                         jnp.asarray(self._obs_high, f), scale, dist=dist)
 
     def _surface_flags(self, pos: Any, vel: Any, omega: Any) -> tuple[Any, Any, Any]:
         """(on_floor, at_wall, at_ceiling) of quads at ``pos``, from the collision functions
@@ -300,53 +429,33 @@ class MjxQuadSwarmEnv:
         m and ``motors``: "zero" or "hover" (a Python string, so static: known at trace time,
         e.g. close over it), or (N, 4) normalized rotor thrusts in [0, 1]. Missing keys take the
         defaults (scenario goals, spawn near the goals at rest, ``cfg.motor_start``).
+
+        ``init_state`` is checked as the CPU env checks it (:func:`~quadswarm_mj.envs.validation.
+        check_state`: keys, shapes, finite values, proper rotations, ``pos`` and ``goals`` inside
+        the room), raising ValueError naming the key; values that are tracers (``init_state``
+        passed through ``jit``/``vmap``) get the shape checks only.
         """
         cfg, n = self.cfg, self.N
         f = _float()
-        init_state = {} if init_state is None else {k: v for k, v in init_state.items() if v is not None}
-        unknown = set(init_state) - set(INIT_STATE_KEYS)
-        if unknown:
-            raise ValueError(f"init_state has unknown keys {sorted(unknown)}; allowed: {list(INIT_STATE_KEYS)}")
-        motors = init_state.get("motors", cfg.motor_start)
-        if isinstance(motors, str) and motors not in ("zero", "hover"):
-            raise ValueError(f"init_state['motors'] must be 'zero', 'hover' or an (N, 4) array, got {motors!r}")
-        for name, tail in (("pos", (3,)), ("vel", (3,)), ("rot", (3, 3)), ("omega", (3,)), ("goals", (3,)),
-                           ("motors", (4,))):
-            v = init_state.get(name)
-            if v is not None and not isinstance(v, str) and tuple(np.shape(v)) != (n,) + tail:
-                raise ValueError(f"init_state['{name}'] has the wrong shape: expected {(n,) + tail}, "
-                                 f"got {tuple(np.shape(v))}")
+        init_state = check_state({} if init_state is None else init_state, n, name="init_state",
+                                 room=(cfg.room_low, cfg.room_high))
         k_draw, k_next = jax.random.split(key)
         rnd = self._draw(self._reset_spec, k_draw)
-        # 1. dynamics parameters (drawn at every reset, under jit)
         draws = _sub(rnd, "rand") if cfg.randomize else nominal_draws(cfg, jnp.zeros((n,), f))
-        params = params_from_draws(cfg, draws)
-        # 2. scenario
-        sstate = self.scenario.init(cfg, rnd["scenario"])
-        if init_state.get("goals") is not None:
-            sstate = sstate._replace(goals=jnp.asarray(init_state["goals"], f).reshape(n, 3))
-        goals = sstate.goals
-        # 3. start state
-        sp = spawn_state(cfg, goals, rnd["spawn"])
-        pos, R = sp["pos"], yaw_rotmat(sp["yaw"])
-        vel, omega = jnp.zeros((n, 3), f), jnp.zeros((n, 3), f)
-        pos = jnp.asarray(init_state.get("pos", pos), f).reshape(n, 3)
-        vel = jnp.asarray(init_state.get("vel", vel), f).reshape(n, 3)
-        R = jnp.asarray(init_state.get("rot", R), f).reshape(n, 3, 3)
-        omega = jnp.asarray(init_state.get("omega", omega), f).reshape(n, 3)
-        if isinstance(motors, str):
-            u0 = hover_motor_state(params).astype(f) if motors == "hover" else jnp.zeros((n, 4), f)
-        else:
-            u0 = jnp.sqrt(jnp.clip(jnp.asarray(motors, f).reshape(n, 4), 0.0, 1.0))
-        data = self._write(self._data0, pos, rotmat_to_quat(R), vel, omega)
+        init = pipeline.initial_state(cfg, self.scenario, draws, rnd["scenario"], rnd["spawn"], init_state, jnp, f)
+        params, sstate, goals = init["params"], init["scenario"], init["scenario"].goals
+        pos, vel, R, omega, u0 = init["pos"], init["vel"], init["rot"], init["omega"], init["u0"]
+        data = self._write(self._data0, jnp.concatenate([pos, rotmat_to_quat(R)], -1),
+                           jnp.concatenate([vel, omega], -1))
         data = data.replace(time=jnp.zeros_like(data.time))
-        pos, quat, vel, omega, R = self._kinematics(data)  # as stored (quaternion round trip), like the CPU env
-        pos, vel, omega, R = pos.astype(f), vel.astype(f), omega.astype(f), R.astype(f)
+        q, v = self._read(data)  # as stored (quaternion round trip), like the CPU env
+        pos, vel, omega = q[:, :3].astype(f), v[:, :3].astype(f), v[:, 3:].astype(f)
+        R = quat_to_rotmat(q[:, 3:7]).astype(f)
         on_floor, at_wall, at_ceiling = self._surface_flags(pos, vel, omega)
-        contact, _ = pairwise_contacts(pos, cfg.hitbox)
+        contact, dist = pairwise_contacts(pos, cfg.hitbox)
         acc = metrics_lib.init(jnp.zeros((n,), f), (), n)
         f_norm = u0 * u0
-        obs = self._observe(pos, vel, R, omega, goals, rnd)
+        obs = self._observe(pos, vel, R, omega, goals, rnd, dist)
         zero_n = jnp.zeros((n,), f)
         info = {
             "state": {"pos": pos, "vel": vel, "rot": R, "omega": omega, "thrust": f_norm},
@@ -356,7 +465,6 @@ class MjxQuadSwarmEnv:
             "on_floor": on_floor, "at_wall": at_wall, "at_ceiling": at_ceiling, "contact": contact,
             "scenario": sstate, "metrics_acc": acc,
             "episode_metrics": metrics_lib.finalize(acc, jnp.zeros((), f)),
-            "last_action": jnp.zeros((n, 4), f),
             "step": jnp.zeros((), jnp.int32), "time": jnp.zeros((), f), "total_steps": jnp.zeros((), jnp.int32),
             "truncation": jnp.zeros((), f), "rng": k_next,
         }
@@ -366,52 +474,86 @@ class MjxQuadSwarmEnv:
     # ------------------------------------------------------------------ physics
     def _physics(self, data: mjx.Data, info: dict[str, Any], action: jax.Array,
                  rnd: dict[str, Any]) -> tuple[mjx.Data, dict[str, Any]]:
-        """One control step of the simulator, in the order of ``CpuSwarm._physics``."""
+        """One control step of the simulator, in the order of ``CpuSwarm._physics``; the stages and
+        their extension points are those of :mod:`quadswarm_mj.pipeline`."""
         cfg, n = self.cfg, self.N
         f = _float()
         params = self._params(info)
-        model = self._model(params)
+        integrate = self._integrator(params)
         rotor_pos = jnp.asarray(self._rotor_pos, f)
+        mix = jnp.asarray(self._mix, f)
+        torque_spin = params["torque_max"] * jnp.asarray(SPIN, f)
         cmd = action_to_command(action)
         eps = info["motor_eps"]
         if cfg.noise.motor_noise_ratio > 0:
             eps = motor_noise_step(eps, params["motor_sigma"], cfg.noise.motor_noise_theta, rnd["motor/motor"])
         max_w = cfg.quad.max_omega
+        floor_z = cfg.quad.arm
+        paper_floor = self._paper_floor
 
-        def substep(carry: tuple, yaw: jax.Array) -> tuple[tuple, None]:
-            data, u, f_norm, on_floor, hit_floor = carry
-            _, _, vel, _, R = self._kinematics(data)
-            u, f_norm, force, torque = substep_wrench(u, cmd, eps, params, R, rotor_pos)
-            force, torque = floor_wrench(on_floor, force, torque, vel, params["mass"], params["gravity"],
-                                         cfg.collision.floor_friction, cfg.sim_dt)
-            wrench = jnp.concatenate([force, torque], axis=-1).astype(data.xfrc_applied.dtype)
-            data = data.replace(xfrc_applied=data.xfrc_applied.at[self._fb:self._fb + n].set(wrench))
-            data = mjx.step(model, data)
-            pos, quat, vel, omega, R = self._kinematics(data)
-            omega = jnp.clip(omega, -max_w, max_w)
-            r = floor_impact(pos, vel, omega, quat, R, u, on_floor, cfg.quad.arm, yaw)
-            data = self._write(data, r["pos"], r["quat"], r["vel"], r["omega"])
-            return (data, r["u"], f_norm, r["on_floor"], hit_floor | r["hit_floor"]), None
+        def substep(carry: tuple, yaw_slots: jax.Array) -> tuple[tuple, None]:
+            q, v, R, u, f_norm, on_floor, hit_floor, aux = carry
+            cmd_s = pipeline.control_stage(cmd, q, v, R)  # extension point: control modes
+            u, f_norm, force, torque = substep_wrench(u, cmd_s, eps, params, R, rotor_pos, mix, torque_spin)
+            force, torque = pipeline.aero_stage(force, torque, f_norm, q, v, R)  # extension point: aerodynamics
+            if paper_floor:
+                force, torque = floor_wrench(on_floor, force, torque, v[:, :3], params["mass"], params["gravity"],
+                                             cfg.collision.floor_friction, cfg.sim_dt)
+            q, v, aux = integrate(q, v, jnp.concatenate([force, torque], axis=-1), aux)
+            omega = jnp.clip(v[:, 3:], -max_w, max_w)
+            R = quat_to_rotmat(q[:, 3:7])
+            if not paper_floor:  # MuJoCo's contacts act on the floor
+                v = jnp.concatenate([v[:, :3], omega], -1)
+                return (q, v, R, u, f_norm, on_floor, hit_floor, aux), None
+            landing = (q[:, 2] <= floor_z) & ~on_floor
+            yaw = expand_per_quad(landing, {"yaw": yaw_slots})["yaw"]
+            r = floor_impact(q[:, :3], v[:, :3], omega, q[:, 3:7], R, u, on_floor, floor_z, yaw)
+            q = jnp.concatenate([r["pos"], r["quat"]], -1)
+            v = jnp.concatenate([r["vel"], r["omega"]], -1)
+            return (q, v, r["R"], r["u"], f_norm, r["on_floor"], hit_floor | r["hit_floor"], aux), None
 
-        carry0 = (data, info["motor_u"], info["state"]["thrust"], info["on_floor"], jnp.zeros((n,), bool))
-        (data, u, f_norm, on_floor, hit_floor), _ = jax.lax.scan(
-            substep, carry0, rnd["floor/yaw"])
-        # once per control step: walls, ceiling, quad-quad, downwash (velocity-level models)
-        pos, _, vel, omega, R = self._kinematics(data)
-        pos, vel, omega, R = pos.astype(f), vel.astype(f), omega.astype(f), R.astype(f)
-        w = wall_collisions(pos, vel, omega, info["at_wall"], info["at_ceiling"], jnp.asarray(cfg.room_low, f),
-                            jnp.asarray(cfg.room_high, f), _sub(rnd, "wall"),
-                            cfg.collision.wall_speed_limits)
-        pos, vel, omega = w["pos"], w["vel"], w["omega"]
-        q = quad_collisions(pos, vel, omega, info["contact"], cfg.hitbox,
-                            _sub(rnd, "quad"))
-        vel, omega = q["vel"], q["omega"]
+        q0, v0 = self._read(data)
+        aux0 = data if self.physics == "mjx" else None
+        carry0 = (q0.astype(f), v0.astype(f), info["state"]["rot"], info["motor_u"], info["state"]["thrust"],
+                  info["on_floor"], jnp.zeros((n,), bool), aux0)
+        (q, v, R, u, f_norm, on_floor, hit_floor, aux), _ = jax.lax.scan(substep, carry0, rnd["floor/yaw"])
+        data = data if aux is None else aux
+        # once per control step: walls, ceiling, quad-quad, (obstacles), downwash (velocity-level models)
+        pos, vel, omega = q[:, :3], v[:, :3], v[:, 3:]
+        room_low, room_high = jnp.asarray(cfg.room_low, f), jnp.asarray(cfg.room_high, f)
+        if paper_floor:
+            bounce = wall_bounces(pos, info["at_wall"], info["at_ceiling"], room_low, room_high)
+            w = wall_collisions(pos, vel, omega, info["at_wall"], info["at_ceiling"], room_low, room_high,
+                                expand_per_quad(bounce, _sub(rnd, "wall")), cfg.collision.wall_speed_limits)
+            pos, vel, omega = w["pos"], w["vel"], w["omega"]
+        else:  # MuJoCo resolves floor/walls/ceiling; flags from proximity to the surfaces (as CpuSwarm)
+            margin = cfg.quad.arm + 0.005
+            on_floor_now = pos[:, 2] <= margin
+            at_wall = jnp.any((pos[:, :2] <= room_low[:2] + margin) | (pos[:, :2] >= room_high[:2] - margin), -1)
+            at_ceiling = pos[:, 2] >= room_high[2] - margin
+            hit_floor = on_floor_now & ~info["on_floor"]
+            on_floor = on_floor_now
+            w = {"hit_wall": at_wall & ~info["at_wall"], "hit_ceiling": at_ceiling & ~info["at_ceiling"],
+                 "at_wall": at_wall, "at_ceiling": at_ceiling}
+        if self._paper_quads:
+            new_upper = new_pairs_upper(pos, info["contact"], cfg.hitbox)
+            q_draws = expand_quad_draws(new_upper, _sub(rnd, "quad"))
+            qc = quad_collisions(pos, vel, omega, info["contact"], cfg.hitbox, q_draws)
+            vel, omega = qc["vel"], qc["omega"]
+        else:
+            contact, _ = pairwise_contacts(pos, cfg.hitbox)
+            qc = {"contact": contact, "new_contact": contact & ~info["contact"]}
+        pos, vel, omega = pipeline.obstacle_stage(pos, vel, omega)  # extension point: obstacles
         _, dist = pairwise_contacts(pos, cfg.hitbox)
         if cfg.downwash:
-            vel, omega = apply_downwash(pos, vel, omega, R, cfg.control_dt, _sub(rnd, "down"))
-        data = self._write(data, pos, None, vel, omega)
-        k = {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": q["new_contact"],
-             "contact": q["contact"], "hit_floor": hit_floor, "hit_wall": w["hit_wall"],
+            dmask, _ = downwash_mask(pos, R)
+            vel, omega = apply_downwash(pos, vel, omega, R, cfg.control_dt,
+                                        expand_downwash_draws(dmask, _sub(rnd, "down")))
+        data = self._write(data, jnp.concatenate([pos, q[:, 3:7]], -1), jnp.concatenate([vel, omega], -1))
+        if aux is None:
+            data = data.replace(time=data.time + cfg.control_dt)
+        k = {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": qc["new_contact"],
+             "contact": qc["contact"], "hit_floor": hit_floor, "hit_wall": w["hit_wall"],
              "hit_ceiling": w["hit_ceiling"], "at_wall": w["at_wall"], "at_ceiling": w["at_ceiling"],
              "on_floor": on_floor, "u": u, "f_norm": f_norm, "eps": eps}
         return data, k
@@ -437,17 +579,17 @@ class MjxQuadSwarmEnv:
         sstate = self.scenario.step(cfg, info["scenario"], t, k["pos"], rnd["scenario"])
         goals, goal_vel = sstate.goals, sstate.goal_vel
         jump = metrics_lib.goal_jump(prev_goals, goals, goal_vel, cfg.control_dt)
+        dist_goal = jnp.sqrt(jnp.sum((goals - k["pos"]) ** 2, axis=-1))
         terms = reward_terms(cfg, k["pos"], k["vel"], k["R"], k["omega"], goals, action, k["f_norm"], prev_f_norm,
                              k["on_floor"], k["hit_floor"], k["hit_wall"], k["hit_ceiling"], k["new_contact"],
-                             k["dist"], anneal_factor(cfg, total_steps))
+                             k["dist"], anneal_factor(cfg, total_steps), goal_dist=dist_goal)
         # explicit dtype: a zero-scale term may come back weakly typed, and a state whose leaf types
         # change between reset and step would make jit compile step twice
         terms = {name: v.astype(f) for name, v in terms.items()}
         reward = total_reward(terms)
-        dist_goal = jnp.sqrt(jnp.sum((goals - k["pos"]) ** 2, axis=-1))
         acc = metrics_lib.update(info["metrics_acc"], t, dist_goal, k["new_contact"], k["hit_floor"], k["hit_wall"],
                                  k["hit_ceiling"], jump, cfg.grace_period_s)
-        obs = self._observe(k["pos"], k["vel"], k["R"], k["omega"], goals, rnd)
+        obs = self._observe(k["pos"], k["vel"], k["R"], k["omega"], goals, rnd, k["dist"])
         done = steps >= cfg.episode_steps
         new_info = {
             "state": {"pos": k["pos"], "vel": k["vel"], "rot": k["R"], "omega": k["omega"], "thrust": k["f_norm"]},
@@ -457,7 +599,6 @@ class MjxQuadSwarmEnv:
             "on_floor": k["on_floor"], "at_wall": k["at_wall"], "at_ceiling": k["at_ceiling"],
             "contact": k["contact"], "scenario": sstate, "metrics_acc": acc,
             "episode_metrics": metrics_lib.finalize(acc, t),
-            "last_action": action,
             "step": steps, "time": t, "total_steps": total_steps,
             "truncation": done.astype(f), "rng": k_next,
         }
@@ -499,7 +640,25 @@ class AutoResetWrapper:
     def vstep(self, state: State, action: jax.Array) -> State:
         """A batch of worlds: (State with leading axis W, (W, N, 4)) -> State."""
         s = jax.vmap(self.env.step)(state, action)
-        return jax.lax.cond(jnp.any(s.done), jax.vmap(self._renew), lambda x: x, s)
+        if self.env.physics == "mjx":
+            return jax.lax.cond(jnp.any(s.done), jax.vmap(self._renew), lambda x: x, s)
+        # freebody: only qpos, qvel, time of mjx.Data change; the (large) Data stays out of the cond
+        small = (s.done, s.obs, s.info, s.data.qpos, s.data.qvel, s.data.time)
+        _, obs, info, qpos, qvel, t = jax.lax.cond(jnp.any(s.done), jax.vmap(self._renew_small), lambda x: x, small)
+        return s.replace(obs=obs, info=info, data=s.data.replace(qpos=qpos, qvel=qvel, time=t))
+
+    def _renew_small(self, small: tuple) -> tuple:
+        """:meth:`_renew` of (done, obs, info, qpos, qvel, time) (freebody physics: the rest of Data is constant)."""
+        done, obs, info, qpos, qvel, t = small
+        fresh = self.env.reset(jax.random.fold_in(info["rng"], 1))
+        fresh_info = {**fresh.info, "total_steps": info["total_steps"],
+                      "episode_metrics": info["episode_metrics"], "truncation": info["truncation"]}
+
+        def pick(a: Any, b: Any) -> Any:
+            return _select(done, a, b)
+
+        return (done, pick(fresh.obs, obs), jax.tree.map(pick, fresh_info, info), pick(fresh.data.qpos, qpos),
+                pick(fresh.data.qvel, qvel), pick(fresh.data.time, t))
 
     def _renew(self, s: State) -> State:
         """Replace a finished world's state by a fresh episode (identity where not done)."""
@@ -513,7 +672,12 @@ class AutoResetWrapper:
             return _select(s.done, a, b)
 
         info = jax.tree.map(pick, fresh_info, s.info)
-        return s.replace(data=jax.tree.map(pick, fresh.data, s.data), obs=pick(fresh.obs, s.obs), info=info)
+        if self.env.physics == "mjx":
+            data = jax.tree.map(pick, fresh.data, s.data)
+        else:  # the other fields of Data are the constants of the model's initial data
+            data = s.data.replace(qpos=pick(fresh.data.qpos, s.data.qpos), qvel=pick(fresh.data.qvel, s.data.qvel),
+                                  time=pick(fresh.data.time, s.data.time))
+        return s.replace(data=data, obs=pick(fresh.obs, s.obs), info=info)
 
 
 def _select(pred: jax.Array, a: Any, b: Any) -> Any:
@@ -527,20 +691,22 @@ def _select(pred: jax.Array, a: Any, b: Any) -> Any:
 # ---------------------------------------------------------------------------------- benchmark
 
 
-def benchmark_mjx(cfg: EnvConfig, num_worlds: int, num_steps: int, seed: int = 0) -> dict[str, float]:
+def benchmark_mjx(cfg: EnvConfig, num_worlds: int, num_steps: int, seed: int = 0,
+                  physics: str | None = None) -> dict[str, float]:
     """Time ``num_steps`` control steps of ``num_worlds`` worlds (auto-reset, hover actions).
 
     Worlds are sharded over all JAX devices when their number divides ``num_worlds``. The rollout
     is one jitted ``lax.scan``; ``compile_s`` is the time to trace and compile it (reset and
     rollout), ``samples_per_s`` counts quad-steps (worlds x quads x steps) per second of the
     compiled rollout (median of 3 runs). Returns also ``steps_per_s`` (world-steps per second),
-    ``num_worlds``, ``num_quads``, ``num_steps``, ``devices``.
+    ``num_worlds``, ``num_quads``, ``num_steps``, ``devices``. ``physics``: see
+    :class:`MjxQuadSwarmEnv` (None: its default).
     """
     from quadswarm_mj.envs.sharding import WorldSharding
 
     if num_worlds < 1 or num_steps < 1:
         raise ValueError(f"num_worlds and num_steps must be >= 1, got {num_worlds}, {num_steps}")
-    env = AutoResetWrapper(MjxQuadSwarmEnv(cfg))
+    env = AutoResetWrapper(MjxQuadSwarmEnv(cfg, physics=physics))
     shard = WorldSharding(num_worlds)
     hover = jnp.full((num_worlds, cfg.num_quads, 4), cfg.quad.hover_action, _float())
 

@@ -29,18 +29,28 @@ def check_action(action: Any, expected_shape: tuple[int, ...]) -> np.ndarray:
     return a
 
 
-def check_state(state: Any, num_quads: int, lead: tuple[int, ...] = (),
+def _is_tracer(v: Any) -> bool:
+    """True for a JAX tracer (a value only known at run time under ``jit``/``vmap``)."""
+    try:
+        import jax
+    except ImportError:  # pragma: no cover - NumPy-only install
+        return False
+    return isinstance(v, jax.core.Tracer)
+
+
+def check_state(state: Any, num_quads: int, lead: tuple[int, ...] = (), name: str = "options['state']",
                 room: tuple[Any, Any] | None = None) -> dict[str, Any]:
     """Validate a ``reset(options={"state": ...})`` dict; arrays are (*lead, N, ...).
 
-    ``room`` = (low, high) corners (m, world frame; ``(cfg.room_low, cfg.room_high)``): positions and
-    goals must lie in that box (bounds included). Returns float64 copies."""
+    ``name`` is how errors call the dict (e.g. ``"init_state"``). ``room`` = (low, high) corners
+    (m, world) also requires ``pos`` and ``goals`` inside the room. Values that are JAX tracers
+    (under ``jit``) get only the shape checks and are returned as they are."""
     if not isinstance(state, dict):
-        raise ValueError(f"options['state'] must be a dict, got {type(state).__name__}")
+        raise ValueError(f"{name} must be a dict, got {type(state).__name__}")
     allowed = {"pos": (3,), "vel": (3,), "rot": (3, 3), "omega": (3,), "goals": (3,), "motors": (4,)}
     unknown = set(state) - set(allowed)
     if unknown:
-        raise ValueError(f"options['state'] has unknown keys {sorted(unknown)}; allowed: {sorted(allowed)}")
+        raise ValueError(f"{name} has unknown keys {sorted(unknown)}; allowed: {sorted(allowed)}")
     out: dict[str, Any] = {}
     for key, tail in allowed.items():
         if key not in state or state[key] is None:
@@ -48,32 +58,39 @@ def check_state(state: Any, num_quads: int, lead: tuple[int, ...] = (),
         v = state[key]
         if key == "motors" and isinstance(v, str):
             if v not in ("zero", "hover"):
-                raise ValueError(f"options['state']['motors'] must be 'zero', 'hover' or an array, got {v!r}")
+                raise ValueError(f"{name}['motors'] must be 'zero', 'hover' or an array, got {v!r}")
+            out[key] = v
+            continue
+        shape = tuple(lead) + (num_quads,) + tail
+        if _is_tracer(v):
+            if tuple(np.shape(v)) != shape:
+                raise ValueError(f"{name}['{key}'] has the wrong shape: expected shape {shape}, "
+                                 f"got shape {tuple(np.shape(v))}")
             out[key] = v
             continue
         a = np.asarray(v, dtype=np.float64)
-        shape = tuple(lead) + (num_quads,) + tail
         if a.shape != shape:
-            raise ValueError(f"options['state']['{key}'] has the wrong shape: expected shape {shape}, "
+            raise ValueError(f"{name}['{key}'] has the wrong shape: expected shape {shape}, "
                              f"got shape {a.shape}")
         if not np.all(np.isfinite(a)):
-            raise ValueError(f"options['state']['{key}'] contains NaN or inf")
+            raise ValueError(f"{name}['{key}'] contains NaN or inf")
         out[key] = a.copy()
-    if room is not None:
-        low, high = np.asarray(room[0], np.float64), np.asarray(room[1], np.float64)
-        box = " x ".join(f"[{lo:g}, {hi:g}]" for lo, hi in zip(low, high))
-        for key in ("pos", "goals"):
-            if key in out:
-                outside = ((out[key] < low) | (out[key] > high)).any(axis=-1)
-                if outside.any():
-                    idx = tuple(int(i) for i in np.argwhere(outside)[0])
-                    raise ValueError(f"options['state']['{key}'] must be inside the room {box} m; index {idx} is "
-                                     f"{out[key][idx].tolist()}")
-    if "rot" in out:
+    if isinstance(out.get("rot"), np.ndarray):
         R = out["rot"]
         err = np.abs(np.einsum("...ij,...kj->...ik", R, R) - np.eye(3)).max()
         if err > 1e-4 or (np.linalg.det(R) < 0).any():
-            raise ValueError("options['state']['rot'] must hold proper rotation matrices (orthonormal, det +1)")
+            raise ValueError(f"{name}['rot'] must hold proper rotation matrices (orthonormal, det +1)")
+    if room is not None:
+        low, high = np.asarray(room[0], np.float64), np.asarray(room[1], np.float64)
+        box = " x ".join(f"[{a:g}, {b:g}]" for a, b in zip(low, high))
+        for key in ("pos", "goals"):
+            a = out.get(key)
+            if isinstance(a, np.ndarray):
+                outside = ((a < low) | (a > high)).any(axis=-1)
+                if outside.any():
+                    idx = tuple(int(i) for i in np.argwhere(outside)[0])
+                    raise ValueError(f"{name}['{key}'] must be inside the room {box} m; index {idx} is "
+                                     f"{a[idx].tolist()}")
     return out
 
 
