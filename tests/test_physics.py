@@ -226,3 +226,29 @@ def test_randomization_reaches_the_physics():
     dz = info["state"]["pos"][:, 2] - 5.0
     heavy, light = np.argmin(ratio), np.argmax(ratio)
     assert dz[heavy] < dz[light]
+
+
+@pytest.mark.parametrize("backend", ["mjdata", "batch"])
+def test_randomized_mass_and_inertia_reach_the_dynamics(backend):
+    """Drawn masses and inertias act in MuJoCo's mass matrix, not only in gravity: free fall is g for
+    every mass, a constant thrust F accelerates by F / m - g, and a torque by tau / I."""
+    from quadswarm_mj.envs.cpu_core import CpuSwarm
+
+    cfg = EnvConfig(num_quads=3, randomize=True, motor_start="hover").without_noise().replace(randomize=True)
+    core = CpuSwarm(cfg, 4, backend=backend, chunk_worlds=2)
+    core.seed(1)
+    core.reset()
+    m, inertia = core.params["mass"], core.params["inertia"]
+    assert np.ptp(m) > 1e-3  # the draws differ
+    core.qpos[..., 2] = 5.0
+    core.qvel[...] = 0.0
+    core.state_changed()
+    dt = cfg.sim_dt
+    F, tau = 0.2, 1e-5
+    core.xfrc[...] = 0.0
+    core.xfrc[..., 2] = F
+    core.xfrc[..., 5] = tau  # world z torque = body z torque (the spawn rotation is a yaw)
+    core.phys.step(cfg.quad.max_omega)
+    acc_z = core.qvel[..., 2] / dt
+    np.testing.assert_allclose(acc_z, F / m - cfg.quad.gravity, rtol=1e-9)
+    np.testing.assert_allclose(core.qvel[..., 5] / dt, tau / inertia[..., 2], rtol=1e-9)

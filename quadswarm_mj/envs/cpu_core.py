@@ -74,6 +74,20 @@ BACKENDS = ("mjdata", "batch")
 _ALL = slice(None)
 
 
+def _check_simple_bodies(model: mujoco.MjModel, arena: Any) -> None:
+    """The quads' free-joint mass-matrix diagonal ``dof_M0`` must be (m, m, m, Ixx, Iyy, Izz) so that
+    writing it with the body mass and inertia is exact (the Crazyflie's inertial frame is its body
+    frame). MuJoCo 4 builds the mass matrix of such "simple" bodies from ``dof_M0``, which
+    ``mj_setConst`` computes at compile time: writing ``body_mass``/``body_inertia`` alone would
+    change gravity (m g) but not the inertia the solver divides by."""
+    fb, vs, n = arena.first_body, arena.qvel_start, arena.body_ids.size
+    m0 = model.dof_M0[vs:vs + 6 * n].reshape(n, 6)
+    expect = np.concatenate([np.repeat(model.body_mass[fb:fb + n, None], 3, 1), model.body_inertia[fb:fb + n]], 1)
+    if not np.allclose(m0, expect, rtol=1e-12, atol=0.0):
+        raise RuntimeError("quad bodies are not simple free bodies (dof_M0 != mass, inertia): the inertial frame "
+                           "must coincide with the body frame")
+
+
 class _MjDataPhysics:
     """All B worlds in one MjModel/MjData; qpos/qvel/xfrc are views into it (no copies)."""
 
@@ -88,6 +102,8 @@ class _MjDataPhysics:
         self.xfrc = self.data.xfrc_applied[fb:fb + B * N].reshape(B, N, 6)
         assert np.shares_memory(self.qpos, self.data.qpos) and np.shares_memory(self.xfrc, self.data.xfrc_applied)
         self.offsets = self.arena.world_offsets[:, None, :]
+        _check_simple_bodies(self.model, self.arena)
+        self._M0 = self.model.dof_M0[vs:vs + 6 * B * N].reshape(B * N, 6)  # a view
 
     def touch(self) -> None:
         """The engine wrote qpos/qvel: nothing to do, they are MjData itself."""
@@ -102,6 +118,9 @@ class _MjDataPhysics:
         ids = self.arena.body_ids[idx].ravel()
         self.model.body_mass[ids] = mass.ravel()
         self.model.body_inertia[ids] = inertia.reshape(-1, 3)
+        rows = ids - self.arena.first_body  # the mass matrix of the free joints (see _check_simple_bodies)
+        self._M0[rows, :3] = mass.reshape(-1, 1)
+        self._M0[rows, 3:] = inertia.reshape(-1, 3)
 
     def after_reset(self, idx: Any) -> None:
         self.data.time = 0.0
@@ -145,6 +164,8 @@ class _BatchPhysics:
         self._time = self.batch.bind("time")
         self._rmass = self.batch.expand("body_mass")[:, fb:fb + C * N]  # per-simulation model fields
         self._rinertia = self.batch.expand("body_inertia")[:, fb:fb + C * N]
+        _check_simple_bodies(self.model, self.arena)
+        self._rM0 = self.batch.expand("dof_M0")[:, vs:vs + 6 * C * N].reshape(K, C * N, 6)  # see _check_simple_bodies
         self._qpos = self._rq.reshape(K * C, N, 7).copy()  # padded to K * C worlds
         self._qvel = np.zeros((K * C, N, 6))
         self._xfrc = np.zeros((K * C, N, 6))
@@ -183,6 +204,8 @@ class _BatchPhysics:
         self._inertia[:self.B][idx] = inertia
         self._rmass[...] = self._mass.reshape(self.K, -1)
         self._rinertia[...] = self._inertia.reshape(self._rinertia.shape)
+        self._rM0[..., :3] = self._mass.reshape(self.K, -1, 1)
+        self._rM0[..., 3:] = self._inertia.reshape(self.K, -1, 3)
 
     def after_reset(self, idx: Any) -> None:
         sims = np.arange(self.B)[idx] // self.C
