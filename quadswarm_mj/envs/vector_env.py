@@ -89,6 +89,7 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.control_modes import action_box_bounds
 from quadswarm_mj.envs.cpu_core import CpuSwarm
 from quadswarm_mj.envs.validation import check_action, check_engine, check_state
 from quadswarm_mj.metrics import METRIC_KEYS
@@ -495,7 +496,7 @@ class QuadSwarmVectorEnv(VectorEnv):
         self.single_observation_space = spaces.Box(np.broadcast_to(low, (N, low.size)).astype(np.float32),
                                                    np.broadcast_to(high, (N, high.size)).astype(np.float32),
                                                    dtype=np.float32)
-        self.single_action_space = spaces.Box(-1.0, 1.0, (N, 4), dtype=np.float32)
+        self.single_action_space = spaces.Box(*action_box_bounds(self.cfg, (N, 4)), dtype=np.float32)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, B)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, B)
         self.render_mode = None
