@@ -169,9 +169,6 @@ def test_numpy_jax_jit_equivalence(mode: str) -> None:
     assert 0.05 < ref[0].mean() < 0.95  # a real (non-saturated) command was compared
 
 
-_SKIP = pytest.mark.skip(reason="control modes not yet wired into the engines")
-
-
 def _env_constant_command(engine: str, mode: str, action: np.ndarray, seconds: float) -> dict[str, np.ndarray]:
     """Run one env (engine "mujoco" = QuadSwarmEnv, "mjx" = MjxQuadSwarmEnv) with a constant
     physical-unit action from a hover start; returns the state trajectory (T, N, ...)."""
@@ -211,7 +208,6 @@ def _env_constant_command(engine: str, mode: str, action: np.ndarray, seconds: f
     return {k: np.array(v) for k, v in traj.items()}
 
 
-@_SKIP
 @pytest.mark.parametrize("engine", ["mujoco", "mjx"])
 def test_env_ctbr_rates(engine: str) -> None:
     g = _hover_thrust(CFG)
@@ -220,7 +216,6 @@ def test_env_ctbr_rates(engine: str) -> None:
     np.testing.assert_allclose(tr["omega"][30:].mean(0), rates, atol=0.05)
 
 
-@_SKIP
 @pytest.mark.parametrize("engine", ["mujoco", "mjx"])
 def test_env_attitude_angles(engine: str) -> None:
     att = np.array([[0.2, -0.1, 0.5], [-0.15, 0.25, 0.0]])
@@ -231,7 +226,6 @@ def test_env_attitude_angles(engine: str) -> None:
     np.testing.assert_allclose(pitch, np.broadcast_to(att[:, 1], pitch.shape), atol=0.02)
 
 
-@_SKIP
 @pytest.mark.parametrize("engine", ["mujoco", "mjx"])
 def test_env_velocity(engine: str) -> None:
     action = np.array([[1.0, -0.5, 0.3, 0.0], [-0.6, 0.4, -0.2, 1.0]])
@@ -239,7 +233,6 @@ def test_env_velocity(engine: str) -> None:
     np.testing.assert_allclose(tr["vel"][300:].mean(0), action[:, :3], atol=0.05)
 
 
-@_SKIP
 @pytest.mark.parametrize("mode", ["ctbr", "attitude", "velocity"])
 def test_wrappers_expose_physical_action_bounds(mode: str) -> None:
     """Gymnasium, PettingZoo and the vector env take physical-unit actions within the mode's bounds;
