@@ -260,3 +260,91 @@ def test_wrappers_expose_physical_action_bounds(mode: str) -> None:
     venv.reset(seed=0)
     venv.step(np.broadcast_to(hover, (2, 2, 4)).copy())
     venv.close()
+
+
+@pytest.mark.parametrize("mode", ["ctbr", "attitude", "velocity"])
+def test_modes_pass_gymnasium_and_pettingzoo_checkers(mode: str) -> None:
+    """Gymnasium's check_env and PettingZoo's parallel_api_test accept every mode (CPU engine), with
+    the default noise and random actions from the physical action spaces."""
+    import warnings
+
+    from gymnasium.utils.env_checker import check_env
+    from pettingzoo.test import parallel_api_test
+
+    from quadswarm_mj.envs.gym_env import QuadSwarmEnv
+    from quadswarm_mj.envs.parallel_env import QuadSwarmParallelEnv
+
+    cfg = EnvConfig(num_quads=2, control_mode=mode, episode_seconds=0.3)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(QuadSwarmEnv(cfg), skip_render_check=True)
+    assert not caught, [str(w.message) for w in caught]
+    parallel_api_test(QuadSwarmParallelEnv(cfg), num_cycles=40)
+
+
+def test_physical_actions_are_clipped_and_effort_uses_the_rotor_command() -> None:
+    """An action far beyond the bounds gives the same step as the bound itself; the reward's effort
+    term is the norm of the equivalent raw rotor action 2 cmd - 1 (in [-1, 1], so <= 2)."""
+    from quadswarm_mj.envs.gym_env import QuadSwarmEnv
+
+    cfg = EnvConfig(num_quads=2, control_mode="ctbr").without_noise()
+    lo, hi = control_action_bounds(cfg)
+    outs = []
+    for a in (np.broadcast_to(hi * 10.0, (2, 4)), np.broadcast_to(hi, (2, 4))):
+        env = QuadSwarmEnv(cfg)
+        env.reset(seed=0)
+        outs.append(env.step(np.array(a))[4])
+    np.testing.assert_array_equal(outs[0]["state"]["pos"], outs[1]["state"]["pos"])
+    from quadswarm_mj.rewards import term_dt
+
+    assert cfg.rewards.effort > 0
+    effort = outs[1]["reward_terms"]["effort"] / (-term_dt(cfg, "effort") * cfg.rewards.effort)
+    cmd = env.core.cmd_s[0]
+    np.testing.assert_allclose(effort, np.linalg.norm(2.0 * cmd - 1.0, axis=-1), rtol=1e-12)
+    assert np.all(np.abs(2.0 * cmd - 1.0) <= 1.0) and effort.max() > 0.5
+
+
+def test_position_controller_is_rotor_mode_only() -> None:
+    from quadswarm_mj.controllers import PositionController
+
+    with pytest.raises(ValueError, match="control_mode='rotor'"):
+        PositionController(EnvConfig(control_mode="ctbr"))
+
+
+@pytest.mark.slow
+def test_modes_on_the_jax_front_ends() -> None:
+    """QuadSwarmEnv(engine="jax") passes check_env in the ctbr mode and holds a hover command like
+    the CPU engine (positions within 1e-4 m after 0.2 s, float32); QuadSwarmVectorEnv(engine="jax")
+    exposes the velocity mode's physical bounds and a zero-velocity command keeps a hover start
+    within 1 cm over 0.2 s."""
+    import warnings
+
+    from gymnasium.utils.env_checker import check_env
+
+    from quadswarm_mj.envs.gym_env import QuadSwarmEnv
+    from quadswarm_mj.envs.vector_env import QuadSwarmVectorEnv
+
+    cfg = EnvConfig(num_quads=2, control_mode="ctbr", motor_start="hover", episode_seconds=0.3).without_noise()
+    env = QuadSwarmEnv(cfg, engine="jax")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env, skip_render_check=True)
+    assert not caught, [str(w.message) for w in caught]
+    hover = np.array([[_hover_thrust(cfg), 0.1, -0.1, 0.2]] * 2)
+    pos = []
+    for e in (env, QuadSwarmEnv(cfg)):
+        e.reset(seed=3)
+        for _ in range(20):
+            info = e.step(hover)[4]
+        pos.append(np.asarray(info["state"]["pos"]))
+    np.testing.assert_allclose(pos[0], pos[1], atol=1e-4)
+    vcfg = cfg.replace(control_mode="velocity")
+    venv = QuadSwarmVectorEnv(vcfg, num_envs=2, engine="jax")
+    lo, hi = control_action_bounds(vcfg)
+    np.testing.assert_allclose(venv.single_action_space.low, np.broadcast_to(lo, (2, 4)), rtol=1e-6)
+    obs, info = venv.reset(seed=0)
+    p0 = np.asarray(info["state"]["pos"]).copy()
+    for _ in range(20):
+        obs, _, _, _, info = venv.step(np.zeros((2, 2, 4), np.float32))
+    assert np.abs(np.asarray(info["state"]["pos"]) - p0).max() < 0.01
+    venv.close()
