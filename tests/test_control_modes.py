@@ -208,7 +208,7 @@ def _env_constant_command(engine: str, mode: str, action: np.ndarray, seconds: f
     return {k: np.array(v) for k, v in traj.items()}
 
 
-@pytest.mark.parametrize("engine", ["mujoco", "mjx"])
+@pytest.mark.parametrize("engine", ["mujoco", pytest.param("mjx", marks=pytest.mark.slow)])
 def test_env_ctbr_rates(engine: str) -> None:
     g = _hover_thrust(CFG)
     rates = np.array([[0.5, -0.3, 1.0], [-0.4, 0.2, -2.0]])
@@ -216,7 +216,7 @@ def test_env_ctbr_rates(engine: str) -> None:
     np.testing.assert_allclose(tr["omega"][30:].mean(0), rates, atol=0.05)
 
 
-@pytest.mark.parametrize("engine", ["mujoco", "mjx"])
+@pytest.mark.parametrize("engine", ["mujoco", pytest.param("mjx", marks=pytest.mark.slow)])
 def test_env_attitude_angles(engine: str) -> None:
     att = np.array([[0.2, -0.1, 0.5], [-0.15, 0.25, 0.0]])
     tr = _env_constant_command(engine, "attitude", np.concatenate([np.full((2, 1), _hover_thrust(CFG)), att], -1),
@@ -226,7 +226,7 @@ def test_env_attitude_angles(engine: str) -> None:
     np.testing.assert_allclose(pitch, np.broadcast_to(att[:, 1], pitch.shape), atol=0.02)
 
 
-@pytest.mark.parametrize("engine", ["mujoco", "mjx"])
+@pytest.mark.parametrize("engine", ["mujoco", pytest.param("mjx", marks=pytest.mark.slow)])
 def test_env_velocity(engine: str) -> None:
     action = np.array([[1.0, -0.5, 0.3, 0.0], [-0.6, 0.4, -0.2, 1.0]])
     tr = _env_constant_command(engine, "velocity", action, 3.5)
@@ -332,8 +332,9 @@ def test_modes_on_the_jax_front_ends() -> None:
     assert not caught, [str(w.message) for w in caught]
     hover = np.array([[_hover_thrust(cfg), 0.1, -0.1, 0.2]] * 2)
     pos = []
+    start = {"pos": np.array([[-0.5, 0.0, 2.0], [0.5, 0.0, 2.0]]), "rot": np.stack([np.eye(3)] * 2), "motors": "hover"}
     for e in (env, QuadSwarmEnv(cfg)):
-        e.reset(seed=3)
+        e.reset(seed=3, options={"state": start})
         for _ in range(20):
             info = e.step(hover)[4]
         pos.append(np.asarray(info["state"]["pos"]))
@@ -348,3 +349,23 @@ def test_modes_on_the_jax_front_ends() -> None:
         obs, _, _, _, info = venv.step(np.zeros((2, 2, 4), np.float32))
     assert np.abs(np.asarray(info["state"]["pos"]) - p0).max() < 0.01
     venv.close()
+
+
+def test_identified_preset_through_the_engine() -> None:
+    """The thrust map reaches the CPU engine: on "crazyflie21_identified" (nonlinear map), a hover
+    start with the preset's hover action (the inverse map of m g) holds still (|v| < 1e-6 m/s over
+    0.5 s); the linear map's hover action (m g / 4 thrust_max) sinks."""
+    from quadswarm_mj.envs.gym_env import QuadSwarmEnv
+
+    cfg = EnvConfig(num_quads=1, quad="crazyflie21_identified", motor_start="hover").without_noise()
+    start = {"pos": np.array([[0.0, 0.0, 2.0]]), "rot": np.eye(3)[None], "motors": "hover"}
+    linear = 2.0 / cfg.quad.thrust_to_weight - 1.0
+    assert cfg.quad.hover_action > linear  # the map gives less thrust than linear below full command
+    vz = []
+    for a in (cfg.quad.hover_action, linear):
+        env = QuadSwarmEnv(cfg)
+        env.reset(seed=0, options={"state": start})
+        for _ in range(50):
+            info = env.step(np.full(4, a))[4]
+        vz.append(info["state"]["vel"][0, 2])
+    assert abs(vz[0]) < 1e-6 and vz[1] < -0.1
