@@ -69,7 +69,7 @@ def test_gap_of_the_paper_linear_model() -> None:
     """Documents the gap of the paper's linear model (thrust_max * cmd, thrust-to-weight 1.9 at
     28 g) against the same table, taking the command as the PWM fraction: it is large at low PWM
     (the measured curve is convex) and under-predicts the top of the range. The figures asserted
-    here are quoted in docs/beyond_the_paper.md."""
+    here are quoted in the README section "Beyond the paper"."""
     pwm, rel, abs_fs = _rel_gap(QuadParams.preset("quadswarm"))
     assert 1.0 < rel[0] < 1.2  # +108 % at 6.25 % PWM
     assert 0.35 < rel[1] < 0.42  # +38 % at 12.5 %
