@@ -260,3 +260,20 @@ def test_env_aero_params_randomized_per_quad() -> None:
     assert r[0] != r[1] and d[0, 0] != d[1, 0]
     assert np.all((r >= 0.9 * R_CF) & (r <= 1.1 * R_CF))
     np.testing.assert_allclose(d[:, 2] / d[:, 0], cfg.aero.drag_coeff[2] / cfg.aero.drag_coeff[0])
+
+
+def test_vector_env_reports_aero_params_and_steps_with_aero() -> None:
+    """QuadSwarmVectorEnv (CPU) with aero on: info["params"] holds the aero parameters (B, N, ...),
+    and a hover start near the floor climbs (ground effect) over 0.1 s."""
+    from quadswarm_mj.envs.vector_env import QuadSwarmVectorEnv
+
+    cfg = _aero_cfg(True)
+    venv = QuadSwarmVectorEnv(cfg, num_envs=2)
+    _, info = venv.reset(seed=0, options={"state": {k: (v if isinstance(v, str) else np.stack([v] * 2))
+                                                    for k, v in _START.items()}})
+    assert info["params"]["drag_coeff"].shape == (2, 2, 3)
+    np.testing.assert_allclose(info["params"]["rotor_radius"], R_CF)
+    for _ in range(10):
+        _, _, _, _, info = venv.step(np.full((2, 2, 4), cfg.quad.hover_action))
+    assert np.all(info["state"]["vel"][:, 0, 2] > 1e-3)
+    venv.close()
