@@ -545,7 +545,8 @@ class CpuSwarm:
 
     # ------------------------------------------------------------------ step
     def step(self, action: np.ndarray) -> dict[str, Any]:
-        """Advance all worlds one control step with validated actions (B, N, 4)."""
+        """Advance all worlds one control step with validated actions (B, N, 4) of ``cfg.control_mode``
+        (per-rotor in [-1, 1], or physical units clipped into ``control_action_bounds``)."""
         cfg = self.cfg
         self.prev_f_norm = self.f_norm
         k = self._physics(action)

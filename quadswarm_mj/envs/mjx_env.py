@@ -239,8 +239,10 @@ class MjxQuadSwarmEnv:
     """One world of ``cfg.num_quads`` Crazyflies on MJX; pure ``reset``/``step`` (jit, vmap).
 
     The model is ``quadswarm_mj.arena.build_arena(cfg, 1)`` put on the default device with
-    ``mjx.put_model``. ``action`` is (N, 4) raw per-rotor commands in [-1, 1] (clipped; -1 no
-    thrust, 1 full thrust). Actions are not validated under ``jit``: a NaN action yields NaN state.
+    ``mjx.put_model``. ``action`` is (N, 4): in the default "rotor" control mode raw per-rotor
+    commands in [-1, 1] (clipped; -1 no thrust, 1 full thrust), in the other modes
+    (``cfg.control_mode``) physical units within :attr:`action_bounds` (clipped; README "Beyond the
+    paper"). Actions are not validated under ``jit``: a NaN action yields NaN state.
 
     ``physics`` chooses the rigid-body integrator of the sub-steps: ``"freebody"`` (the default
     where it is available: :func:`quadswarm_mj.freebody.freebody_step`, MuJoCo's Euler step of
@@ -325,6 +327,13 @@ class MjxQuadSwarmEnv:
     def action_size(self) -> int:
         """Actions per quad (4 rotors); the full action is (N, 4)."""
         return 4
+
+    @property
+    def action_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low (4,), high (4,)) per quad: :func:`quadswarm_mj.control_modes.control_action_bounds`."""
+        from quadswarm_mj.control_modes import control_action_bounds
+
+        return control_action_bounds(self.cfg)
 
     @property
     def num_quads(self) -> int:
@@ -578,7 +587,7 @@ class MjxQuadSwarmEnv:
 
     # ------------------------------------------------------------------ step
     def step(self, state: State, action: jax.Array) -> State:
-        """Advance one control step with raw actions (N, 4) in [-1, 1]."""
+        """Advance one control step with actions (N, 4) of ``cfg.control_mode`` (rotor: [-1, 1])."""
         cfg, n = self.cfg, self.N
         f = _float()
         info = state.info
