@@ -124,9 +124,17 @@ def test_randomization_draws_scale_per_quad() -> None:
     np.testing.assert_allclose(p["drag_coeff"] / np.asarray(cfg.aero.drag_coeff), d["drag_scale"][:, None] * np.ones(3))
 
 
-def test_numpy_jax_jit_equivalence() -> None:
+@pytest.fixture
+def x64():
+    """jax with float64 enabled for one test (restored after it: later tests run in float32)."""
     jax = pytest.importorskip("jax")
     jax.config.update("jax_enable_x64", True)
+    yield jax
+    jax.config.update("jax_enable_x64", False)
+
+
+def test_numpy_jax_jit_equivalence(x64) -> None:
+    jax = x64
     import jax.numpy as jnp
 
     cfg = EnvConfig(num_quads=3, randomize=True, aero=AeroConfig(drag=True, ground_effect=True),

@@ -139,10 +139,18 @@ def test_commands_stay_in_unit_interval_when_saturated() -> None:
     assert cmd[0].max() == 1.0  # thrust clipped to 4 thrust_max, saturated
 
 
-@pytest.mark.parametrize("mode", ["ctbr", "attitude", "velocity"])
-def test_numpy_jax_jit_equivalence(mode: str) -> None:
+@pytest.fixture
+def x64():
+    """jax with float64 enabled for one test (restored after it: later tests run in float32)."""
     jax = pytest.importorskip("jax")
     jax.config.update("jax_enable_x64", True)
+    yield jax
+    jax.config.update("jax_enable_x64", False)
+
+
+@pytest.mark.parametrize("mode", ["ctbr", "attitude", "velocity"])
+def test_numpy_jax_jit_equivalence(mode: str, x64) -> None:
+    jax = x64
     import jax.numpy as jnp
 
     cfg = EnvConfig(num_quads=3, control_mode=mode, randomize=True, quad="crazyflie21_identified")
