@@ -226,3 +226,10 @@ def make_mode_controller(cfg: EnvConfig, gains: ModeGains = DEFAULT_GAINS) -> An
         return mode_command(mode, action, state, params, ctrl_state, dt, quad=quad, gains=gains, bounds=bounds)
 
     return step
+
+
+def action_box_bounds(cfg: EnvConfig, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) float32 arrays of ``shape`` (..., 4) for a Gymnasium ``Box``: the physical bounds
+    of :func:`control_action_bounds` per quad ([-1, 1] in "rotor" mode)."""
+    lo, hi = control_action_bounds(cfg)
+    return (np.broadcast_to(lo, shape).astype(np.float32), np.broadcast_to(hi, shape).astype(np.float32))

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from quadswarm_mj._xp import array_namespace
-from quadswarm_mj.actuation import SPIN, rotor_positions
+from quadswarm_mj.actuation import SPIN, inverse_thrust_map, rotor_positions
 from quadswarm_mj.config import EnvConfig, QuadParams
 
 
@@ -137,7 +137,10 @@ class PositionController:
       ``mass`` (..., N) kg, ``inertia`` (..., N, 3) kg m^2, ``thrust_max`` and ``torque_max``
       (..., N, 4) N and N m per rotor. Missing keys take the nominal airframe of ``cfg``.
 
-    Returns actions (..., N, 4) in [-1, 1] (same namespace as ``state["pos"]``).
+    Returns actions (..., N, 4) in [-1, 1] (same namespace as ``state["pos"]``) of the "rotor"
+    control mode (an ``EnvConfig`` with another ``control_mode`` raises ValueError); for airframes
+    with a nonlinear thrust map (``QuadParams.thrust_map_quadratic``, e.g. the
+    "crazyflie21_identified" preset) the rotor thrusts go through ``inverse_thrust_map``.
     ``yaw`` (rad, scalar or (..., N)) sets a heading to hold; None (default) keeps the current
     heading and only damps the yaw rate (the position loop does not need a heading).
     ``obstacles``: optional columns to steer around (an ``ObstacleMap``, or the (..., M, 2) centres
@@ -150,6 +153,10 @@ class PositionController:
         if cfg is None:
             quad, gravity = QuadParams(), QuadParams().gravity
         elif isinstance(cfg, EnvConfig):
+            if cfg.control_mode != "rotor":
+                raise ValueError(f"PositionController returns per-rotor actions: it needs control_mode='rotor', "
+                                 f"got control_mode={cfg.control_mode!r} (the 'velocity' mode is a built-in "
+                                 f"velocity controller)")
             quad, gravity = cfg.quad, cfg.quad.gravity
         elif isinstance(cfg, QuadParams):
             quad, gravity = cfg, cfg.gravity
@@ -318,8 +325,10 @@ class PositionController:
         t_max = gains.max_thrust_fraction * xp.sum(thrust_max, axis=-1)
         f = self.allocate(xp.clip(thrust, 0.0, t_max), torque, thrust_max, torque_max)
 
-        # 5. normalized rotor thrust -> raw action (steady state f_norm = cmd)
-        return 2.0 * f - 1.0
+        # 5. rotor thrust -> motor command through the inverse static thrust map (identity for the
+        # paper's linear map) -> raw action (steady state f_norm = cmd)
+        q = self.quad.thrust_map_quadratic
+        return 2.0 * (f if q == 0.0 else inverse_thrust_map(f, q)) - 1.0
 
 
 def hover_actions(cfg: EnvConfig, num_quads: int | None = None) -> np.ndarray:

@@ -5,17 +5,17 @@ Order of a control step (:meth:`quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv._physi
 
 1. draws: one fused draw of everything the step can use (motor and sensor noise per quad, the
    event models' budgeted slots: :mod:`quadswarm_mj.collisions`, :mod:`quadswarm_mj.downwash`).
-2. sub-steps (``lax.scan`` over ``cfg.substeps``): :func:`control_stage` (action -> rotor command
-   at the physics rate) -> motor lag and noise -> rotor thrusts -> body wrench ->
-   :func:`aero_stage` (per-rotor thrust / extra body forces) -> floor normal and friction ->
+2. sub-steps (``lax.scan`` over ``cfg.substeps``): :func:`make_substep_actuation` (control mode:
+   action -> rotor command at the physics rate -> ground-effect gain -> motor lag and noise -> thrust
+   map -> rotor thrusts -> body wrench -> rotor drag; just ``substep_wrench`` in the default
+   configuration) -> floor normal and friction ->
    rigid-body integrator (passed in: ``freebody_step`` or ``mjx.step``) -> omega clip -> floor
    landing.
 3. once per control step: walls and ceiling -> quad-quad -> :func:`obstacle_stage` -> downwash.
 4. scenario (goals) -> reward terms -> episode metrics -> observations.
 
-The extension points below are identities today; the helpers that add control modes,
-aerodynamics and obstacles replace their bodies (keeping the signatures: pure, any leading dims,
-``jax.numpy`` or NumPy) and add their draws to the step's spec.
+The stages are pure (any leading dims, ``jax.numpy`` or NumPy); their draws are in the step's and
+the reset's specs.
 """
 
 from __future__ import annotations
@@ -23,19 +23,66 @@ from __future__ import annotations
 from typing import Any
 
 
-def control_stage(cmd: Any, qpos: Any, qvel: Any, R: Any) -> Any:
-    """Extension point, inside the sub-step loop before the motor model: map the control step's
-    command (N, 4) (today: normalized rotor speed from the per-rotor action) to the rotor command
-    of this sub-step, given the quad state (qpos (N, 7), qvel (N, 6), R (N, 3, 3) body->world).
-    Identity (per-rotor control)."""
-    return cmd
+def make_substep_actuation(cfg: Any) -> Any:
+    """The sub-step actuation chain beyond the paper for ``cfg``, or None when there is nothing beyond
+    it (``control_mode == "rotor"``, linear thrust map, aerodynamics off: the engines then call
+    ``substep_wrench`` exactly as before, no extra work). Static Python switches, decided once.
+
+    Returns ``act(u, action, cmd, eps, params, pos, vel, R, omega, cs, rotor_pos, mix, torque_spin)
+    -> (u, f_norm, force, torque, cmd_s, cs)``, one physics sub-step (any leading dims, NumPy or
+    ``jax.numpy``), in the order of docs (README "Beyond the paper"):
+
+    1. control stage: ``cmd_s`` = the mode controller's rotor command (``control_modes.mode_command``
+       on the current state, updating the controller state ``cs`` (..., N, 6)), or ``cmd`` (the raw
+       per-rotor command ``action_to_command(action)``) in "rotor" mode;
+    2. ground-effect gain (``aerodynamics.ground_effect_stage``, ``pos`` world-local m);
+    3. motor model and wrench (``substep_wrench`` with the thrust map and the gain);
+    4. rotor drag added to the world force (``aerodynamics.drag_stage``, ``vel`` m/s world).
+    ``omega`` rad/s body, ``R`` body->world."""
+    from quadswarm_mj.actuation import substep_wrench
+    from quadswarm_mj.aerodynamics import drag_stage, ground_effect_stage
+    from quadswarm_mj.control_modes import make_mode_controller
+
+    mode_step = make_mode_controller(cfg)
+    q = cfg.quad.thrust_map_quadratic
+    if mode_step is None and q == 0.0 and not cfg.aero.any:
+        return None
+
+    def act(u: Any, action: Any, cmd: Any, eps: Any, params: dict[str, Any], pos: Any, vel: Any, R: Any,
+            omega: Any, cs: Any, rotor_pos: Any, mix: Any, torque_spin: Any) -> tuple:
+        if mode_step is not None:
+            cmd, cs = mode_step(action, {"rot": R, "omega": omega, "vel": vel}, params, cs)
+        gain = ground_effect_stage(cfg, params, pos, R, rotor_pos)
+        u, f_norm, force, torque = substep_wrench(u, cmd, eps, params, R, rotor_pos, mix, torque_spin,
+                                                  thrust_quadratic=q, rotor_gain=gain)
+        drag = drag_stage(cfg, params, R, vel, f_norm, gain)
+        return u, f_norm, force if drag is None else force + drag, torque, cmd, cs
+
+    return act
 
 
-def aero_stage(force: Any, torque: Any, f_norm: Any, qpos: Any, qvel: Any, R: Any) -> tuple[Any, Any]:
-    """Extension point, per sub-step after the rotor thrusts: modify the world-frame body force (N, 3)
-    N and torque (N, 3) N m (e.g. drag, ground effect) given the normalized rotor thrusts ``f_norm``
-    (N, 4). Identity (no aerodynamics beyond the paper's model)."""
-    return force, torque
+def effort_action(cfg: Any, action: Any, cmd_s: Any) -> Any:
+    """The action the reward's ``effort`` term sees: the raw action in "rotor" mode; in the
+    physical-unit modes the equivalent raw per-rotor action ``2 cmd_s - 1`` of the rotor command of
+    the step's last sub-step (so the term's scale is the same in every mode)."""
+    return action if cfg.control_mode == "rotor" else 2.0 * cmd_s - 1.0
+
+
+def dynamics_params(cfg: Any, rand_draws: dict[str, Any], aero_draws: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Per-quad dynamics parameters (``randomization.params_from_draws``), with the aerodynamic ones
+    (``rotor_radius``, ``drag_coeff``: ``aerodynamics.aero_params_from_draws``, nominal when
+    ``aero_draws`` is None) merged in when ``cfg.aero`` has an effect on."""
+    from quadswarm_mj.randomization import params_from_draws
+
+    params = params_from_draws(cfg, rand_draws)
+    if not cfg.aero.any:
+        return params
+    from quadswarm_mj.aerodynamics import aero_nominal_draws, aero_params_from_draws
+
+    if aero_draws is None:
+        like = params["mass"]
+        aero_draws = aero_nominal_draws(cfg, like, tuple(like.shape[:-1]))
+    return {**params, **aero_params_from_draws(cfg, aero_draws)}
 
 
 def obstacle_stage(pos: Any, vel: Any, omega: Any) -> tuple[Any, Any, Any]:
@@ -46,22 +93,23 @@ def obstacle_stage(pos: Any, vel: Any, omega: Any) -> tuple[Any, Any, Any]:
 
 
 def initial_state(cfg: Any, scenario: Any, rand_draws: dict[str, Any], scenario_u: Any, spawn_u: Any,
-                  overrides: dict[str, Any], xp: Any, dtype: Any) -> dict[str, Any]:
+                  overrides: dict[str, Any], xp: Any, dtype: Any, aero_draws: dict[str, Any] | None = None
+                  ) -> dict[str, Any]:
     """The reset math of both engines: dynamics parameters, scenario start, spawn, and the overrides of
     ``options["state"]`` / ``init_state`` (already validated, rows of the reset worlds).
 
     ``rand_draws`` are the randomization draws (or the nominal ones), ``scenario_u`` and ``spawn_u``
-    the scenario's and the spawn's uniforms (leading dims (..., ) of the worlds reset). ``overrides``
+    the scenario's and the spawn's uniforms (leading dims (..., ) of the worlds reset), ``aero_draws``
+    the aerodynamic multipliers (:func:`dynamics_params`; None: nominal). ``overrides``
     may hold ``pos``, ``vel``, ``rot``, ``omega``, ``goals`` arrays (..., N, ...) and ``motors`` ("zero",
     "hover" or (..., N, 4) normalized thrusts; default ``cfg.motor_start``). Returns ``params``,
     ``scenario`` (ScenarioState), ``pos`` m world, ``vel`` m/s world, ``rot`` body->world, ``omega``
     rad/s body and ``u0`` (normalized rotor speeds)."""
-    from quadswarm_mj.actuation import hover_motor_state
-    from quadswarm_mj.randomization import params_from_draws
+    from quadswarm_mj.actuation import hover_motor_state_mapped
     from quadswarm_mj.scenarios.base import spawn_state
     from quadswarm_mj.spatial import yaw_rotmat
 
-    params = params_from_draws(cfg, rand_draws)
+    params = dynamics_params(cfg, rand_draws, aero_draws)
     sstate = scenario.init(cfg, scenario_u)
     if overrides.get("goals") is not None:
         sstate = sstate._replace(goals=xp.asarray(overrides["goals"], dtype=dtype).reshape(sstate.goals.shape))
@@ -79,7 +127,8 @@ def initial_state(cfg: Any, scenario: Any, rand_draws: dict[str, Any], scenario_
     omega = pick("omega", xp.zeros(shape, dtype=dtype), (3,))
     motors = overrides.get("motors", cfg.motor_start)
     if isinstance(motors, str):
-        u0 = (xp.asarray(hover_motor_state(params), dtype=dtype) if motors == "hover"
+        hover = motors == "hover"
+        u0 = (xp.asarray(hover_motor_state_mapped(params, cfg.quad.thrust_map_quadratic), dtype=dtype) if hover
               else xp.zeros(shape[:-1] + (4,), dtype=dtype))
     else:
         u0 = xp.sqrt(xp.clip(xp.asarray(motors, dtype=dtype).reshape(shape[:-1] + (4,)), 0.0, 1.0))

@@ -15,6 +15,12 @@ Terms (keys of ``info["reward_terms"]``) and their costs per quad:
   ``proximity`` sum over other quads within the falloff of (1 - d / falloff);
 * ``floor_hit``, ``wall_hit``, ``ceiling_hit`` 1 on the step of the hit.
 
+``a_raw`` is the per-rotor action in [-1, 1] of the "rotor" control mode. In the physical-unit
+modes (``EnvConfig.control_mode`` "ctbr", "attitude", "velocity") the engines pass instead the
+equivalent raw rotor action 2 cmd - 1 of the mode controller's rotor command ``cmd`` in [0, 1] (its
+last physics sub-step of the control step, :func:`quadswarm_mj.pipeline.effort_action`), so the
+effort scale means the same in every mode (a thrust in N or a rate in rad/s would not be comparable).
+
 The collision and proximity scales are multiplied by an annealing factor in [0, 1].
 The per-quad reward is the exact sum of the terms. Pure, any batch dims, NumPy or ``jax.numpy``.
 """

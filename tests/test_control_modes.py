@@ -139,10 +139,18 @@ def test_commands_stay_in_unit_interval_when_saturated() -> None:
     assert cmd[0].max() == 1.0  # thrust clipped to 4 thrust_max, saturated
 
 
-@pytest.mark.parametrize("mode", ["ctbr", "attitude", "velocity"])
-def test_numpy_jax_jit_equivalence(mode: str) -> None:
+@pytest.fixture
+def x64():
+    """jax with float64 enabled for one test (restored after it: later tests run in float32)."""
     jax = pytest.importorskip("jax")
     jax.config.update("jax_enable_x64", True)
+    yield jax
+    jax.config.update("jax_enable_x64", False)
+
+
+@pytest.mark.parametrize("mode", ["ctbr", "attitude", "velocity"])
+def test_numpy_jax_jit_equivalence(mode: str, x64) -> None:
+    jax = x64
     import jax.numpy as jnp
 
     cfg = EnvConfig(num_quads=3, control_mode=mode, randomize=True, quad="crazyflie21_identified")
@@ -167,9 +175,6 @@ def test_numpy_jax_jit_equivalence(mode: str) -> None:
     np.testing.assert_allclose(np.asarray(out[0]), ref[0], atol=1e-10)
     np.testing.assert_allclose(np.asarray(out[1]), ref[1], atol=1e-12)
     assert 0.05 < ref[0].mean() < 0.95  # a real (non-saturated) command was compared
-
-
-_SKIP = pytest.mark.skip(reason="control modes not yet wired into the engines")
 
 
 def _env_constant_command(engine: str, mode: str, action: np.ndarray, seconds: float) -> dict[str, np.ndarray]:
@@ -211,8 +216,7 @@ def _env_constant_command(engine: str, mode: str, action: np.ndarray, seconds: f
     return {k: np.array(v) for k, v in traj.items()}
 
 
-@_SKIP
-@pytest.mark.parametrize("engine", ["mujoco", "mjx"])
+@pytest.mark.parametrize("engine", ["mujoco", pytest.param("mjx", marks=pytest.mark.slow)])
 def test_env_ctbr_rates(engine: str) -> None:
     g = _hover_thrust(CFG)
     rates = np.array([[0.5, -0.3, 1.0], [-0.4, 0.2, -2.0]])
@@ -220,8 +224,7 @@ def test_env_ctbr_rates(engine: str) -> None:
     np.testing.assert_allclose(tr["omega"][30:].mean(0), rates, atol=0.05)
 
 
-@_SKIP
-@pytest.mark.parametrize("engine", ["mujoco", "mjx"])
+@pytest.mark.parametrize("engine", ["mujoco", pytest.param("mjx", marks=pytest.mark.slow)])
 def test_env_attitude_angles(engine: str) -> None:
     att = np.array([[0.2, -0.1, 0.5], [-0.15, 0.25, 0.0]])
     tr = _env_constant_command(engine, "attitude", np.concatenate([np.full((2, 1), _hover_thrust(CFG)), att], -1),
@@ -231,15 +234,13 @@ def test_env_attitude_angles(engine: str) -> None:
     np.testing.assert_allclose(pitch, np.broadcast_to(att[:, 1], pitch.shape), atol=0.02)
 
 
-@_SKIP
-@pytest.mark.parametrize("engine", ["mujoco", "mjx"])
+@pytest.mark.parametrize("engine", ["mujoco", pytest.param("mjx", marks=pytest.mark.slow)])
 def test_env_velocity(engine: str) -> None:
     action = np.array([[1.0, -0.5, 0.3, 0.0], [-0.6, 0.4, -0.2, 1.0]])
     tr = _env_constant_command(engine, "velocity", action, 3.5)
     np.testing.assert_allclose(tr["vel"][300:].mean(0), action[:, :3], atol=0.05)
 
 
-@_SKIP
 @pytest.mark.parametrize("mode", ["ctbr", "attitude", "velocity"])
 def test_wrappers_expose_physical_action_bounds(mode: str) -> None:
     """Gymnasium, PettingZoo and the vector env take physical-unit actions within the mode's bounds;
@@ -267,3 +268,143 @@ def test_wrappers_expose_physical_action_bounds(mode: str) -> None:
     venv.reset(seed=0)
     venv.step(np.broadcast_to(hover, (2, 2, 4)).copy())
     venv.close()
+
+
+@pytest.mark.parametrize("mode", ["ctbr", "attitude", "velocity"])
+def test_modes_pass_gymnasium_and_pettingzoo_checkers(mode: str) -> None:
+    """Gymnasium's check_env and PettingZoo's parallel_api_test accept every mode (CPU engine), with
+    the default noise and random actions from the physical action spaces."""
+    import warnings
+
+    from gymnasium.utils.env_checker import check_env
+    from pettingzoo.test import parallel_api_test
+
+    from quadswarm_mj.envs.gym_env import QuadSwarmEnv
+    from quadswarm_mj.envs.parallel_env import QuadSwarmParallelEnv
+
+    cfg = EnvConfig(num_quads=2, control_mode=mode, episode_seconds=0.3)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(QuadSwarmEnv(cfg), skip_render_check=True)
+    assert not caught, [str(w.message) for w in caught]
+    parallel_api_test(QuadSwarmParallelEnv(cfg), num_cycles=40)
+
+
+def test_physical_actions_are_clipped_and_effort_uses_the_rotor_command() -> None:
+    """An action far beyond the bounds gives the same step as the bound itself; the reward's effort
+    term is the norm of the equivalent raw rotor action 2 cmd - 1 (in [-1, 1], so <= 2)."""
+    from quadswarm_mj.envs.gym_env import QuadSwarmEnv
+
+    cfg = EnvConfig(num_quads=2, control_mode="ctbr").without_noise()
+    lo, hi = control_action_bounds(cfg)
+    outs = []
+    for a in (np.broadcast_to(hi * 10.0, (2, 4)), np.broadcast_to(hi, (2, 4))):
+        env = QuadSwarmEnv(cfg)
+        env.reset(seed=0)
+        outs.append(env.step(np.array(a))[4])
+    np.testing.assert_array_equal(outs[0]["state"]["pos"], outs[1]["state"]["pos"])
+    from quadswarm_mj.rewards import term_dt
+
+    assert cfg.rewards.effort > 0
+    effort = outs[1]["reward_terms"]["effort"] / (-term_dt(cfg, "effort") * cfg.rewards.effort)
+    cmd = env.core.cmd_s[0]
+    np.testing.assert_allclose(effort, np.linalg.norm(2.0 * cmd - 1.0, axis=-1), rtol=1e-12)
+    assert np.all(np.abs(2.0 * cmd - 1.0) <= 1.0) and effort.max() > 0.5
+
+
+def test_position_controller_is_rotor_mode_only() -> None:
+    from quadswarm_mj.controllers import PositionController
+
+    with pytest.raises(ValueError, match="control_mode='rotor'"):
+        PositionController(EnvConfig(control_mode="ctbr"))
+
+
+@pytest.mark.slow
+def test_modes_on_the_jax_front_ends() -> None:
+    """QuadSwarmEnv(engine="jax") passes check_env in the ctbr mode and holds a hover command like
+    the CPU engine (positions within 1e-4 m after 0.2 s, float32); QuadSwarmVectorEnv(engine="jax")
+    exposes the velocity mode's physical bounds and a zero-velocity command keeps a hover start
+    within 1 cm over 0.2 s."""
+    import warnings
+
+    from gymnasium.utils.env_checker import check_env
+
+    from quadswarm_mj.envs.gym_env import QuadSwarmEnv
+    from quadswarm_mj.envs.vector_env import QuadSwarmVectorEnv
+
+    cfg = EnvConfig(num_quads=2, control_mode="ctbr", motor_start="hover", episode_seconds=0.3).without_noise()
+    env = QuadSwarmEnv(cfg, engine="jax")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env, skip_render_check=True)
+    assert not caught, [str(w.message) for w in caught]
+    hover = np.array([[_hover_thrust(cfg), 0.1, -0.1, 0.2]] * 2)
+    pos = []
+    start = {"pos": np.array([[-0.5, 0.0, 2.0], [0.5, 0.0, 2.0]]), "rot": np.stack([np.eye(3)] * 2), "motors": "hover"}
+    for e in (env, QuadSwarmEnv(cfg)):
+        e.reset(seed=3, options={"state": start})
+        for _ in range(20):
+            info = e.step(hover)[4]
+        pos.append(np.asarray(info["state"]["pos"]))
+    np.testing.assert_allclose(pos[0], pos[1], atol=1e-4)
+    vcfg = cfg.replace(control_mode="velocity")
+    venv = QuadSwarmVectorEnv(vcfg, num_envs=2, engine="jax")
+    lo, hi = control_action_bounds(vcfg)
+    np.testing.assert_allclose(venv.single_action_space.low, np.broadcast_to(lo, (2, 4)), rtol=1e-6)
+    obs, info = venv.reset(seed=0)
+    p0 = np.asarray(info["state"]["pos"]).copy()
+    for _ in range(20):
+        obs, _, _, _, info = venv.step(np.zeros((2, 2, 4), np.float32))
+    assert np.abs(np.asarray(info["state"]["pos"]) - p0).max() < 0.01
+    venv.close()
+
+
+def test_identified_preset_through_the_engine() -> None:
+    """The thrust map reaches the CPU engine: on "crazyflie21_identified" (nonlinear map), a hover
+    start with the preset's hover action (the inverse map of m g) holds still (|v| < 1e-6 m/s over
+    0.5 s); the linear map's hover action (m g / 4 thrust_max) sinks."""
+    from quadswarm_mj.envs.gym_env import QuadSwarmEnv
+
+    cfg = EnvConfig(num_quads=1, quad="crazyflie21_identified", motor_start="hover").without_noise()
+    start = {"pos": np.array([[0.0, 0.0, 2.0]]), "rot": np.eye(3)[None], "motors": "hover"}
+    linear = 2.0 / cfg.quad.thrust_to_weight - 1.0
+    assert cfg.quad.hover_action > linear  # the map gives less thrust than linear below full command
+    vz = []
+    for a in (cfg.quad.hover_action, linear):
+        env = QuadSwarmEnv(cfg)
+        env.reset(seed=0, options={"state": start})
+        for _ in range(50):
+            info = env.step(np.full(4, a))[4]
+        vz.append(info["state"]["vel"][0, 2])
+    assert abs(vz[0]) < 1e-6 and vz[1] < -0.1
+
+
+@pytest.mark.slow
+def test_ctbr_on_mjx_physics_matches_cpu() -> None:
+    """MjxQuadSwarmEnv(physics="mjx") (mjx.step) in ctbr mode, with the identified preset's thrust
+    map and both aero effects, matches the CPU engine: positions within 1e-4 m, body rates within
+    1e-3 rad/s after 0.2 s (float32 vs float64)."""
+    import jax
+    import jax.numpy as jnp
+
+    from quadswarm_mj.config import AeroConfig
+    from quadswarm_mj.envs.gym_env import QuadSwarmEnv
+    from quadswarm_mj.envs.mjx_env import MjxQuadSwarmEnv
+
+    cfg = EnvConfig(num_quads=2, control_mode="ctbr", quad="crazyflie21_identified", motor_start="hover",
+                    aero=AeroConfig(ground_effect=True, drag=True)).without_noise()
+    start = {"pos": np.array([[-0.5, 0.0, 0.1], [0.5, 0.0, 2.0]]), "vel": np.array([[0.0, 0.0, 0.0], [1.0, 0, 0]]),
+             "rot": np.stack([np.eye(3)] * 2), "omega": np.zeros((2, 3)), "motors": "hover"}
+    action = np.array([[_hover_thrust(cfg), 0.3, -0.2, 0.5], [_hover_thrust(cfg), -0.1, 0.2, -0.4]])
+    env = QuadSwarmEnv(cfg)
+    env.reset(seed=0, options={"state": start})
+    for _ in range(20):
+        info = env.step(action)[4]
+    menv = MjxQuadSwarmEnv(cfg, physics="mjx")
+    st = menv.reset(jax.random.PRNGKey(0), {k: (v if isinstance(v, str) else jnp.asarray(v)) for k, v in start.items()})
+    step = jax.jit(menv.step)
+    for _ in range(20):
+        st = step(st, jnp.asarray(action))
+    np.testing.assert_allclose(np.asarray(st.info["state"]["pos"]), info["state"]["pos"], atol=1e-4)
+    np.testing.assert_allclose(np.asarray(st.info["state"]["omega"]), info["state"]["omega"], atol=1e-3)
+    assert np.abs(info["state"]["omega"]).max() > 0.1  # the commanded rates were flown

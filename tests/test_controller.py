@@ -229,3 +229,12 @@ def test_bad_input_raises_value_errors():
         ControllerGains(kp=-1.0)
     with pytest.raises(ValueError, match="cfg"):
         PositionController("cf2")
+
+
+def test_holds_a_goal_on_the_identified_preset():
+    """With a nonlinear thrust map (preset "crazyflie21_identified") the controller's actions go
+    through the inverse map: it holds a static goal within 0.1 m from a motors-off start."""
+    env = QuadSwarmEnv(num_quads=1, scenario="static_same_goal", quad="crazyflie21_identified")
+    d, zs, env, _ = fly(env, 4.0, seed=3)
+    assert d[-100:].max() <= 0.1
+    assert_airborne(env, zs)

@@ -50,6 +50,7 @@ from quadswarm_mj.actuation import (
     substep_wrench,
     wrench_matrix,
 )
+from quadswarm_mj.aerodynamics import aero_draw_spec
 from quadswarm_mj.arena import build_arena
 from quadswarm_mj.collisions import (
     FLOOR_TOL,
@@ -64,7 +65,7 @@ from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.downwash import apply_downwash, downwash_draw_spec
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.random_draws import MeanSampler, NumpySampler
-from quadswarm_mj.randomization import nominal_draws, params_from_draws, randomization_draw_spec
+from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
 from quadswarm_mj.rewards import anneal_factor, reward_terms, total_reward, zero_terms
 from quadswarm_mj.scenarios import ScenarioState, get_scenario
 from quadswarm_mj.scenarios.base import spawn_num_uniforms
@@ -279,7 +280,11 @@ class CpuSwarm:
         self._motor_noise = cfg.noise.motor_noise_ratio > 0
         self._n_scn = self.scenario.num_uniforms(N)
         zeros = np.zeros((B, N))
-        self.params = params_from_draws(cfg, nominal_draws(cfg, zeros, (B,)))
+        self.params = pipeline.dynamics_params(cfg, nominal_draws(cfg, zeros, (B,)))
+        self._act = pipeline.make_substep_actuation(cfg)  # None: the paper's chain (no extra work)
+        self._modes = cfg.control_mode != "rotor"
+        self.ctrl_state = np.zeros((B, N, 6)) if self._modes else None  # control-mode integrators
+        self.cmd_s = np.zeros((B, N, 4))  # rotor command of the last sub-step (with self._act only)
         self._torque_spin = self.params["torque_max"] * SPIN
         self.u = np.zeros((B, N, 4))
         self.motor_eps = np.zeros((B, N, 4))
@@ -361,7 +366,10 @@ class CpuSwarm:
                                      if (r := rows(k, tail)) is not None}
         motors: Any = cfg.motor_start if state is None or state.get("motors") is None else state["motors"]
         overrides["motors"] = motors if isinstance(motors, str) else rows("motors", (4,))
-        init = pipeline.initial_state(cfg, self.scenario, draws, scenario_u, spawn_u, overrides, np, np.float64)
+        aero_draws = (NumpySampler(self.rng).draw(aero_draw_spec(cfg), (M,)) if cfg.randomize and cfg.aero.any
+                      else None)
+        init = pipeline.initial_state(cfg, self.scenario, draws, scenario_u, spawn_u, overrides, np, np.float64,
+                                      aero_draws)
         # 1. dynamics parameters
         new_params = init["params"]
         self.params = {k: (v if k == "gravity" else _put(self.params[k], idx, v)) for k, v in new_params.items()}
@@ -385,6 +393,8 @@ class CpuSwarm:
         self._R = None
         self.u = _put(self.u, idx, u0)
         self.motor_eps = _put(self.motor_eps, idx, 0.0)
+        if self._modes:
+            self.ctrl_state = _put(self.ctrl_state, idx, 0.0)
         self.f_norm = _put(self.f_norm, idx, u0**2)
         self.prev_f_norm = self.f_norm.copy()
         cur_pos = self.qpos[idx, :, :3] - offsets
@@ -404,7 +414,7 @@ class CpuSwarm:
     # ------------------------------------------------------------------ physics
     def _physics(self, action: np.ndarray) -> dict[str, np.ndarray]:
         cfg, B, N = self.cfg, self.B, self.N
-        cmd = action_to_command(action)
+        cmd = action_to_command(action) if not self._modes else None
         if self._motor_noise:
             self.motor_eps = motor_noise_step(self.motor_eps, self.params["motor_sigma"],
                                               cfg.noise.motor_noise_theta, self.rng.standard_normal((B, N, 4)))
@@ -414,8 +424,11 @@ class CpuSwarm:
         for s in range(cfg.substeps):
             if s > 0:
                 R = quat_to_rotmat(self.qpos[..., 3:7])
-            self.u, self.f_norm, force, torque = substep_wrench(self.u, cmd, self.motor_eps, self.params, R,
-                                                                self.rotor_pos, self._mix, self._torque_spin)
+            if self._act is None:
+                self.u, self.f_norm, force, torque = substep_wrench(self.u, cmd, self.motor_eps, self.params, R,
+                                                                    self.rotor_pos, self._mix, self._torque_spin)
+            else:
+                force, torque = self._actuate(action, cmd, R)
             if self.paper_floor and self._any_on_floor:
                 w = self._worlds(self.on_floor)
                 fw, tw = floor_wrench(self.on_floor[w], force[w], torque[w], self.qvel[w, :, :3],
@@ -488,6 +501,15 @@ class CpuSwarm:
         return {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": new_contact,
                 "hit_floor": hit_floor, "hit_wall": hit_wall, "hit_ceiling": hit_ceiling}
 
+    def _actuate(self, action: np.ndarray, cmd: np.ndarray | None, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One sub-step of :func:`pipeline.make_substep_actuation` (control mode, thrust map,
+        aerodynamics): updates ``u``, ``f_norm``, ``ctrl_state``, ``cmd_s``; returns the world wrench."""
+        pos = self.qpos[..., :3] - self.offsets
+        self.u, self.f_norm, force, torque, self.cmd_s, self.ctrl_state = self._act(
+            self.u, action, cmd, self.motor_eps, self.params, pos, self.qvel[..., :3].copy(),
+            R, self.qvel[..., 3:].copy(), self.ctrl_state, self.rotor_pos, self._mix, self._torque_spin)
+        return force, torque
+
     def _worlds(self, flags: np.ndarray) -> Any:
         """Index of the worlds with any flag set: a slice when that is every world (views, no copy)."""
         if self.B == 1:  # callers ask only when some flag is set
@@ -523,7 +545,8 @@ class CpuSwarm:
 
     # ------------------------------------------------------------------ step
     def step(self, action: np.ndarray) -> dict[str, Any]:
-        """Advance all worlds one control step with validated actions (B, N, 4)."""
+        """Advance all worlds one control step with validated actions (B, N, 4) of ``cfg.control_mode``
+        (per-rotor in [-1, 1], or physical units clipped into ``control_action_bounds``)."""
         cfg = self.cfg
         self.prev_f_norm = self.f_norm
         k = self._physics(action)
@@ -539,7 +562,8 @@ class CpuSwarm:
         else:
             jump = metrics_lib.goal_jump(prev_goals, goals, goal_vel, cfg.control_dt)
         dist_goal = norm_last(goals - k["pos"])
-        terms = reward_terms(cfg, k["pos"], k["vel"], k["R"], k["omega"], goals, action, self.f_norm,
+        effort = pipeline.effort_action(cfg, action, self.cmd_s) if self._modes else action
+        terms = reward_terms(cfg, k["pos"], k["vel"], k["R"], k["omega"], goals, effort, self.f_norm,
                              self.prev_f_norm, self.on_floor, k["hit_floor"], k["hit_wall"], k["hit_ceiling"],
                              k["new_contact"], k["dist"], anneal_factor(cfg, self.total_steps), goal_dist=dist_goal)
         rewards = total_reward(terms, self._zero_terms)

@@ -19,6 +19,7 @@ import numpy as np
 from gymnasium import spaces
 
 from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.control_modes import action_box_bounds
 from quadswarm_mj.envs.cpu_core import CpuSwarm
 from quadswarm_mj.envs.validation import check_action, check_engine, check_state
 from quadswarm_mj.observations import obs_bounds
@@ -64,7 +65,7 @@ class QuadSwarmEnv(gym.Env):
         act_shape = (4,) if self.single else (n, 4)
         self.observation_space = spaces.Box(np.broadcast_to(low, obs_shape).astype(np.float32),
                                             np.broadcast_to(high, obs_shape).astype(np.float32), dtype=np.float32)
-        self.action_space = spaces.Box(-1.0, 1.0, act_shape, dtype=np.float32)
+        self.action_space = spaces.Box(*action_box_bounds(self.cfg, act_shape), dtype=np.float32)
         self._renderer: Any = None
         self._needs_reset = True
         self._seeded = False

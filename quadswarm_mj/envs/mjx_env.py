@@ -101,6 +101,7 @@ from quadswarm_mj.actuation import (
     substep_wrench,
     wrench_matrix,
 )
+from quadswarm_mj.aerodynamics import aero_draw_spec
 from quadswarm_mj.arena import build_arena
 from quadswarm_mj.collisions import (
     FLOOR_BUDGET,
@@ -238,8 +239,10 @@ class MjxQuadSwarmEnv:
     """One world of ``cfg.num_quads`` Crazyflies on MJX; pure ``reset``/``step`` (jit, vmap).
 
     The model is ``quadswarm_mj.arena.build_arena(cfg, 1)`` put on the default device with
-    ``mjx.put_model``. ``action`` is (N, 4) raw per-rotor commands in [-1, 1] (clipped; -1 no
-    thrust, 1 full thrust). Actions are not validated under ``jit``: a NaN action yields NaN state.
+    ``mjx.put_model``. ``action`` is (N, 4): in the default "rotor" control mode raw per-rotor
+    commands in [-1, 1] (clipped; -1 no thrust, 1 full thrust), in the other modes
+    (``cfg.control_mode``) physical units within :attr:`action_bounds` (clipped; README "Beyond the
+    paper"). Actions are not validated under ``jit``: a NaN action yields NaN state.
 
     ``physics`` chooses the rigid-body integrator of the sub-steps: ``"freebody"`` (the default
     where it is available: :func:`quadswarm_mj.freebody.freebody_step`, MuJoCo's Euler step of
@@ -295,7 +298,10 @@ class MjxQuadSwarmEnv:
             "scenario": Uniform(0.0, 1.0, (self._n_scn,)),
             "spawn": Uniform(0.0, 1.0, (spawn_num_uniforms(n),)),
             **(_prefixed("sensor", self._spec_sensor) if self._sensor_on else {}),
+            **(_prefixed("aero", aero_draw_spec(cfg)) if cfg.randomize and cfg.aero.any else {}),
         }
+        self._act = pipeline.make_substep_actuation(cfg)  # None: the paper's chain (no extra work)
+        self._modes = cfg.control_mode != "rotor"
         coll_spec = {
             **_prefixed("floor", floor_draw_spec(FLOOR_BUDGET), (cfg.substeps,)),  # slots per sub-step
             **_prefixed("wall", wall_draw_spec(WALL_BUDGET, cfg.collision_decay, c.kick_omega)),
@@ -321,6 +327,13 @@ class MjxQuadSwarmEnv:
     def action_size(self) -> int:
         """Actions per quad (4 rotors); the full action is (N, 4)."""
         return 4
+
+    @property
+    def action_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low (4,), high (4,)) per quad: :func:`quadswarm_mj.control_modes.control_action_bounds`."""
+        from quadswarm_mj.control_modes import control_action_bounds
+
+        return control_action_bounds(self.cfg)
 
     @property
     def num_quads(self) -> int:
@@ -442,7 +455,9 @@ class MjxQuadSwarmEnv:
         k_draw, k_next = jax.random.split(key)
         rnd = self._draw(self._reset_spec, k_draw)
         draws = _sub(rnd, "rand") if cfg.randomize else nominal_draws(cfg, jnp.zeros((n,), f))
-        init = pipeline.initial_state(cfg, self.scenario, draws, rnd["scenario"], rnd["spawn"], init_state, jnp, f)
+        aero_draws = _sub(rnd, "aero") if cfg.randomize and cfg.aero.any else None
+        init = pipeline.initial_state(cfg, self.scenario, draws, rnd["scenario"], rnd["spawn"], init_state, jnp, f,
+                                      aero_draws)
         params, sstate, goals = init["params"], init["scenario"], init["scenario"].goals
         pos, vel, R, omega, u0 = init["pos"], init["vel"], init["rot"], init["omega"], init["u0"]
         data = self._write(self._data0, jnp.concatenate([pos, rotmat_to_quat(R)], -1),
@@ -467,6 +482,7 @@ class MjxQuadSwarmEnv:
             "episode_metrics": metrics_lib.finalize(acc, jnp.zeros((), f)),
             "step": jnp.zeros((), jnp.int32), "time": jnp.zeros((), f), "total_steps": jnp.zeros((), jnp.int32),
             "truncation": jnp.zeros((), f), "rng": k_next,
+            **({"ctrl_state": jnp.zeros((n, 6), f)} if self._modes else {}),  # control-mode integrators
         }
         metrics = {f"reward/{k}": zero_n for k in TERMS}
         return State(data=data, obs=obs, reward=zero_n, done=jnp.zeros((), bool), metrics=metrics, info=info)
@@ -483,19 +499,23 @@ class MjxQuadSwarmEnv:
         rotor_pos = jnp.asarray(self._rotor_pos, f)
         mix = jnp.asarray(self._mix, f)
         torque_spin = params["torque_max"] * jnp.asarray(SPIN, f)
-        cmd = action_to_command(action)
+        cmd = action_to_command(action) if not self._modes else None
         eps = info["motor_eps"]
         if cfg.noise.motor_noise_ratio > 0:
             eps = motor_noise_step(eps, params["motor_sigma"], cfg.noise.motor_noise_theta, rnd["motor/motor"])
         max_w = cfg.quad.max_omega
         floor_z = cfg.quad.arm
         paper_floor = self._paper_floor
+        act = self._act
 
         def substep(carry: tuple, yaw_slots: jax.Array) -> tuple[tuple, None]:
-            q, v, R, u, f_norm, on_floor, hit_floor, aux = carry
-            cmd_s = pipeline.control_stage(cmd, q, v, R)  # extension point: control modes
-            u, f_norm, force, torque = substep_wrench(u, cmd_s, eps, params, R, rotor_pos, mix, torque_spin)
-            force, torque = pipeline.aero_stage(force, torque, f_norm, q, v, R)  # extension point: aerodynamics
+            (q, v, R, u, f_norm, on_floor, hit_floor, aux), ctrl = carry[:-1], carry[-1]
+            if act is None:
+                u, f_norm, force, torque = substep_wrench(u, cmd, eps, params, R, rotor_pos, mix, torque_spin)
+            else:  # control mode, thrust map, aerodynamics (pipeline.make_substep_actuation)
+                u, f_norm, force, torque, cmd_s, cs = act(u, action, cmd, eps, params, q[:, :3], v[:, :3], R,
+                                                          v[:, 3:], ctrl[1], rotor_pos, mix, torque_spin)
+                ctrl = (cmd_s, cs)
             if paper_floor:
                 force, torque = floor_wrench(on_floor, force, torque, v[:, :3], params["mass"], params["gravity"],
                                              cfg.collision.floor_friction, cfg.sim_dt)
@@ -504,19 +524,19 @@ class MjxQuadSwarmEnv:
             R = quat_to_rotmat(q[:, 3:7])
             if not paper_floor:  # MuJoCo's contacts act on the floor
                 v = jnp.concatenate([v[:, :3], omega], -1)
-                return (q, v, R, u, f_norm, on_floor, hit_floor, aux), None
+                return (q, v, R, u, f_norm, on_floor, hit_floor, aux, ctrl), None
             landing = (q[:, 2] <= floor_z) & ~on_floor
             yaw = expand_per_quad(landing, {"yaw": yaw_slots})["yaw"]
             r = floor_impact(q[:, :3], v[:, :3], omega, q[:, 3:7], R, u, on_floor, floor_z, yaw)
             q = jnp.concatenate([r["pos"], r["quat"]], -1)
             v = jnp.concatenate([r["vel"], r["omega"]], -1)
-            return (q, v, r["R"], r["u"], f_norm, r["on_floor"], hit_floor | r["hit_floor"], aux), None
+            return (q, v, r["R"], r["u"], f_norm, r["on_floor"], hit_floor | r["hit_floor"], aux, ctrl), None
 
         q0, v0 = self._read(data)
         aux0 = data if self.physics == "mjx" else None
         carry0 = (q0.astype(f), v0.astype(f), info["state"]["rot"], info["motor_u"], info["state"]["thrust"],
-                  info["on_floor"], jnp.zeros((n,), bool), aux0)
-        (q, v, R, u, f_norm, on_floor, hit_floor, aux), _ = jax.lax.scan(substep, carry0, rnd["floor/yaw"])
+                  info["on_floor"], jnp.zeros((n,), bool), aux0, self._ctrl0(info, eps))
+        (q, v, R, u, f_norm, on_floor, hit_floor, aux, ctrl), _ = jax.lax.scan(substep, carry0, rnd["floor/yaw"])
         data = data if aux is None else aux
         # once per control step: walls, ceiling, quad-quad, (obstacles), downwash (velocity-level models)
         pos, vel, omega = q[:, :3], v[:, :3], v[:, 3:]
@@ -555,12 +575,19 @@ class MjxQuadSwarmEnv:
         k = {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": qc["new_contact"],
              "contact": qc["contact"], "hit_floor": hit_floor, "hit_wall": w["hit_wall"],
              "hit_ceiling": w["hit_ceiling"], "at_wall": w["at_wall"], "at_ceiling": w["at_ceiling"],
-             "on_floor": on_floor, "u": u, "f_norm": f_norm, "eps": eps}
+             "on_floor": on_floor, "u": u, "f_norm": f_norm, "eps": eps, "ctrl": ctrl}
         return data, k
+
+    def _ctrl0(self, info: dict[str, Any], eps: Any) -> Any:
+        """The sub-step carry of :func:`pipeline.make_substep_actuation`: (last rotor command (N, 4),
+        controller state (N, 6)), None (no leaves) in the default configuration."""
+        if self._act is None:
+            return None
+        return (jnp.zeros_like(eps), info["ctrl_state"] if self._modes else jnp.zeros(eps.shape[:-1] + (6,), eps.dtype))
 
     # ------------------------------------------------------------------ step
     def step(self, state: State, action: jax.Array) -> State:
-        """Advance one control step with raw actions (N, 4) in [-1, 1]."""
+        """Advance one control step with actions (N, 4) of ``cfg.control_mode`` (rotor: [-1, 1])."""
         cfg, n = self.cfg, self.N
         f = _float()
         info = state.info
@@ -580,7 +607,8 @@ class MjxQuadSwarmEnv:
         goals, goal_vel = sstate.goals, sstate.goal_vel
         jump = metrics_lib.goal_jump(prev_goals, goals, goal_vel, cfg.control_dt)
         dist_goal = jnp.sqrt(jnp.sum((goals - k["pos"]) ** 2, axis=-1))
-        terms = reward_terms(cfg, k["pos"], k["vel"], k["R"], k["omega"], goals, action, k["f_norm"], prev_f_norm,
+        effort = pipeline.effort_action(cfg, action, k["ctrl"][0]) if self._modes else action
+        terms = reward_terms(cfg, k["pos"], k["vel"], k["R"], k["omega"], goals, effort, k["f_norm"], prev_f_norm,
                              k["on_floor"], k["hit_floor"], k["hit_wall"], k["hit_ceiling"], k["new_contact"],
                              k["dist"], anneal_factor(cfg, total_steps), goal_dist=dist_goal)
         # explicit dtype: a zero-scale term may come back weakly typed, and a state whose leaf types
@@ -601,6 +629,7 @@ class MjxQuadSwarmEnv:
             "episode_metrics": metrics_lib.finalize(acc, t),
             "step": steps, "time": t, "total_steps": total_steps,
             "truncation": done.astype(f), "rng": k_next,
+            **({"ctrl_state": k["ctrl"][1]} if self._modes else {}),
         }
         metrics = {f"reward/{name}": terms[name] for name in TERMS}
         return State(data=data, obs=obs, reward=reward, done=done, metrics=metrics, info=new_info)

@@ -16,6 +16,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.control_modes import action_box_bounds
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv, make_config
 
 STATE_PER_QUAD = 21
@@ -39,7 +40,8 @@ class QuadSwarmParallelEnv(ParallelEnv):
         low = box.low.reshape(-1, self.cfg.obs_dim)[0]
         high = box.high.reshape(-1, self.cfg.obs_dim)[0]
         self.observation_spaces = {a: spaces.Box(low, high, dtype=np.float32) for a in self.possible_agents}
-        self.action_spaces = {a: spaces.Box(-1.0, 1.0, (4,), dtype=np.float32) for a in self.possible_agents}
+        box = action_box_bounds(self.cfg, (4,))  # physical bounds of cfg.control_mode ([-1, 1]: rotor)
+        self.action_spaces = {a: spaces.Box(*box, dtype=np.float32) for a in self.possible_agents}
         L, W, H = self.cfg.room_size
         per = np.array([L, W, H] + [20.0] * 3 + [1.0] * 9 + [self.cfg.quad.max_omega] * 3 + [L, W, H], np.float32)
         self.state_space = spaces.Box(-np.tile(per, n), np.tile(per, n), dtype=np.float32)

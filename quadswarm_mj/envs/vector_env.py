@@ -89,6 +89,7 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.control_modes import action_box_bounds
 from quadswarm_mj.envs.cpu_core import CpuSwarm
 from quadswarm_mj.envs.validation import check_action, check_engine, check_state
 from quadswarm_mj.metrics import METRIC_KEYS
@@ -100,6 +101,12 @@ INFO_KEYS = ("rewards", "reward_terms", "state", "goals", "goal_vel", "params", 
 STATE_FIELDS = {"pos": (3,), "vel": (3,), "rot": (3, 3), "omega": (3,), "thrust": (4,)}
 PARAM_FIELDS = {"mass": (), "inertia": (3,), "thrust_max": (4,), "torque_max": (4,), "alpha": (),
                 "motor_sigma": ()}
+AERO_PARAM_FIELDS = {"rotor_radius": (), "drag_coeff": (3,)}  # with cfg.aero on (README "Beyond the paper")
+
+
+def param_fields(cfg: EnvConfig) -> dict[str, tuple[int, ...]]:
+    """The per-quad parameters of ``info["params"]`` (name -> per-quad shape) for ``cfg``."""
+    return {**PARAM_FIELDS, **AERO_PARAM_FIELDS} if cfg.aero.any else PARAM_FIELDS
 MIN_WORLDS_PER_SHARD = 8
 STEP, DONE = b"s", b"k"  # the step message and its reply (a pickled message never equals them)
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}  # defaults for workers (one core each)
@@ -118,7 +125,7 @@ def _layout(cfg: EnvConfig, B: int) -> list[tuple[str, tuple[int, ...], Any]]:
            ("goal_vel", (B, N, 3), np.float64), ("on_floor", (B, N), np.bool_),
            ("new_collisions", (B, N), np.bool_), ("time", (B,), np.float64)]
     out += [(f"state/{k}", (B, N) + t, np.float64) for k, t in STATE_FIELDS.items()]
-    out += [(f"params/{k}", (B, N) + t, np.float64) for k, t in PARAM_FIELDS.items()]
+    out += [(f"params/{k}", (B, N) + t, np.float64) for k, t in param_fields(cfg).items()]
     return out
 
 
@@ -200,7 +207,7 @@ class _Shard:
         if "time" in keys:
             np.multiply(c.steps, self.cfg.control_dt, out=a["time"])
         if params and "params" in keys:
-            for k in PARAM_FIELDS:
+            for k in param_fields(self.cfg):
                 a[f"params/{k}"][...] = c.params[k]
 
     def run(self, msg: Any) -> Any:
@@ -495,7 +502,7 @@ class QuadSwarmVectorEnv(VectorEnv):
         self.single_observation_space = spaces.Box(np.broadcast_to(low, (N, low.size)).astype(np.float32),
                                                    np.broadcast_to(high, (N, high.size)).astype(np.float32),
                                                    dtype=np.float32)
-        self.single_action_space = spaces.Box(-1.0, 1.0, (N, 4), dtype=np.float32)
+        self.single_action_space = spaces.Box(*action_box_bounds(self.cfg, (N, 4)), dtype=np.float32)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, B)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, B)
         self.render_mode = None
@@ -618,7 +625,7 @@ class QuadSwarmVectorEnv(VectorEnv):
             if k in keys:
                 out[k] = self._out(a[k])
         if "params" in keys:
-            out["params"] = {k: self._out(a[f"params/{k}"]) for k in PARAM_FIELDS}
+            out["params"] = {k: self._out(a[f"params/{k}"]) for k in param_fields(self.cfg)}
         for k in ("on_floor", "new_collisions", "time"):
             if k in keys and (step or k != "new_collisions"):
                 out[k] = self._out(a[k])
