@@ -79,6 +79,7 @@ class PPOConfig:
     init_std: float = 0.6  # initial std of the pre-tanh Gaussian (Brax's default is softplus(0) = 0.69)
     desync_episodes: bool = True  # truncate each world's first episode after a random number of steps
     arch: str = "mlp"  # policy network: "mlp" (policy_hidden) or a quadswarm_mj.policies.ARCH_PRESETS name
+    arch_width: int | None = None  # encoders: every hidden width of the preset set to this (heads: 2x); None: as is
 
     def __post_init__(self) -> None:
         for n in ("num_worlds", "unroll_length", "num_minibatches", "num_epochs"):
@@ -102,6 +103,9 @@ class PPOConfig:
             raise ValueError(f"ppo.activation must be one of {tuple(ACTIVATIONS)}, got {self.activation!r}")
         if self.arch not in ARCH_NAMES:
             raise ValueError(f"ppo.arch must be one of {ARCH_NAMES}, got {self.arch!r}")
+        if self.arch_width is not None and (not isinstance(self.arch_width, int) or isinstance(self.arch_width, bool)
+                                            or self.arch_width < 1):
+            raise ValueError(f"ppo.arch_width must be None or an int >= 1, got {self.arch_width!r}")
         for n in ("policy_hidden", "value_hidden"):
             v = tuple(getattr(self, n))
             if not v or any(not isinstance(h, int) or h < 1 for h in v):
@@ -129,6 +133,12 @@ class AgentBatch:
         self.engines = [CpuSwarm(c, b) for c, b in zip(cfgs, worlds)]
         for k, e in enumerate(self.engines):
             e.seed(seed * 1000 + k)
+            e.reset()
+            got = e.observe().shape[-1]
+            if got != d:
+                why = (" (obstacles are not wired into the CPU engine yet: no obstacle features)"
+                       if e.cfg.obstacles is not None else "")
+                raise ValueError(f"the MuJoCo engine's observation has {got} features, the config needs {d}{why}")
         self.sizes = [e.B * n for e in self.engines]
         self.num_agents = sum(self.sizes)
         self.desync = desync
@@ -239,6 +249,21 @@ def env_meta(cfg: EnvConfig) -> dict[str, Any]:
     return env
 
 
+def encoder_arch(name: str, width: int | None = None, activation: str = "tanh") -> dict[str, Any]:
+    """The encoder architecture of preset ``name`` (``quadswarm_mj.policies.ARCH_PRESETS``), with every hidden
+    width set to ``width`` (the head layers to ``2 * width``, as the original's 2H head) when given."""
+    a = {**ARCH_PRESETS[name], "activation": activation}
+    if width is None:
+        return a
+    if a["type"] == "deepsets":
+        for k in ("self_layers", "neighbor_layers", "obstacle_layers"):
+            a[k] = [width] * len(a[k])
+    else:
+        a.update(hidden=width, attn_dim=width)
+    a["head_layers"] = [2 * width] * len(a["head_layers"])
+    return a
+
+
 def make_networks(ppo: PPOConfig, layout: dict[str, int]) -> tuple[Any, dict[str, Any] | None]:
     """Brax ``PPONetworks`` for ``ppo.arch`` and the encoder architecture dict (None for the MLP)."""
     from quadswarm_mj.policies import layout_obs_dim
@@ -251,7 +276,7 @@ def make_networks(ppo: PPOConfig, layout: dict[str, int]) -> tuple[Any, dict[str
             policy_hidden_layer_sizes=ppo.policy_hidden, value_hidden_layer_sizes=ppo.value_hidden,
             activation=ACTIVATIONS[ppo.activation])
         return nets, None
-    arch = {**ARCH_PRESETS[ppo.arch], "activation": ppo.activation}
+    arch = encoder_arch(ppo.arch, ppo.arch_width, ppo.activation)
     nets = enc_networks.make_ppo_networks(arch, layout, normalize, value_hidden_layer_sizes=ppo.value_hidden,
                                           activation=ppo.activation)
     return nets, arch
