@@ -277,7 +277,8 @@ class JaxPPOTrainer:
     # ------------------------------------------------------------------ training loop
     def train(self, total_steps: int | None = None, seconds: float | None = None, out_dir: str | Path | None = None,
               log_every: int = 1, checkpoint_every_s: float = 300.0, progress: bool = True,
-              callback: Callable[[dict[str, Any]], None] | None = None) -> list[dict[str, Any]]:
+              callback: Callable[[dict[str, Any]], None] | None = None,
+              history: list[dict[str, Any]] | None = None) -> list[dict[str, Any]]:
         """Train until this run has done ``total_steps`` agent-steps or ``seconds`` of wall time (the
         compile counts against ``seconds``). Writes ``progress.csv``/``progress.json``, ``curves.png``,
         ``checkpoints/`` (policy files and ``train_state.npz``) and ``final.npz`` into ``out_dir``."""
@@ -287,7 +288,8 @@ class JaxPPOTrainer:
         if out is not None:
             (out / "checkpoints").mkdir(parents=True, exist_ok=True)
         per_iter = self.num_agents * self.ppo.unroll_length
-        rows: list[dict[str, Any]] = []
+        rows: list[dict[str, Any]] = list(history or [])  # a resumed run's earlier rows
+        self._wall0 = float(rows[-1]["wall_s"]) if rows else 0.0
         bar = None
         if progress:
             from tqdm import tqdm
@@ -298,7 +300,7 @@ class JaxPPOTrainer:
         last_ckpt = t0
         self.key, k_env = jax.random.split(self.key)
         carry = (self.state, self.init_worlds(k_env), self.key)
-        steps0 = self.env_steps
+        steps0 = self._steps0 = self.env_steps
         t_first = None
         while True:
             elapsed = time.perf_counter() - t0
@@ -351,8 +353,8 @@ class JaxPPOTrainer:
 
     def _log_row(self, wall: float, m: dict[str, Any], sums: tuple[dict[str, Any], ...]) -> dict[str, Any]:
         row: dict[str, Any] = {"iteration": self.iteration, "env_steps": int(self.env_steps),
-                               "learning_rate": float(m["learning_rate"]), "wall_s": round(wall, 2),
-                               "steps_per_s": round(self.env_steps / max(wall, 1e-9), 1),
+                               "learning_rate": float(m["learning_rate"]), "wall_s": round(self._wall0 + wall, 2),
+                               "steps_per_s": round((self.env_steps - self._steps0) / max(wall, 1e-9), 1),
                                "reward_per_step": float(m["reward_per_step"])}
         for key in ("total_loss", "policy_loss", "v_loss", "kl_mean", "policy_dist_mean_std"):
             if key in m:

@@ -610,7 +610,8 @@ class PPOTrainer:
 
     def train(self, total_steps: int | None = None, seconds: float | None = None, out_dir: str | Path | None = None,
               log_every: int = 1, checkpoint_every_s: float = 300.0, progress: bool = True,
-              callback: Callable[[dict[str, Any]], None] | None = None) -> list[dict[str, Any]]:
+              callback: Callable[[dict[str, Any]], None] | None = None,
+              history: list[dict[str, Any]] | None = None) -> list[dict[str, Any]]:
         """Train until ``total_steps`` agent-steps or ``seconds`` of wall time (whichever first).
 
         Writes ``progress.csv``/``progress.json``, ``curves.png`` and ``checkpoints/`` into
@@ -622,7 +623,8 @@ class PPOTrainer:
         if out is not None:
             (out / "checkpoints").mkdir(parents=True, exist_ok=True)
         per_iter = self.batch.num_agents * self.ppo.unroll_length
-        rows: list[dict[str, Any]] = []
+        rows: list[dict[str, Any]] = list(history or [])  # a resumed run's earlier rows
+        self._wall0 = float(rows[-1]["wall_s"]) if rows else 0.0
         bar = None
         if progress:
             from tqdm import tqdm
@@ -634,7 +636,7 @@ class PPOTrainer:
         obs = self.batch.reset()
         pending: list = []
         rew_acc, rew_n = 0.0, 0
-        steps0 = self.env_steps  # budgets count this run's steps (a resumed run continues the counter)
+        steps0 = self._steps0 = self.env_steps  # budgets count this run's steps (a resumed run continues the counter)
         while True:
             elapsed = time.perf_counter() - t0
             if total_steps is not None and self.env_steps - steps0 >= total_steps:
@@ -691,7 +693,8 @@ class PPOTrainer:
     def _log_row(self, wall: float, reward: float, finished: list, m: Any) -> dict[str, Any]:
         row: dict[str, Any] = {"iteration": self.iteration, "env_steps": int(self.env_steps),
                                "learning_rate": float(m["learning_rate"]) if "learning_rate" in m else None,
-                               "wall_s": round(wall, 2), "steps_per_s": round(self.env_steps / max(wall, 1e-9), 1),
+                               "wall_s": round(self._wall0 + wall, 2),
+                               "steps_per_s": round((self.env_steps - self._steps0) / max(wall, 1e-9), 1),
                                "reward_per_step": reward}
         for key in ("total_loss", "policy_loss", "v_loss", "kl_mean", "policy_dist_mean_std"):
             if key in m:
