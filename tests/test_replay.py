@@ -34,12 +34,13 @@ def _state(step: np.ndarray, contact: np.ndarray | None = None, done: np.ndarray
     step = np.asarray(step, np.int32)
     tag = (np.arange(W)[:, None] * 1000 + step[:, None]).astype(np.float32)
     c = np.zeros((W, N, N), bool) if contact is None else contact
-    return State(data={"qpos": jnp.asarray(np.repeat(tag, 7 * N, axis=1))}, obs=jnp.asarray(np.repeat(tag[:, None], N, 1)
-                                                                                              .repeat(5, -1)),
+    obs = np.repeat(tag[:, None], N, 1).repeat(5, -1)
+    return State(data={"qpos": jnp.asarray(np.repeat(tag, 7 * N, axis=1))}, obs=jnp.asarray(obs),
                  reward=jnp.full((W, N), -0.5, jnp.float32),
                  done=jnp.asarray(np.zeros(W, bool) if done is None else done),
                  metrics={"reward/quad_collision": jnp.zeros((W, N), jnp.float32)},
-                 info={"contact": jnp.asarray(c), "time": jnp.asarray(step * DT, jnp.float32), "step": jnp.asarray(step),
+                 info={"contact": jnp.asarray(c), "time": jnp.asarray(step * DT, jnp.float32),
+                       "step": jnp.asarray(step),
                        "total_steps": jnp.asarray(step + 10_000), "episode_metrics": {"success": jnp.zeros(W)},
                        "truncation": jnp.zeros(W), "rng": jnp.asarray(np.tile(np.arange(2, dtype=np.uint32), (W, 1)))})
 

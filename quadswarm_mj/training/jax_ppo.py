@@ -111,7 +111,12 @@ class JaxPPOTrainer:
         self.replay = replay if replay is not None and replay.enabled else None
         self.envs = []
         for c in cfgs:
-            env = AutoResetWrapper(MjxQuadSwarmEnv(c))
+            try:
+                env = AutoResetWrapper(MjxQuadSwarmEnv(c))
+            except Exception as e:  # noqa: BLE001
+                extra = " (obstacles are not wired into the JAX engine yet)" if c.obstacles is not None else ""
+                raise ValueError(f"the JAX engine rejects this configuration (scenario {c.scenario!r}){extra}: "
+                                 f"{type(e).__name__}: {e}") from e
             check_engine_config(env, c)
             self.envs.append(env)
         self.layout = obs_layout(cfgs[0])

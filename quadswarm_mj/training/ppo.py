@@ -133,8 +133,14 @@ class AgentBatch:
         self.engines = [CpuSwarm(c, b) for c, b in zip(cfgs, worlds)]
         for k, e in enumerate(self.engines):
             e.seed(seed * 1000 + k)
-            e.reset()
-            got = e.observe().shape[-1]
+            try:
+                e.reset()
+                got = e.observe().shape[-1]
+            except Exception as err:  # noqa: BLE001
+                if e.cfg.obstacles is None:
+                    raise
+                raise ValueError(f"the MuJoCo engine rejects this obstacle configuration (obstacles are not wired "
+                                 f"into the CPU engine yet?): {type(err).__name__}: {err}") from err
             if got != d:
                 why = (" (obstacles are not wired into the CPU engine yet: no obstacle features)"
                        if e.cfg.obstacles is not None else "")
