@@ -1,25 +1,41 @@
-"""Train a quadswarm_mj policy with PPO (Brax's PPO in JAX, rollouts on the batched CPU engine).
+"""Train a quadswarm_mj policy with PPO (Brax's loss, networks and normalizer in JAX).
+
+Two rollout engines (``--engine``): ``mujoco`` (the default: the batched CPU MuJoCo engine, one jitted
+call per control step for the actions and one per iteration for the update) and ``jax``
+(``MjxQuadSwarmEnv``: rollouts and updates in one jitted function per iteration, no host round trip per
+step; runs unchanged on a GPU; the ``swarm8*`` presets' default; see ``quadswarm_mj.training.jax_ppo``).
 
 The default run trains the single-quad goal-reaching policy (static and jumping goals)::
 
     python scripts/train.py --out runs/single --minutes 30
 
-The 8-quad swarm policy (neighbour observations, collision penalties), started from the
-single-quad policy::
+The 8-quad swarm on the paper scenarios (``mix`` + ``run_away``, deep-sets encoder, annealed collision
+penalties, collision replay, JAX engine), and its obstacle and deployable (<= 2,000 actor parameters)
+variants::
 
-    python scripts/train.py --preset swarm8 --init-from runs/single/final.npz --out runs/swarm8 --minutes 60
+    python scripts/train.py --preset swarm8 --out runs/swarm8 --minutes 90
+    python scripts/train.py --preset swarm8_deployable --out runs/swarm8_dep --minutes 90
+    python scripts/train.py --preset swarm8_obstacles --out runs/swarm8_obst --minutes 90
+    python scripts/train.py --resume runs/swarm8 --minutes 90      # continue from the last checkpoint
+
+(``swarm8_v1`` is the recipe of today's shipped ``pretrained:swarm8``: CPU engine, MLP, two scenarios.)
 
 Everything is configurable: ``--scenario`` (repeat it or give a comma list to train on several at
 once), ``--num-quads``, reward scales ``--reward quad_collision=5 --reward proximity=10`` (fields of
-``RewardScales``), any EnvConfig field ``--env motor_start=hover``, the PPO hyper-parameters
-(``--num-worlds``, ``--unroll-length``, ``--lr``, ...), the budget (``--minutes`` and/or
-``--timesteps`` in agent-steps = quad control steps) and ``--seed``.
+``RewardScales``), any EnvConfig field ``--env motor_start=hover``, the policy network ``--arch``
+(``mlp`` or an encoder preset of ``quadswarm_mj.policies.ARCH_PRESETS``, ``--arch-width``), the PPO
+hyper-parameters (``--num-worlds``, ``--unroll-length``, ``--lr``, ...), ``--replay-prob`` (JAX engine),
+``--anneal-agent-steps``, the budget of this run (``--minutes`` and/or ``--timesteps`` in agent-steps =
+quad control steps) and ``--seed``.
 
-Output in ``--out``: ``progress.csv`` and ``progress.json`` (one row per iteration: agent-steps,
-wall time, reward per agent-step, losses, and per scenario the SPEC §8 episode metrics of the
-episodes that ended in that iteration), ``curves.png``, ``checkpoints/step_*.npz`` every
-``--checkpoint-minutes`` and ``final.npz``. Every ``.npz`` is a policy file that
-``scripts/evaluate.py --policy <path>`` and ``quadswarm_mj.policies.load_policy`` read.
+Output in ``--out``: ``run.json`` (the configuration), ``progress.csv`` and ``progress.json`` (one row per
+iteration: agent-steps, wall time, reward per agent-step, losses, and per scenario the SPEC §8 episode
+metrics of the episodes that ended in that iteration; replay rate and buffer size with replay),
+``curves.png``, ``checkpoints/step_*.npz`` every ``--checkpoint-minutes`` with
+``checkpoints/train_state.npz`` (parameters, Adam state, normalizer, RNG, counters: what ``--resume``
+reads; pickle-free) and ``final.npz``. Every ``step_*.npz``/``final.npz`` is a policy file that
+``scripts/evaluate.py --policy <path>`` and ``quadswarm_mj.policies.load_policy`` read (encoder policies
+in format 2, recording architecture and observation layout).
 """
 
 from __future__ import annotations

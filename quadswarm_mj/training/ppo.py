@@ -7,7 +7,11 @@ everything learned runs in JAX: the policy's action sampling (one jitted call pe
 for all agents) and the PPO update (one jitted call per iteration: normalizer update, then
 ``num_epochs`` passes of ``num_minibatches`` Adam steps on
 ``brax.training.agents.ppo.losses.compute_ppo_loss``). The networks are Brax's
-``make_ppo_networks`` (tanh-normal policy, MLPs) with Brax's running observation normalizer.
+``make_ppo_networks`` (tanh-normal policy, MLPs) with Brax's running observation normalizer, or
+(``PPOConfig.arch``) a deep-sets / attention encoder of :mod:`quadswarm_mj.training.networks` saved in
+the encoder policy format. The learner pieces (:func:`make_networks`, :func:`init_params`,
+:func:`make_update_fn`, :func:`save_policy_file`, the resumable :func:`save_train_state` /
+:func:`load_train_state`) are shared with the JAX-engine trainer (:mod:`quadswarm_mj.training.jax_ppo`).
 
 Every quad is an agent and all agents share one policy (parameter sharing, as in QuadSwarm):
 the PPO batch has ``num_worlds * num_quads`` agents, each with its own reward (the per-quad
