@@ -151,3 +151,43 @@ def test_replay_config_validation():
         ReplayConfig(buffer_size=0)
     with pytest.raises(ValueError, match="replay.snapshot_s"):
         ReplayConfig(snapshot_s=0.0)
+
+
+@pytest.mark.slow
+def test_buffer_fills_on_a_forced_head_on_collision_in_the_jax_engine():
+    """MjxQuadSwarmEnv: two quads flying head-on collide; the buffer receives the snapshot taken before the
+    hit (equal to the state the env had then), and a world restarted from it steps on from there."""
+    from quadswarm_mj.config import EnvConfig
+    from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv
+
+    cfg = EnvConfig(num_quads=2, scenario="static_diff_goal", episode_seconds=1.0, motor_start="hover").without_noise()
+    env = AutoResetWrapper(MjxQuadSwarmEnv(cfg))
+    init = {"pos": np.array([[-0.25, 0.0, 2.0], [0.25, 0.0, 2.0]]), "vel": np.array([[2.0, 0, 0], [-2.0, 0, 0]])}
+    rc = ReplayConfig(prob=1.0, buffer_size=4, snapshot_s=0.02, snapshots_back=2, cooldown_s=0.0, min_time_s=0.0)
+    reset = jax.jit(jax.vmap(lambda k: env.reset(k, init)))
+    step = jax.jit(env.vstep)
+    rec = jax.jit(lambda rs, p, s, k: record(rs, p, s, rc, cfg.control_dt, k))
+    s = reset(jax.random.split(jax.random.PRNGKey(0), 2))
+    rs = init_replay(s, rc)
+    hover = jnp.full((2, 2, 4), cfg.quad.hover_action)
+    qpos = {0: np.asarray(s.data.qpos)}
+    for k in range(1, 25):
+        prev, s = s, step(s, hover)
+        qpos[k] = np.asarray(s.data.qpos)
+        rs = rec(rs, prev, s, jax.random.PRNGKey(k))
+        if int(rs.added):
+            break
+    assert int(rs.added) >= 1, "the head-on quads never collided"
+    hit = k
+    entry = jax.tree.map(lambda b: b[0], rs.buf)
+    snap_step = int(entry.info["step"])
+    assert snap_step % 2 == 0 and hit - 6 <= snap_step < hit  # 2 snapshots (0.02 s apart) before the last one
+    w = int(np.argmax([np.array_equal(np.asarray(entry.data.qpos), qpos[snap_step][i]) for i in range(2)]))
+    np.testing.assert_array_equal(np.asarray(entry.data.qpos), qpos[snap_step][w])
+    # restart world 0 from the entry and step on
+    s_done = s.replace(done=jnp.array([True, False]))
+    out, _, mask = restart(rs, s_done, rc, jax.random.PRNGKey(99))
+    assert bool(mask[0])
+    np.testing.assert_array_equal(np.asarray(out.data.qpos[0]), np.asarray(entry.data.qpos))
+    nxt = step(out, hover)
+    assert int(nxt.info["step"][0]) == snap_step + 1 and np.isfinite(np.asarray(nxt.obs)).all()
