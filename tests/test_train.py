@@ -143,6 +143,7 @@ def _tiny_argv(out, *extra):
             "--num-epochs", "1", "--value-hidden", "8", "--no-progress", "--seed", "1", *extra]
 
 
+@pytest.mark.slow
 def test_arch_attention_deployable_run_writes_encoder_policy(tmp_path):
     """A 1-iteration run with --arch attention_deployable writes a format-2 policy file recording its
     architecture and observation layout, which loads with load_policy and acts."""
@@ -207,6 +208,7 @@ def test_replay_needs_the_jax_engine(tmp_path):
         _train_script().main(_tiny_argv(tmp_path / "r", "--replay-prob", "0.5", "--timesteps", "8"))
 
 
+@pytest.mark.slow
 def test_resume_continues_step_count_optimizer_and_normalizer(tmp_path):
     out = tmp_path / "run"
     base = _tiny_argv(out, "--scenario", "static_same_goal", "--policy-hidden", "8", "--env", "episode_seconds=0.1")
