@@ -202,6 +202,8 @@ class JaxPPOTrainer:
             new = {"env": s, "first": wd["first"] & ~ended, "first_len": wd["first_len"],
                    "ep_ret": jnp.where(ended, 0.0, ep_ret)}
             if rcfg is not None:
+                # a desync cut ends an episode too: its snapshots must not be written for the next one
+                s = s.replace(done=ended)
                 rs = record(wd["replay"], prev, s, rcfg, cfgs[k].control_dt, k_rec)
                 s, rs, mask = restart(rs, s, rcfg, k_rs)
                 new["env"], new["replay"] = s, rs
