@@ -149,6 +149,7 @@ class AgentBatch:
                 why = (" (obstacles are not wired into the CPU engine yet: no obstacle features)"
                        if e.cfg.obstacles is not None else "")
                 raise ValueError(f"the MuJoCo engine's observation has {got} features, the config needs {d}{why}")
+            e.seed(seed * 1000 + k)  # the check's reset leaves the seeded streams as before
         self.sizes = [e.B * n for e in self.engines]
         self.num_agents = sum(self.sizes)
         self.desync = desync
