@@ -1,25 +1,41 @@
-"""Train a quadswarm_mj policy with PPO (Brax's PPO in JAX, rollouts on the batched CPU engine).
+"""Train a quadswarm_mj policy with PPO (Brax's loss, networks and normalizer in JAX).
+
+Two rollout engines (``--engine``): ``mujoco`` (the default: the batched CPU MuJoCo engine, one jitted
+call per control step for the actions and one per iteration for the update) and ``jax``
+(``MjxQuadSwarmEnv``: rollouts and updates in one jitted function per iteration, no host round trip per
+step; runs unchanged on a GPU; the ``swarm8*`` presets' default; see ``quadswarm_mj.training.jax_ppo``).
 
 The default run trains the single-quad goal-reaching policy (static and jumping goals)::
 
     python scripts/train.py --out runs/single --minutes 30
 
-The 8-quad swarm policy (neighbour observations, collision penalties), started from the
-single-quad policy::
+The 8-quad swarm on the paper scenarios (``mix`` + ``run_away``, deep-sets encoder, annealed collision
+penalties, collision replay, JAX engine), and its obstacle and deployable (<= 2,000 actor parameters)
+variants::
 
-    python scripts/train.py --preset swarm8 --init-from runs/single/final.npz --out runs/swarm8 --minutes 60
+    python scripts/train.py --preset swarm8 --out runs/swarm8 --minutes 90
+    python scripts/train.py --preset swarm8_deployable --out runs/swarm8_dep --minutes 90
+    python scripts/train.py --preset swarm8_obstacles --out runs/swarm8_obst --minutes 90
+    python scripts/train.py --resume runs/swarm8 --minutes 90      # continue from the last checkpoint
+
+(``swarm8_v1`` is the recipe of today's shipped ``pretrained:swarm8``: CPU engine, MLP, two scenarios.)
 
 Everything is configurable: ``--scenario`` (repeat it or give a comma list to train on several at
 once), ``--num-quads``, reward scales ``--reward quad_collision=5 --reward proximity=10`` (fields of
-``RewardScales``), any EnvConfig field ``--env motor_start=hover``, the PPO hyper-parameters
-(``--num-worlds``, ``--unroll-length``, ``--lr``, ...), the budget (``--minutes`` and/or
-``--timesteps`` in agent-steps = quad control steps) and ``--seed``.
+``RewardScales``), any EnvConfig field ``--env motor_start=hover``, the policy network ``--arch``
+(``mlp`` or an encoder preset of ``quadswarm_mj.policies.ARCH_PRESETS``, ``--arch-width``), the PPO
+hyper-parameters (``--num-worlds``, ``--unroll-length``, ``--lr``, ...), ``--replay-prob`` (JAX engine),
+``--anneal-agent-steps``, the budget of this run (``--minutes`` and/or ``--timesteps`` in agent-steps =
+quad control steps) and ``--seed``.
 
-Output in ``--out``: ``progress.csv`` and ``progress.json`` (one row per iteration: agent-steps,
-wall time, reward per agent-step, losses, and per scenario the SPEC §8 episode metrics of the
-episodes that ended in that iteration), ``curves.png``, ``checkpoints/step_*.npz`` every
-``--checkpoint-minutes`` and ``final.npz``. Every ``.npz`` is a policy file that
-``scripts/evaluate.py --policy <path>`` and ``quadswarm_mj.policies.load_policy`` read.
+Output in ``--out``: ``run.json`` (the configuration), ``progress.csv`` and ``progress.json`` (one row per
+iteration: agent-steps, wall time, reward per agent-step, losses, and per scenario the SPEC §8 episode
+metrics of the episodes that ended in that iteration; replay rate and buffer size with replay),
+``curves.png``, ``checkpoints/step_*.npz`` every ``--checkpoint-minutes`` with
+``checkpoints/train_state.npz`` (parameters, Adam state, normalizer, RNG, counters: what ``--resume``
+reads; pickle-free) and ``final.npz``. Every ``step_*.npz``/``final.npz`` is a policy file that
+``scripts/evaluate.py --policy <path>`` and ``quadswarm_mj.policies.load_policy`` read (encoder policies
+in format 2, recording architecture and observation layout).
 """
 
 from __future__ import annotations
@@ -30,18 +46,44 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from quadswarm_mj.policies import ARCH_PRESETS  # NumPy only
+
+ARCH_CHOICES = ("mlp", *ARCH_PRESETS)
+#: the original's obstacle-run settings (SPEC_obstacles A.6 / C): K = 2, 20 % density, 0.6 m columns, downwash,
+#: the floor-distance self observation; obstacles themselves are wired into the engines separately
+OBSTACLE_ENV: dict[str, Any] = {"num_neighbors": 2, "downwash": True, "obs_self": "floor",
+                                "obstacles": {"density": 0.2, "size": 0.6}}
+#: collision-penalty annealing (SPEC_obstacles A.6: 3e8 of 1e9 frames in the original), in agent-steps here
+SWARM_ANNEAL = 5e7
+
 PRESETS: dict[str, dict[str, Any]] = {
     # single quad, static and jumping goals
     "single": {"scenarios": ["static_same_goal", "dynamic_same_goal"], "num_quads": 1, "env": {}, "rewards": {},
                "ppo": {"num_worlds": 1024, "unroll_length": 32}},
-    # 8 quads, K = 6 nearest neighbours observed, the paper's reward scales. (The shipped pretrained:swarm8
-    # was trained before the reward had the original's time scaling, with quad_collision = proximity = 20:
-    # under that scaling a collision cost 20 x 0.01 = 0.2, 20x one metre-step of the position cost; now
-    # the paper's 5.0 per collision is 1000x a metre-step of position (0.005) and proximity 10 x 0.01 keeps
-    # its old ratio to the position term (20x), so no override is needed.)
-    "swarm8": {"scenarios": ["static_diff_goal", "swap_goals"], "num_quads": 8, "env": {},
-               "rewards": {},
-               "ppo": {"num_worlds": 128, "unroll_length": 32}},
+    # the recipe of the shipped pretrained:swarm8 (CPU engine, two scenarios, MLP over the sorted neighbours)
+    "swarm8_v1": {"scenarios": ["static_diff_goal", "swap_goals"], "num_quads": 8, "env": {}, "rewards": {},
+                  "ppo": {"num_worlds": 128, "unroll_length": 32}},
+    # 8 quads on the paper scenarios: `mix` (nine scenarios drawn per reset) plus run_away on a tenth of the
+    # worlds (so it weighs as much as each scenario of the mix), K = 6, deep-sets encoder (27,012 actor
+    # parameters), collision penalties annealed over SWARM_ANNEAL agent-steps, collision replay, JAX engine
+    "swarm8": {"scenarios": ["mix", "run_away"], "weights": [9, 1], "num_quads": 8, "env": {}, "rewards": {},
+               "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": SWARM_ANNEAL,
+               "ppo": {"num_worlds": 128, "unroll_length": 32, "arch": "deepsets_large", "arch_width": 64}},
+    # deployable variant: deep sets 16-wide, 1,012 actor parameters
+    "swarm8_deployable": {"scenarios": ["mix", "run_away"], "weights": [9, 1], "num_quads": 8, "env": {},
+                          "rewards": {}, "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": SWARM_ANNEAL,
+                          "ppo": {"num_worlds": 128, "unroll_length": 32, "arch": "deepsets_deployable"}},
+    # 8 quads among columns (the original's final obstacle run): the obstacle mix, attention over a neighbour
+    # token and an obstacle token (4 heads, width 32: 27,460 actor parameters), replay 0.75, annealing
+    "swarm8_obstacles": {"scenarios": ["mix"], "num_quads": 8, "env": OBSTACLE_ENV, "rewards": {}, "engine": "jax",
+                         "replay_prob": 0.75, "anneal_agent_steps": SWARM_ANNEAL,
+                         "ppo": {"num_worlds": 128, "unroll_length": 32, "arch": "attention_large",
+                                 "arch_width": 32}},
+    # deployable variant: single-head attention, 16 wide (1,828 actor parameters; the original's onboard ~1,800)
+    "swarm8_obstacles_deployable": {"scenarios": ["mix"], "num_quads": 8, "env": OBSTACLE_ENV, "rewards": {},
+                                    "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": SWARM_ANNEAL,
+                                    "ppo": {"num_worlds": 128, "unroll_length": 32,
+                                            "arch": "attention_deployable"}},
 }
 
 
@@ -63,21 +105,36 @@ def _kv(items: list[str] | None, what: str) -> dict[str, Any]:
     return out
 
 
+BUDGET_ARGS = ("--minutes", "--timesteps", "--checkpoint-minutes", "--out", "--resume")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--preset", choices=sorted(PRESETS), default="single", help="defaults to start from (single)")
+    p.add_argument("--engine", choices=("mujoco", "jax"),
+                   help="rollout engine: mujoco (batched CPU MuJoCo, default) or jax (MjxQuadSwarmEnv: rollouts and "
+                        "updates in one jitted loop; the swarm8* presets' default)")
     p.add_argument("--scenario", action="append", help="training scenario(s); repeat or comma-separate")
     p.add_argument("--num-quads", type=int, help="quads per world (N)")
     p.add_argument("--reward", action="append", metavar="TERM=SCALE", help="reward scale (RewardScales field)")
     p.add_argument("--env", action="append", metavar="FIELD=VALUE", help="EnvConfig field (JSON value)")
-    p.add_argument("--out", default="runs/train", help="output directory (default runs/train)")
+    p.add_argument("--out", help="output directory (default runs/train, or the --resume directory)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--minutes", type=float, help="wall-clock budget in minutes")
-    p.add_argument("--timesteps", type=float, help="budget in agent-steps (quad control steps), e.g. 5e7")
+    p.add_argument("--minutes", type=float, help="wall-clock budget of this run in minutes")
+    p.add_argument("--timesteps", type=float, help="budget of this run in agent-steps (quad control steps), e.g. 5e7")
     p.add_argument("--init-from", help="start from this policy .npz (e.g. the single-quad policy for swarm8)")
+    p.add_argument("--resume", metavar="DIR", help="continue the run in DIR from its last checkpoint (optimizer, "
+                   "normalizer, step counter, RNG); its run.json gives the configuration, the budget is new")
     p.add_argument("--checkpoint-minutes", type=float, default=5.0, help="checkpoint period (default 5)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
+    p.add_argument("--replay-prob", type=float, help="JAX engine: probability that an episode end restarts from a "
+                   "saved pre-collision state (SPEC_obstacles C.2; 0 disables; swarm8 presets 0.75)")
+    p.add_argument("--anneal-agent-steps", type=float, help="ramp the collision and proximity penalties from 0 over "
+                   "this many agent-steps (sets rewards.anneal_steps; 0: off)")
     g = p.add_argument_group("PPO (defaults from the preset, then PPOConfig)")
+    g.add_argument("--arch", choices=ARCH_CHOICES, help="policy network: mlp (--policy-hidden) or an encoder preset "
+                   "of quadswarm_mj.policies.ARCH_PRESETS")
+    g.add_argument("--arch-width", type=int, help="encoders: set every hidden width of the preset to this")
     g.add_argument("--num-worlds", type=int)
     g.add_argument("--unroll-length", type=int)
     g.add_argument("--num-minibatches", type=int)
@@ -95,61 +152,124 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _strip_budget(argv: list[str]) -> list[str]:
+    """``argv`` without the budget/output options (for re-parsing a resumed run's configuration)."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+            continue
+        name = a.split("=", 1)[0]
+        if name in BUDGET_ARGS:
+            skip = "=" not in a
+            continue
+        out.append(a)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    resume_file = None
+    if args.resume:
+        rdir = Path(args.resume)
+        resume_file = rdir / "checkpoints" / "train_state.npz"
+        if not (rdir / "run.json").is_file() or not resume_file.is_file():
+            raise SystemExit(f"error: --resume {rdir}: needs {rdir / 'run.json'} and {resume_file}")
+        old = json.loads((rdir / "run.json").read_text())
+        # the stored configuration, then this command line's options on top (budget, output, progress)
+        argv = _strip_budget(old["argv"]) + argv
+        args = build_parser().parse_args(argv)
+        if args.out is None:
+            args.out = str(rdir)
+    if args.out is None:
+        args.out = "runs/train"
     if args.minutes is None and args.timesteps is None:
         args.minutes = 30.0
     from quadswarm_mj.config import EnvConfig, RewardScales
     from quadswarm_mj.training.ppo import PPOConfig, PPOTrainer
 
     preset = PRESETS[args.preset]
+    engine = args.engine or preset.get("engine", "mujoco")
     scenarios = [s.strip() for item in (args.scenario or preset["scenarios"]) for s in item.split(",") if s.strip()]
+    weights = preset.get("weights") if args.scenario is None else None
     n = args.num_quads if args.num_quads is not None else preset["num_quads"]
     rewards = {**preset["rewards"], **_kv(args.reward, "--reward")}
     env = {**preset["env"], **_kv(args.env, "--env")}
-    try:
-        scales = RewardScales(**rewards)
-        cfgs = [EnvConfig(num_quads=n, scenario=s, rewards=scales, **env) for s in scenarios]
-    except (TypeError, ValueError) as e:
-        raise SystemExit(f"error: {e}") from None
     ppo_kw = dict(preset["ppo"])
     for k in ("num_worlds", "unroll_length", "num_minibatches", "num_epochs", "learning_rate", "entropy_cost",
-              "discounting", "gae_lambda", "clipping_epsilon", "reward_scaling", "activation", "lr_schedule"):
+              "discounting", "gae_lambda", "clipping_epsilon", "reward_scaling", "activation", "lr_schedule", "arch",
+              "arch_width"):
         if getattr(args, k) is not None:
             ppo_kw[k] = getattr(args, k)
+    if args.arch == "mlp":
+        ppo_kw.pop("arch_width", None)
     for k in ("policy_hidden", "value_hidden"):
         if getattr(args, k):
             ppo_kw[k] = tuple(int(x) for x in getattr(args, k).split(","))
+    anneal = args.anneal_agent_steps if args.anneal_agent_steps is not None else preset.get("anneal_agent_steps", 0)
+    replay_prob = args.replay_prob if args.replay_prob is not None else preset.get("replay_prob", 0.0)
     try:
         ppo = PPOConfig(**ppo_kw)
-        trainer = PPOTrainer(cfgs, ppo, seed=args.seed, init_from=args.init_from)
-    except ValueError as e:
+        if anneal and "anneal_steps" not in rewards:
+            from quadswarm_mj.training.jax_ppo import anneal_steps_for
+
+            rewards["anneal_steps"] = anneal_steps_for(anneal, ppo.num_worlds, n)
+        scales = RewardScales(**rewards)
+        cfgs = [EnvConfig(num_quads=n, scenario=s, rewards=scales, **env) for s in scenarios]
+        if engine == "jax":
+            from quadswarm_mj.training.jax_ppo import JaxPPOTrainer
+            from quadswarm_mj.training.replay import ReplayConfig
+
+            trainer: Any = JaxPPOTrainer(cfgs, ppo, seed=args.seed, init_from=args.init_from,
+                                         replay=ReplayConfig(prob=replay_prob), weights=weights)
+        else:
+            if replay_prob:
+                if args.replay_prob:
+                    raise ValueError("--replay-prob needs --engine jax (the replay buffer lives in the jitted loop)")
+                replay_prob = 0.0
+            if weights is not None and len(set(weights)) > 1:
+                raise ValueError(f"scenario weights {weights} need --engine jax (the CPU trainer splits worlds evenly)")
+            trainer = PPOTrainer(cfgs, ppo, seed=args.seed, init_from=args.init_from)
+        if resume_file is not None:
+            trainer.resume(resume_file)
+    except (TypeError, ValueError) as e:
         raise SystemExit(f"error: {e}") from None
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    run = {"argv": sys.argv[1:] if argv is None else argv, "scenarios": scenarios, "num_quads": n,
+    agents = trainer.num_agents if engine == "jax" else trainer.batch.num_agents
+    run = {"argv": argv, "engine": engine, "scenarios": scenarios, "weights": weights, "num_quads": n,
            "env": {k: (list(v) if isinstance(v, tuple) else v) for k, v in env.items()}, "rewards": rewards,
            "ppo": {k: (list(v) if isinstance(v, tuple) else v) for k, v in ppo.__dict__.items()},
-           "seed": args.seed, "init_from": args.init_from, "agents": trainer.batch.num_agents,
-           "obs_dim": trainer.obs_dim}
-    (out / "run.json").write_text(json.dumps(run, indent=1, default=str))
-    print(f"training {', '.join(scenarios)} with N={n}: {trainer.batch.num_agents} agents, obs_dim "
-          f"{trainer.obs_dim}; output in {out}", flush=True)
+           "replay_prob": replay_prob, "seed": args.seed, "init_from": args.init_from, "agents": agents,
+           "obs_dim": trainer.obs_dim, "resumed_from": args.resume,
+           "resumed_at_env_steps": int(trainer.env_steps) if args.resume else None}
+    if not (args.resume and Path(args.resume).resolve() == out.resolve()):
+        (out / "run.json").write_text(json.dumps(run, indent=1, default=str))
+    else:
+        (out / f"run_resume_{int(trainer.env_steps)}.json").write_text(json.dumps(run, indent=1, default=str))
+    print(f"training {', '.join(scenarios)} with N={n} on the {engine} engine: {agents} agents, obs_dim "
+          f"{trainer.obs_dim}, arch {ppo.arch}; output in {out}"
+          + (f" (resumed at {trainer.env_steps} agent-steps)" if args.resume else ""), flush=True)
 
     def log(row: dict[str, Any]) -> None:
         if args.no_progress:
             parts = [f"it {row['iteration']}", f"{row['env_steps'] / 1e6:.2f} M steps", f"{row['wall_s'] / 60:.1f} min",
-                     f"r/step {row['reward_per_step']:.4f}"]
+                     f"{row['steps_per_s']:.0f} steps/s", f"r/step {row['reward_per_step']:.4f}"]
             for s in scenarios:
-                for key in ("success", "goal_reach_rate", "collisions"):
+                for key in ("success", "goal_reach_rate", "collisions", "replay_rate"):
                     v = row.get(f"{s}/{key}")
                     if v is not None and v == v:
                         parts.append(f"{s}/{key} {v:.3f}")
             print(" | ".join(parts), flush=True)
 
+    history = None
+    if args.resume and (out / "progress.json").is_file():
+        history = [r for r in json.loads((out / "progress.json").read_text()) if r["env_steps"] <= trainer.env_steps]
     trainer.train(total_steps=None if args.timesteps is None else int(args.timesteps),
                   seconds=None if args.minutes is None else 60.0 * args.minutes, out_dir=out,
-                  checkpoint_every_s=60.0 * args.checkpoint_minutes, progress=not args.no_progress, callback=log)
+                  checkpoint_every_s=60.0 * args.checkpoint_minutes, progress=not args.no_progress, callback=log,
+                  history=history)
     print(f"done: {trainer.env_steps} agent-steps; policy {out / 'final.npz'}, curves {out / 'curves.png'}")
     return 0
 

@@ -7,7 +7,11 @@ everything learned runs in JAX: the policy's action sampling (one jitted call pe
 for all agents) and the PPO update (one jitted call per iteration: normalizer update, then
 ``num_epochs`` passes of ``num_minibatches`` Adam steps on
 ``brax.training.agents.ppo.losses.compute_ppo_loss``). The networks are Brax's
-``make_ppo_networks`` (tanh-normal policy, MLPs) with Brax's running observation normalizer.
+``make_ppo_networks`` (tanh-normal policy, MLPs) with Brax's running observation normalizer, or
+(``PPOConfig.arch``) a deep-sets / attention encoder of :mod:`quadswarm_mj.training.networks` saved in
+the encoder policy format. The learner pieces (:func:`make_networks`, :func:`init_params`,
+:func:`make_update_fn`, :func:`save_policy_file`, the resumable :func:`save_train_state` /
+:func:`load_train_state`) are shared with the JAX-engine trainer (:mod:`quadswarm_mj.training.jax_ppo`).
 
 Every quad is an agent and all agents share one policy (parameter sharing, as in QuadSwarm):
 the PPO batch has ``num_worlds * num_quads`` agents, each with its own reward (the per-quad
@@ -46,10 +50,13 @@ from flax import linen
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.envs.cpu_core import CpuSwarm
 from quadswarm_mj.metrics import METRIC_KEYS
-from quadswarm_mj.policies import OBS_ENV_FIELDS, load_policy_file, save_policy
+from quadswarm_mj.policies import ARCH_PRESETS, OBS_ENV_FIELDS, load_policy_file, save_policy
+from quadswarm_mj.training import networks as enc_networks
 
 ACTIVATIONS: dict[str, Callable[[Any], Any]] = {"tanh": linen.tanh, "relu": linen.relu, "swish": linen.swish,
                                                 "elu": linen.elu}
+#: policy architectures of ``--arch``: the MLP and the encoder presets of ``quadswarm_mj.policies``.
+ARCH_NAMES = ("mlp", *ARCH_PRESETS)
 
 
 @dataclass(frozen=True)
@@ -75,6 +82,8 @@ class PPOConfig:
     lr_final_fraction: float = 0.1
     init_std: float = 0.6  # initial std of the pre-tanh Gaussian (Brax's default is softplus(0) = 0.69)
     desync_episodes: bool = True  # truncate each world's first episode after a random number of steps
+    arch: str = "mlp"  # policy network: "mlp" (policy_hidden) or a quadswarm_mj.policies.ARCH_PRESETS name
+    arch_width: int | None = None  # encoders: every hidden width of the preset set to this (heads: 2x); None: as is
 
     def __post_init__(self) -> None:
         for n in ("num_worlds", "unroll_length", "num_minibatches", "num_epochs"):
@@ -96,6 +105,11 @@ class PPOConfig:
             raise ValueError(f"ppo.lr_final_fraction must be in [0, 1], got {self.lr_final_fraction!r}")
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"ppo.activation must be one of {tuple(ACTIVATIONS)}, got {self.activation!r}")
+        if self.arch not in ARCH_NAMES:
+            raise ValueError(f"ppo.arch must be one of {ARCH_NAMES}, got {self.arch!r}")
+        if self.arch_width is not None and (not isinstance(self.arch_width, int) or isinstance(self.arch_width, bool)
+                                            or self.arch_width < 1):
+            raise ValueError(f"ppo.arch_width must be None or an int >= 1, got {self.arch_width!r}")
         for n in ("policy_hidden", "value_hidden"):
             v = tuple(getattr(self, n))
             if not v or any(not isinstance(h, int) or h < 1 for h in v):
@@ -123,6 +137,19 @@ class AgentBatch:
         self.engines = [CpuSwarm(c, b) for c, b in zip(cfgs, worlds)]
         for k, e in enumerate(self.engines):
             e.seed(seed * 1000 + k)
+            try:
+                e.reset()
+                got = e.observe().shape[-1]
+            except Exception as err:  # noqa: BLE001
+                if e.cfg.obstacles is None:
+                    raise
+                raise ValueError(f"the MuJoCo engine rejects this obstacle configuration (obstacles are not wired "
+                                 f"into the CPU engine yet?): {type(err).__name__}: {err}") from err
+            if got != d:
+                why = (" (obstacles are not wired into the CPU engine yet: no obstacle features)"
+                       if e.cfg.obstacles is not None else "")
+                raise ValueError(f"the MuJoCo engine's observation has {got} features, the config needs {d}{why}")
+            e.seed(seed * 1000 + k)  # the check's reset leaves the seeded streams as before
         self.sizes = [e.B * n for e in self.engines]
         self.num_agents = sum(self.sizes)
         self.desync = desync
@@ -216,8 +243,225 @@ def _to_tree(layers: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
                        for i, (k, b) in enumerate(layers)}}
 
 
+def obs_layout(cfg: EnvConfig) -> dict[str, int]:
+    """The observation layout of ``cfg`` (``quadswarm_mj.policies.validate_layout`` keys)."""
+    return {"self_dim": cfg.self_obs_dim, "num_neighbors": cfg.neighbors, "neighbor_dim": 6,
+            "obstacle_dim": 9 if cfg.obstacles is not None else 0}
+
+
+def env_meta(cfg: EnvConfig) -> dict[str, Any]:
+    """The EnvConfig fields a policy file records (``policy.env_kwargs``): observation layout, and the
+    obstacle configuration when obstacles are on."""
+    env = {k: getattr(cfg, k) for k in OBS_ENV_FIELDS}
+    env["room_size"] = list(env["room_size"])
+    if cfg.obstacles is not None:
+        env["obstacles"] = {k: (list(v) if isinstance(v, tuple) else v)
+                            for k, v in dataclasses.asdict(cfg.obstacles).items()}
+    return env
+
+
+def encoder_arch(name: str, width: int | None = None, activation: str = "tanh") -> dict[str, Any]:
+    """The encoder architecture of preset ``name`` (``quadswarm_mj.policies.ARCH_PRESETS``), with every hidden
+    width set to ``width`` (the head layers to ``2 * width``, as the original's 2H head) when given."""
+    a = {**ARCH_PRESETS[name], "activation": activation}
+    if width is None:
+        return a
+    if a["type"] == "deepsets":
+        for k in ("self_layers", "neighbor_layers", "obstacle_layers"):
+            a[k] = [width] * len(a[k])
+    else:
+        a.update(hidden=width, attn_dim=width)
+    a["head_layers"] = [2 * width] * len(a["head_layers"])
+    return a
+
+
+def make_networks(ppo: PPOConfig, layout: dict[str, int]) -> tuple[Any, dict[str, Any] | None]:
+    """Brax ``PPONetworks`` for ``ppo.arch`` and the encoder architecture dict (None for the MLP)."""
+    from quadswarm_mj.policies import layout_obs_dim
+
+    normalize = (running_statistics.normalize if ppo.normalize_observations
+                 else brax_types.identity_observation_preprocessor)
+    if ppo.arch == "mlp":
+        nets = ppo_networks.make_ppo_networks(
+            layout_obs_dim(layout), 4, preprocess_observations_fn=normalize,
+            policy_hidden_layer_sizes=ppo.policy_hidden, value_hidden_layer_sizes=ppo.value_hidden,
+            activation=ACTIVATIONS[ppo.activation])
+        return nets, None
+    arch = encoder_arch(ppo.arch, ppo.arch_width, ppo.activation)
+    nets = enc_networks.make_ppo_networks(arch, layout, normalize, value_hidden_layer_sizes=ppo.value_hidden,
+                                          activation=ppo.activation)
+    return nets, arch
+
+
+def init_params(networks: Any, ppo: PPOConfig, arch: dict[str, Any] | None, key: jax.Array
+                ) -> ppo_losses.PPONetworkParams:
+    """Fresh policy and value parameters; the policy's std starts at ``ppo.init_std`` (pre-tanh)."""
+    kp, kv = jax.random.split(key)
+    policy, value = networks.policy_network.init(kp), networks.value_network.init(kv)
+    if arch is None:
+        layers = _dense_layers(policy)
+        k_last, b_last = layers[-1]
+        b_last = b_last.copy()
+        b_last[4:] = np.log(np.expm1(max(ppo.init_std - 0.001, 1e-4)))  # softplus^-1: Brax's std parameters
+        policy = _to_tree(layers[:-1] + [(k_last, b_last)])
+    else:
+        policy = enc_networks.set_action_std(policy, ppo.init_std)
+    return ppo_losses.PPONetworkParams(policy=policy, value=value)
+
+
+def make_optimizer(ppo: PPOConfig) -> optax.GradientTransformation:
+    return optax.chain(optax.clip_by_global_norm(ppo.max_grad_norm), optax.adam(ppo.learning_rate))
+
+
+def make_policy_step(networks: Any) -> Callable:
+    """(normalizer, policy params, obs (A, D), key) -> (actions (A, 4) in [-1, 1], extras) sampled."""
+    make_policy = ppo_networks.make_inference_fn(networks)
+
+    def step(normalizer: Any, policy_params: Any, obs: jax.Array, key: jax.Array) -> tuple[jax.Array, dict]:
+        return make_policy((normalizer, policy_params))(obs, key)
+
+    return step
+
+
+def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PPOConfig) -> Callable:
+    """(TrainState, Transition [T, A], key, lr_scale) -> (TrainState, metrics): normalizer update, then
+    ``num_epochs`` x ``num_minibatches`` Adam steps on Brax's ``compute_ppo_loss`` (pure; jit it)."""
+    loss_fn = functools.partial(ppo_losses.compute_ppo_loss, ppo_network=networks,
+                                entropy_cost=p.entropy_cost, discounting=p.discounting,
+                                reward_scaling=p.reward_scaling, gae_lambda=p.gae_lambda,
+                                clipping_epsilon=p.clipping_epsilon, normalize_advantage=True)
+    grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
+
+    def minibatch_step(carry: Any, data: Any, normalizer: Any, lr_scale: Any) -> tuple[Any, Any]:
+        opt_state, params, key = carry
+        key, k = jax.random.split(key)
+        (_, metrics), grads = grad_fn(params, normalizer, data, k)
+        upd, opt_state = optimizer.update(grads, opt_state)
+        upd = jax.tree_util.tree_map(lambda u: u * lr_scale, upd)  # learning-rate schedule
+        return (opt_state, optax.apply_updates(params, upd), key), metrics
+
+    def epoch(carry: Any, _: Any, data: Any, normalizer: Any, lr_scale: Any) -> tuple[Any, Any]:
+        opt_state, params, key = carry
+        key, kperm, kgrad = jax.random.split(key, 3)
+
+        def shuffle(x: jax.Array) -> jax.Array:
+            x = jax.random.permutation(kperm, x)
+            return x.reshape((p.num_minibatches, -1) + x.shape[1:])
+
+        (opt_state, params, _), m = jax.lax.scan(functools.partial(minibatch_step, normalizer=normalizer,
+                                                                   lr_scale=lr_scale),
+                                                 (opt_state, params, kgrad), jax.tree_util.tree_map(shuffle, data))
+        return (opt_state, params, key), m
+
+    def update(state: TrainState, data: brax_types.Transition, key: jax.Array,
+               lr_scale: jax.Array) -> tuple[TrainState, Any]:
+        data = jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), data)  # [T, A] -> [A, T]
+        normalizer = state.normalizer
+        if p.normalize_observations:
+            normalizer = running_statistics.update(normalizer, data.observation)
+        (opt_state, params, _), m = jax.lax.scan(
+            functools.partial(epoch, data=data, normalizer=normalizer, lr_scale=lr_scale),
+            (state.opt_state, state.params, key), None, length=p.num_epochs)
+        m = jax.tree_util.tree_map(jnp.mean, m)
+        m["learning_rate"] = lr_scale * p.learning_rate
+        return TrainState(params=params, opt_state=opt_state, normalizer=normalizer), m
+
+    return update
+
+
+def normalizer_stats(normalizer: Any, ppo: PPOConfig, obs_dim: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """(obs mean, obs std, count) of Brax's running normalizer (0, 1 when normalization is off)."""
+    if ppo.normalize_observations:
+        return np.asarray(normalizer.mean, np.float32), np.asarray(normalizer.std, np.float32), _count(normalizer)
+    return np.zeros(obs_dim, np.float32), np.ones(obs_dim, np.float32), _count(normalizer)
+
+
+def save_policy_file(path: str | Path, ppo: PPOConfig, arch: dict[str, Any] | None, cfg: EnvConfig,
+                     state: TrainState, train_meta: dict[str, Any]) -> str:
+    """Write the trained policy as a ``quadswarm_mj.policies`` file: format 1 (MLP) or 2 (encoder, via
+    ``networks.export_policy``: architecture and observation layout recorded); both also hold the critic
+    (``value/layer_i/...``) and the normalizer count. Returns the SHA-256."""
+    layout = obs_layout(cfg)
+    d = cfg.obs_dim
+    mean, std, count = normalizer_stats(state.normalizer, ppo, d)
+    meta = {"activation": ppo.activation, "obs_dim": d, "action_dim": 4, "env": env_meta(cfg), "train": train_meta}
+    extra = {"norm_count": np.array(count, np.float64)}
+    for i, (k, b) in enumerate(_dense_layers(state.params.value)):
+        extra[f"value/layer_{i}/kernel"] = k
+        extra[f"value/layer_{i}/bias"] = b
+    if arch is None:
+        layers = _dense_layers(state.params.policy)
+        return save_policy(path, [k for k, _ in layers], [b for _, b in layers], mean, std, meta, extra)
+    return enc_networks.export_policy(path, arch, layout, state.params.policy, mean, std, meta, extra)
+
+
+def ppo_meta(ppo: PPOConfig) -> dict[str, Any]:
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(ppo).items()}
+
+
+# ---------------------------------------------------------------------------- resumable checkpoints
+TRAIN_STATE_FILE = "train_state.npz"
+
+
+def _key_data(key: jax.Array) -> np.ndarray:
+    if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
+        return np.asarray(jax.random.key_data(key))
+    return np.asarray(key)
+
+
+def save_train_state(path: str | Path, state: TrainState, key: jax.Array, scalars: dict[str, Any],
+                     extra: dict[str, Any] | None = None) -> None:
+    """The full learner state (parameters, Adam state, normalizer), the trainer's RNG key and JSON
+    ``scalars`` (step counters, lr scale, configuration) as a pickle-free ``.npz``, written atomically
+    (temporary file, then rename). ``extra``: more named arrays (e.g. the worlds' step counters)."""
+    leaves = jax.tree_util.tree_flatten_with_path(state)[0]
+    arrays: dict[str, np.ndarray] = {f"state{jax.tree_util.keystr(kp)}": np.asarray(v) for kp, v in leaves}
+    arrays["rng"] = _key_data(key)
+    arrays["scalars"] = np.array(json.dumps(scalars, default=str))
+    for k, v in (extra or {}).items():
+        arrays[f"extra/{k}"] = np.asarray(v)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **arrays)
+    tmp.replace(path)
+
+
+def load_train_state(path: str | Path, template: TrainState) -> tuple[TrainState, jax.Array, dict[str, Any],
+                                                                       dict[str, np.ndarray]]:
+    """Inverse of :func:`save_train_state` for a learner of the same networks and optimizer (``template``
+    gives the tree structure): (state, key, scalars, extra arrays). Raises ValueError on a mismatch."""
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
+    out = []
+    for kp, like in leaves:
+        name = f"state{jax.tree_util.keystr(kp)}"
+        if name not in arrays:
+            raise ValueError(f"checkpoint {str(path)!r} lacks {name} (was it written by another --arch or network "
+                             f"size?)")
+        v = arrays[name]
+        if tuple(v.shape) != tuple(np.shape(like)):
+            raise ValueError(f"checkpoint {str(path)!r}: {name} has shape {v.shape}, this run needs "
+                             f"{tuple(np.shape(like))}")
+        out.append(jnp.asarray(v, dtype=jnp.asarray(like).dtype))
+    state = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(template), out)
+    scalars = json.loads(str(arrays["scalars"]))
+    extra = {k[len("extra/"):]: v for k, v in arrays.items() if k.startswith("extra/")}
+    return state, jnp.asarray(arrays["rng"]), scalars, extra
+
+
+def linear_lr_scale(ppo: PPOConfig, frac: float, start: float = 1.0) -> float:
+    """Learning-rate factor at budget fraction ``frac``: constant ``start``, or linear from ``start`` to
+    ``lr_final_fraction`` (resumed runs start from the checkpoint's factor)."""
+    if ppo.lr_schedule != "linear":
+        return start
+    end = min(ppo.lr_final_fraction, start)
+    return start - (start - end) * min(max(frac, 0.0), 1.0)
+
+
 class PPOTrainer:
-    """PPO on ``AgentBatch``. Use :meth:`train` (budget in agent-steps and/or seconds)."""
+    """PPO on ``AgentBatch`` (the CPU engine). Use :meth:`train` (budget in agent-steps and/or seconds)."""
 
     def __init__(self, cfgs: list[EnvConfig], ppo: PPOConfig, seed: int = 0, init_from: str | None = None):
         self.cfgs, self.ppo, self.seed = cfgs, ppo, seed
@@ -232,29 +476,22 @@ class PPOTrainer:
             raise ValueError(f"the number of agents ({A} = worlds x quads) must be divisible by "
                              f"ppo.num_minibatches={ppo.num_minibatches}")
         self.obs_dim = self.batch.obs_dim
-        normalize = (running_statistics.normalize if ppo.normalize_observations
-                     else brax_types.identity_observation_preprocessor)
-        self.networks = ppo_networks.make_ppo_networks(
-            self.obs_dim, 4, preprocess_observations_fn=normalize, policy_hidden_layer_sizes=ppo.policy_hidden,
-            value_hidden_layer_sizes=ppo.value_hidden, activation=ACTIVATIONS[ppo.activation])
-        self.optimizer = optax.chain(optax.clip_by_global_norm(ppo.max_grad_norm), optax.adam(ppo.learning_rate))
+        self.layout = obs_layout(cfgs[0])
+        self.networks, self.arch = make_networks(ppo, self.layout)
+        self.optimizer = make_optimizer(ppo)
         key = jax.random.PRNGKey(seed)
-        self.key, kp, kv = jax.random.split(key, 3)
-        params = ppo_losses.PPONetworkParams(policy=self.networks.policy_network.init(kp),
-                                             value=self.networks.value_network.init(kv))
-        layers = _dense_layers(params.policy)
-        k_last, b_last = layers[-1]
-        b_last = b_last.copy()
-        b_last[4:] = np.log(np.expm1(max(ppo.init_std - 0.001, 1e-4)))  # softplus^-1: Brax's std parameters
-        params = params.replace(policy=_to_tree(layers[:-1] + [(k_last, b_last)]))
+        self.key, kinit = jax.random.split(key)
+        params = init_params(self.networks, ppo, self.arch, kinit)
         normalizer = running_statistics.init_state(jax.ShapeDtypeStruct((self.obs_dim,), jnp.float32))
         if init_from is not None:
             params, normalizer = self._load_init(init_from, params, normalizer)
         self.state = TrainState(params=params, opt_state=self.optimizer.init(params), normalizer=normalizer)
-        self._policy_step = jax.jit(self._make_policy_step())
-        self._update = jax.jit(self._make_update())
+        self._policy_step = jax.jit(make_policy_step(self.networks))
+        self._update = jax.jit(make_update_fn(self.networks, self.optimizer, ppo))
         self.env_steps = 0  # agent-steps
         self.iteration = 0
+        self.lr_start = 1.0  # learning-rate factor at the start of this run (resumed runs: the checkpoint's)
+        self._lr_scale = 1.0
 
     # ------------------------------------------------------------------ init from a checkpoint
     def _load_init(self, path: str, params: Any, normalizer: Any) -> tuple[Any, Any]:
@@ -264,6 +501,8 @@ class PPOTrainer:
         pol = load_policy_file(path)
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
+        if self.arch is not None or not hasattr(pol, "kernels"):
+            return self._load_init_encoder(path, pol, arrays, params, normalizer)
         d_old, d = pol.obs_dim, self.obs_dim
         if d_old > d:
             raise ValueError(f"init_from policy has obs_dim {d_old} > this run's {d}")
@@ -295,92 +534,63 @@ class PPOTrainer:
                                         summed_variance=jnp.asarray(std.astype(np.float64) ** 2 * count, jnp.float32))
         return params, normalizer
 
-    # ------------------------------------------------------------------ jitted pieces
-    def _make_policy_step(self) -> Callable:
-        make_policy = ppo_networks.make_inference_fn(self.networks)
+    def _load_init_encoder(self, path: str, pol: Any, arrays: dict[str, np.ndarray], params: Any,
+                           normalizer: Any) -> tuple[Any, Any]:
+        """Start from an encoder policy file of the same architecture and observation layout."""
+        from quadswarm_mj.policies import validate_arch
 
-        def step(normalizer: Any, policy_params: Any, obs: jax.Array, key: jax.Array) -> tuple[jax.Array, dict]:
-            policy = make_policy((normalizer, policy_params))
-            return policy(obs, key)
-
-        return step
-
-    def _make_update(self) -> Callable:
-        p = self.ppo
-        loss_fn = functools.partial(ppo_losses.compute_ppo_loss, ppo_network=self.networks,
-                                    entropy_cost=p.entropy_cost, discounting=p.discounting,
-                                    reward_scaling=p.reward_scaling, gae_lambda=p.gae_lambda,
-                                    clipping_epsilon=p.clipping_epsilon, normalize_advantage=True)
-        grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
-        optimizer = self.optimizer
-
-        def minibatch_step(carry: Any, data: Any, normalizer: Any, lr_scale: Any) -> tuple[Any, Any]:
-            opt_state, params, key = carry
-            key, k = jax.random.split(key)
-            (_, metrics), grads = grad_fn(params, normalizer, data, k)
-            upd, opt_state = optimizer.update(grads, opt_state)
-            upd = jax.tree_util.tree_map(lambda u: u * lr_scale, upd)  # learning-rate schedule
-            return (opt_state, optax.apply_updates(params, upd), key), metrics
-
-        def epoch(carry: Any, _: Any, data: Any, normalizer: Any, lr_scale: Any) -> tuple[Any, Any]:
-            opt_state, params, key = carry
-            key, kperm, kgrad = jax.random.split(key, 3)
-
-            def shuffle(x: jax.Array) -> jax.Array:
-                x = jax.random.permutation(kperm, x)
-                return x.reshape((p.num_minibatches, -1) + x.shape[1:])
-
-            (opt_state, params, _), m = jax.lax.scan(functools.partial(minibatch_step, normalizer=normalizer,
-                                                                       lr_scale=lr_scale),
-                                                     (opt_state, params, kgrad), jax.tree_util.tree_map(shuffle, data))
-            return (opt_state, params, key), m
-
-        def update(state: TrainState, data: brax_types.Transition, key: jax.Array,
-                   lr_scale: jax.Array) -> tuple[TrainState, Any]:
-            data = jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), data)  # [T, A] -> [A, T]
-            normalizer = state.normalizer
-            if p.normalize_observations:
-                normalizer = running_statistics.update(normalizer, data.observation)
-            (opt_state, params, _), m = jax.lax.scan(
-                functools.partial(epoch, data=data, normalizer=normalizer, lr_scale=lr_scale),
-                (state.opt_state, state.params, key), None, length=p.num_epochs)
-            m = jax.tree_util.tree_map(jnp.mean, m)
-            m["learning_rate"] = lr_scale * p.learning_rate
-            return TrainState(params=params, opt_state=opt_state, normalizer=normalizer), m
-
-        return update
+        if self.arch is None or not hasattr(pol, "arch"):
+            raise ValueError(f"init_from {path!r}: an MLP run starts from an MLP file and an encoder run from an "
+                             f"encoder file of the same --arch")
+        if pol.obs_layout != obs_layout(self.cfgs[0]) or pol.arch != validate_arch(self.arch, self.layout):
+            raise ValueError(f"init_from {path!r}: architecture {pol.arch} / layout {pol.obs_layout} differ from this "
+                             f"run's {self.arch} / {self.layout}")
+        policy = enc_networks.unflatten_params(pol.params)
+        value = params.value
+        if "value/layer_0/kernel" in arrays:
+            vl, i = [], 0
+            while f"value/layer_{i}/kernel" in arrays:
+                vl.append((arrays[f"value/layer_{i}/kernel"], arrays[f"value/layer_{i}/bias"]))
+                i += 1
+            if [k.shape for k, _ in vl] == [k.shape for k, _ in _dense_layers(params.value)]:
+                value = _to_tree(vl)
+        count = float(arrays["norm_count"]) if "norm_count" in arrays else 1e6
+        mean, std = np.asarray(pol.obs_mean, np.float32), np.asarray(pol.obs_std, np.float32)
+        normalizer = normalizer.replace(count=_uint64(count), mean=jnp.asarray(mean), std=jnp.asarray(std),
+                                        summed_variance=jnp.asarray(std.astype(np.float64) ** 2 * count, jnp.float32))
+        return ppo_losses.PPONetworkParams(policy=policy, value=value), normalizer
 
     # ------------------------------------------------------------------ export
     def export_arrays(self) -> dict[str, Any]:
-        """Policy layers, value layers and normalizer statistics as NumPy arrays."""
-        st = self.state
-        norm = st.normalizer
-        if self.ppo.normalize_observations:
-            mean, std = np.asarray(norm.mean, np.float32), np.asarray(norm.std, np.float32)
-        else:
-            mean, std = np.zeros(self.obs_dim, np.float32), np.ones(self.obs_dim, np.float32)
-        return {"policy": _dense_layers(st.params.policy), "value": _dense_layers(st.params.value),
-                "obs_mean": mean, "obs_std": std, "norm_count": _count(norm)}
+        """Policy layers (MLP only), value layers and normalizer statistics as NumPy arrays."""
+        mean, std, count = normalizer_stats(self.state.normalizer, self.ppo, self.obs_dim)
+        pol = _dense_layers(self.state.params.policy) if self.arch is None else None
+        return {"policy": pol, "value": _dense_layers(self.state.params.value), "obs_mean": mean, "obs_std": std,
+                "norm_count": count}
+
+    def train_meta(self, extra_meta: dict[str, Any] | None = None) -> dict[str, Any]:
+        return {"engine": "mujoco", "scenarios": [c.scenario for c in self.cfgs], "env_steps": int(self.env_steps),
+                "iterations": int(self.iteration), "seed": self.seed, "ppo": ppo_meta(self.ppo), **(extra_meta or {})}
 
     def save(self, path: str | Path, extra_meta: dict[str, Any] | None = None) -> str:
         """Write a policy .npz (loadable by ``quadswarm_mj.policies``; also holds the critic and
-        the normalizer count so training can resume from it). Returns its SHA-256."""
-        ex = self.export_arrays()
-        cfg0 = self.cfgs[0]
-        env = {k: getattr(cfg0, k) for k in OBS_ENV_FIELDS}
-        env["room_size"] = list(env["room_size"])
-        meta = {"activation": self.ppo.activation, "obs_dim": self.obs_dim, "action_dim": 4, "env": env,
-                "train": {"scenarios": [c.scenario for c in self.cfgs], "env_steps": int(self.env_steps),
-                          "iterations": int(self.iteration), "seed": self.seed,
-                          "ppo": {k: (list(v) if isinstance(v, tuple) else v)
-                                  for k, v in dataclasses.asdict(self.ppo).items()},
-                          **(extra_meta or {})}}
-        extra = {"norm_count": np.array(ex["norm_count"], np.float64)}
-        for i, (k, b) in enumerate(ex["value"]):
-            extra[f"value/layer_{i}/kernel"] = k
-            extra[f"value/layer_{i}/bias"] = b
-        return save_policy(path, [k for k, _ in ex["policy"]], [b for _, b in ex["policy"]], ex["obs_mean"],
-                           ex["obs_std"], meta, extra)
+        the normalizer count). Returns its SHA-256."""
+        return save_policy_file(path, self.ppo, self.arch, self.cfgs[0], self.state, self.train_meta(extra_meta))
+
+    def save_state(self, path: str | Path) -> None:
+        """The resumable learner state (see :func:`save_train_state`)."""
+        save_train_state(path, self.state, self.key, {"engine": "mujoco", "env_steps": int(self.env_steps),
+                                                      "iteration": int(self.iteration),
+                                                      "lr_scale": float(self._lr_scale)})
+
+    def resume(self, path: str | Path) -> None:
+        """Continue from a :meth:`save_state` file: parameters, Adam state, normalizer, RNG key, counters."""
+        self.state, self.key, sc, _ = load_train_state(path, self.state)
+        self.env_steps, self.iteration = int(sc["env_steps"]), int(sc["iteration"])
+        self.lr_start = float(sc.get("lr_scale", 1.0))
+        # the CPU engine's own NumPy streams are reseeded from the seed and the iteration
+        for k, e in enumerate(self.batch.engines):
+            e.seed(self.seed * 1000 + k + 7919 * self.iteration)
 
     # ------------------------------------------------------------------ training loop
     def collect(self, obs: np.ndarray) -> tuple[brax_types.Transition, np.ndarray, list]:
@@ -411,7 +621,8 @@ class PPOTrainer:
 
     def train(self, total_steps: int | None = None, seconds: float | None = None, out_dir: str | Path | None = None,
               log_every: int = 1, checkpoint_every_s: float = 300.0, progress: bool = True,
-              callback: Callable[[dict[str, Any]], None] | None = None) -> list[dict[str, Any]]:
+              callback: Callable[[dict[str, Any]], None] | None = None,
+              history: list[dict[str, Any]] | None = None) -> list[dict[str, Any]]:
         """Train until ``total_steps`` agent-steps or ``seconds`` of wall time (whichever first).
 
         Writes ``progress.csv``/``progress.json``, ``curves.png`` and ``checkpoints/`` into
@@ -423,7 +634,8 @@ class PPOTrainer:
         if out is not None:
             (out / "checkpoints").mkdir(parents=True, exist_ok=True)
         per_iter = self.batch.num_agents * self.ppo.unroll_length
-        rows: list[dict[str, Any]] = []
+        rows: list[dict[str, Any]] = list(history or [])  # a resumed run's earlier rows
+        self._wall0 = float(rows[-1]["wall_s"]) if rows else 0.0
         bar = None
         if progress:
             from tqdm import tqdm
@@ -435,9 +647,10 @@ class PPOTrainer:
         obs = self.batch.reset()
         pending: list = []
         rew_acc, rew_n = 0.0, 0
+        steps0 = self._steps0 = self.env_steps  # budgets count this run's steps (a resumed run continues the counter)
         while True:
             elapsed = time.perf_counter() - t0
-            if total_steps is not None and self.env_steps >= total_steps:
+            if total_steps is not None and self.env_steps - steps0 >= total_steps:
                 break
             if seconds is not None and elapsed >= seconds:
                 break
@@ -448,13 +661,11 @@ class PPOTrainer:
             self.key, k = jax.random.split(self.key)
             frac = 0.0
             if total_steps is not None:
-                frac = max(frac, self.env_steps / max(total_steps, 1))
+                frac = max(frac, (self.env_steps - steps0) / max(total_steps, 1))
             if seconds is not None:
                 frac = max(frac, (time.perf_counter() - t0) / seconds)
-            lr_scale = 1.0
-            if self.ppo.lr_schedule == "linear":
-                lr_scale = 1.0 - (1.0 - self.ppo.lr_final_fraction) * min(frac, 1.0)
-            self.state, m = self._update(self.state, data, k, jnp.float32(lr_scale))
+            self._lr_scale = linear_lr_scale(self.ppo, frac, self.lr_start)
+            self.state, m = self._update(self.state, data, k, jnp.float32(self._lr_scale))
             self.env_steps += per_iter
             self.iteration += 1
             now = time.perf_counter()
@@ -477,12 +688,15 @@ class PPOTrainer:
                     write_logs(out, rows)
             if out is not None and now - last_ckpt >= checkpoint_every_s:
                 self.save(out / "checkpoints" / f"step_{self.env_steps:012d}.npz")
+                self.save_state(out / "checkpoints" / TRAIN_STATE_FILE)
                 last_ckpt = now
+                write_logs(out, rows)
                 plot_curves(out / "progress.json", out / "curves.png")
         if bar is not None:
             bar.close()
         if out is not None:
             self.save(out / "final.npz", {"wall_seconds": round(time.perf_counter() - t0, 1)})
+            self.save_state(out / "checkpoints" / TRAIN_STATE_FILE)
             write_logs(out, rows)
             plot_curves(out / "progress.json", out / "curves.png")
         return rows
@@ -490,7 +704,8 @@ class PPOTrainer:
     def _log_row(self, wall: float, reward: float, finished: list, m: Any) -> dict[str, Any]:
         row: dict[str, Any] = {"iteration": self.iteration, "env_steps": int(self.env_steps),
                                "learning_rate": float(m["learning_rate"]) if "learning_rate" in m else None,
-                               "wall_s": round(wall, 2), "steps_per_s": round(self.env_steps / max(wall, 1e-9), 1),
+                               "wall_s": round(self._wall0 + wall, 2),
+                               "steps_per_s": round((self.env_steps - self._steps0) / max(wall, 1e-9), 1),
                                "reward_per_step": reward}
         for key in ("total_loss", "policy_loss", "v_loss", "kl_mean", "policy_dist_mean_std"):
             if key in m:

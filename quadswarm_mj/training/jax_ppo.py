@@ -1,0 +1,474 @@
+"""PPO on the JAX engine: rollouts and updates in ONE jitted function per iteration.
+
+``JaxPPOTrainer`` runs the project's PPO (Brax's loss ``compute_ppo_loss``, Brax's networks or the
+encoders of :mod:`quadswarm_mj.training.networks`, Brax's running observation normalizer: the very pieces
+of :mod:`quadswarm_mj.training.ppo`) on :class:`~quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv` through
+``AutoResetWrapper.vstep``. One call of the jitted ``iteration`` = ``lax.scan`` over ``unroll_length``
+control steps (policy sampling for all agents, ``vstep`` of every scenario's batch of worlds, the
+first-episode desynchronization, the collision replay of :mod:`quadswarm_mj.training.replay`, episode
+metric sums) followed by the PPO update. No host callback and no NumPy inside: the same code runs on a
+GPU/TPU; the host sees one small dict of losses and metric sums per iteration.
+
+Why the project's trainer and not Brax's ``ppo.train`` on ``BraxQuadSwarmEnv`` (measured, TRAINING.md
+"Training on the JAX engine"): both jit the same kind of loop (``lax.scan`` of env steps, then
+minibatch SGD on the same loss), so their agent-steps/s are within noise of each other on this machine
+(both are dominated by the MJX step), but Brax's ``ppo.train`` cannot host what the swarm training needs:
+restarting worlds from a buffer of saved collision states (SPEC_obstacles C.2), the encoder networks with
+the project's policy-file export, per-scenario SPEC §8 episode metrics, a split of the worlds over several
+scenario configs (``mix`` + ``run_away``), the first-episode desynchronization and resuming with optimizer
+and normalizer state from a pickle-free file. Learning per sample is the same (same loss, same
+networks); learning per wall-clock minute then follows the agent-steps/s.
+
+Every quad is an agent (parameter sharing, as the CPU trainer); agent order is scenario by scenario,
+world by world, quad by quad. Reward annealing (``cfg.rewards.anneal_steps``, in control steps of a
+world: ``info["total_steps"]``, which ``AutoResetWrapper`` and the replay carry over episodes) runs inside
+the env; :func:`anneal_steps_for` converts a budget in agent-steps.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.training import types as brax_types
+from brax.training.acme import running_statistics
+
+from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.metrics import METRIC_KEYS
+from quadswarm_mj.training.ppo import (
+    TRAIN_STATE_FILE,
+    PPOConfig,
+    PPOTrainer,
+    TrainState,
+    init_params,
+    linear_lr_scale,
+    load_train_state,
+    make_networks,
+    make_optimizer,
+    make_policy_step,
+    make_update_fn,
+    obs_layout,
+    plot_curves,
+    ppo_meta,
+    save_policy_file,
+    save_train_state,
+    write_logs,
+)
+from quadswarm_mj.training.replay import ReplayConfig, init_replay, record, restart, tree_where
+
+
+def anneal_steps_for(agent_steps: float, num_worlds: int, num_quads: int) -> int:
+    """``rewards.anneal_steps`` (control steps per world) for an annealing over ``agent_steps`` agent-steps
+    of a run with ``num_worlds`` worlds of ``num_quads`` quads (the original anneals over 3e8 frames)."""
+    return max(1, int(round(agent_steps / (num_worlds * num_quads))))
+
+
+def check_engine_config(env: Any, cfg: EnvConfig) -> None:
+    """Raise ValueError if the JAX engine cannot simulate ``cfg`` as configured (e.g. obstacles not wired:
+    the observation would lack the 9 obstacle features)."""
+    try:
+        st = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+    except Exception as e:  # noqa: BLE001
+        extra = (" (obstacles are not wired into the JAX engine yet)" if cfg.obstacles is not None else "")
+        raise ValueError(f"the JAX engine rejects this configuration (scenario {cfg.scenario!r}){extra}: "
+                         f"{type(e).__name__}: {e}") from e
+    if tuple(st.obs.shape) != (cfg.num_quads, cfg.obs_dim):
+        why = (" : the engine does not produce the 9 obstacle features yet (obstacles are not wired into "
+               "MjxQuadSwarmEnv)" if cfg.obstacles is not None else "")
+        raise ValueError(f"the JAX engine's observation has shape {tuple(st.obs.shape)}, the config needs "
+                         f"{(cfg.num_quads, cfg.obs_dim)}{why}")
+
+
+class JaxPPOTrainer:
+    """PPO with rollouts on ``MjxQuadSwarmEnv`` inside one jitted iteration (see the module docstring).
+
+    ``cfgs``: one EnvConfig per scenario (same ``num_quads`` and observation layout); ``weights``: the
+    share of the worlds of each (default equal); ``replay``: collision replay (None or ``prob`` 0: off).
+    Use :meth:`train`. The same outputs as :class:`~quadswarm_mj.training.ppo.PPOTrainer`.
+    """
+
+    def __init__(self, cfgs: list[EnvConfig], ppo: PPOConfig, seed: int = 0, init_from: str | None = None,
+                 replay: ReplayConfig | None = None, weights: list[float] | None = None):
+        from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv
+
+        if not cfgs:
+            raise ValueError("need at least one scenario config")
+        n, d = cfgs[0].num_quads, cfgs[0].obs_dim
+        for c in cfgs:
+            if c.num_quads != n or c.obs_dim != d or obs_layout(c) != obs_layout(cfgs[0]):
+                raise ValueError("all training scenarios must share num_quads and the observation layout")
+        self.cfgs, self.ppo, self.seed, self.N, self.obs_dim = cfgs, ppo, seed, n, d
+        self.worlds = split_worlds(ppo.num_worlds, weights or [1.0] * len(cfgs))
+        self.num_agents = sum(self.worlds) * n
+        if self.num_agents % ppo.num_minibatches:
+            raise ValueError(f"the number of agents ({self.num_agents} = worlds x quads) must be divisible by "
+                             f"ppo.num_minibatches={ppo.num_minibatches}")
+        self.replay = replay if replay is not None and replay.enabled else None
+        self.envs = []
+        for c in cfgs:
+            try:
+                env = AutoResetWrapper(MjxQuadSwarmEnv(c))
+            except Exception as e:  # noqa: BLE001
+                extra = " (obstacles are not wired into the JAX engine yet)" if c.obstacles is not None else ""
+                raise ValueError(f"the JAX engine rejects this configuration (scenario {c.scenario!r}){extra}: "
+                                 f"{type(e).__name__}: {e}") from e
+            check_engine_config(env, c)
+            self.envs.append(env)
+        self.layout = obs_layout(cfgs[0])
+        self.networks, self.arch = make_networks(ppo, self.layout)
+        self.optimizer = make_optimizer(ppo)
+        key = jax.random.PRNGKey(seed)
+        self.key, kinit, kenv = jax.random.split(key, 3)
+        params = init_params(self.networks, ppo, self.arch, kinit)
+        normalizer = running_statistics.init_state(jax.ShapeDtypeStruct((d,), jnp.float32))
+        if init_from is not None:
+            params, normalizer = self._load_init(init_from, params, normalizer)
+        self.state = TrainState(params=params, opt_state=self.optimizer.init(params), normalizer=normalizer)
+        self._policy_step = make_policy_step(self.networks)
+        self._update = make_update_fn(self.networks, self.optimizer, ppo)
+        self._reset = [jax.jit(jax.vmap(e.reset)) for e in self.envs]
+        self._iteration = jax.jit(self._make_iteration(), donate_argnums=(0,))
+        self._env_key = kenv
+        self.env_steps = 0
+        self.iteration = 0
+        self.lr_start = 1.0
+        self._lr_scale = 1.0
+        self._resume_total_steps: list[np.ndarray] | None = None
+        self.compile_s: float | None = None
+
+    # the CPU trainer's loaders do the transfer (MLP: zero weights for new neighbour inputs; encoders: same arch)
+    _load_init = PPOTrainer._load_init
+    _load_init_encoder = PPOTrainer._load_init_encoder
+
+    # ------------------------------------------------------------------ rollout state
+    def init_worlds(self, key: jax.Array) -> tuple[dict[str, Any], ...]:
+        """Fresh worlds of every scenario: env states, first-episode lengths (desync), replay buffers."""
+        rng = np.random.default_rng(self.seed + 7919 * self.iteration)
+        out = []
+        for k, (c, w) in enumerate(zip(self.cfgs, self.worlds)):
+            key, kr = jax.random.split(key)
+            st = self._reset[k](jax.random.split(kr, w))
+            if self._resume_total_steps is not None and self._resume_total_steps[k].shape == (w,):
+                st = st.replace(info={**st.info, "total_steps": jnp.asarray(self._resume_total_steps[k],
+                                                                            st.info["total_steps"].dtype)})
+            steps = c.episode_steps
+            first_len = (rng.integers(1, steps + 1, size=w) if self.ppo.desync_episodes
+                         else np.full(w, steps + 1))
+            wd = {"env": st, "first": jnp.ones((w,), bool), "first_len": jnp.asarray(first_len, jnp.int32),
+                  "ep_ret": jnp.zeros((w,), jnp.float32)}
+            if self.replay is not None:
+                wd["replay"] = init_replay(st, self.replay)
+            out.append(wd)
+        return tuple(out)
+
+    # ------------------------------------------------------------------ the jitted iteration
+    def _make_iteration(self) -> Callable:
+        T, N, D = self.ppo.unroll_length, self.N, self.obs_dim
+        envs, worlds, rcfg, cfgs = self.envs, self.worlds, self.replay, self.cfgs
+        policy_step, update = self._policy_step, self._update
+
+        def cut_first(env: Any, s: Any, cut: jax.Array, key: jax.Array, w: int) -> Any:
+            fresh = jax.vmap(env.reset)(jax.random.split(key, w))
+            fresh = fresh.replace(info={**fresh.info, "total_steps": s.info["total_steps"]},
+                                  done=s.done, reward=s.reward, metrics=s.metrics)
+            return tree_where(cut, fresh, s)
+
+        def world_step(k: int, wd: dict[str, Any], a: jax.Array, key: jax.Array) -> tuple[dict, Any, Any, dict]:
+            env, w = envs[k], worlds[k]
+            k_cut, k_rec, k_rs = jax.random.split(key, 3)
+            prev = wd["env"]
+            s = env.vstep(prev, a)
+            done = s.done
+            cut = wd["first"] & ~done & (s.info["step"] >= wd["first_len"])
+            s = jax.lax.cond(jnp.any(cut), lambda x: cut_first(env, x, cut, k_cut, w), lambda x: x, s)
+            ended = done | cut
+            ep_ret = wd["ep_ret"] + jnp.mean(s.reward, axis=-1).astype(jnp.float32)
+            was_replay = wd["replay"].replaying if rcfg is not None else jnp.zeros((w,), bool)
+            log = done & ~wd["first"] & ~was_replay
+            logf = log.astype(jnp.float32)
+            em = s.info["episode_metrics"]
+            sums = {"episodes": jnp.sum(logf), "return": jnp.sum(jnp.where(log, ep_ret, 0.0))}
+            for m in METRIC_KEYS:
+                v = em[m].astype(jnp.float32)
+                ok = log & jnp.isfinite(v)
+                sums[m] = jnp.sum(jnp.where(ok, v, 0.0))
+                sums[m + "#n"] = jnp.sum(ok.astype(jnp.float32))
+            sums["ended"] = jnp.sum(done.astype(jnp.float32))
+            new = {"env": s, "first": wd["first"] & ~ended, "first_len": wd["first_len"],
+                   "ep_ret": jnp.where(ended, 0.0, ep_ret)}
+            if rcfg is not None:
+                # a desync cut ends an episode too: its snapshots must not be written for the next one
+                s = s.replace(done=ended)
+                rs = record(wd["replay"], prev, s, rcfg, cfgs[k].control_dt, k_rec)
+                s, rs, mask = restart(rs, s, rcfg, k_rs)
+                new["env"], new["replay"] = s, rs
+                sums["replays"] = jnp.sum(mask.astype(jnp.float32))
+            return new, s.reward.reshape(-1), jnp.repeat(ended, N).astype(jnp.float32), sums
+
+        def env_step(ts: TrainState, carry: Any, _: Any) -> tuple[Any, Any]:
+            wds, key = carry
+            key, k_act, *k_w = jax.random.split(key, 2 + len(wds))
+            obs = jnp.concatenate([wd["env"].obs.reshape(-1, D) for wd in wds]).astype(jnp.float32)
+            act, extras = policy_step(ts.normalizer, ts.params.policy, obs, k_act)
+            new_wds, rews, truncs, sums = [], [], [], []
+            i = 0
+            for k, wd in enumerate(wds):
+                a = act[i:i + worlds[k] * N].reshape(worlds[k], N, 4)
+                i += worlds[k] * N
+                nw, r, tr, sm = world_step(k, wd, a, k_w[k])
+                new_wds.append(nw)
+                rews.append(r)
+                truncs.append(tr)
+                sums.append(sm)
+            nobs = jnp.concatenate([wd["env"].obs.reshape(-1, D) for wd in new_wds]).astype(jnp.float32)
+            trunc = jnp.concatenate(truncs)
+            tr = brax_types.Transition(observation=obs, action=act, reward=jnp.concatenate(rews).astype(jnp.float32),
+                                       discount=jnp.ones_like(trunc), next_observation=nobs,
+                                       extras={"policy_extras": extras, "state_extras": {"truncation": trunc}})
+            return (tuple(new_wds), key), (tr, tuple(sums))
+
+        def iteration(carry: Any, lr_scale: jax.Array) -> tuple[Any, dict[str, Any], Any]:
+            ts, wds, key = carry
+            key, k_upd, k_roll = jax.random.split(key, 3)
+            (wds, _), (data, sums) = jax.lax.scan(lambda c, x: env_step(ts, c, x), (wds, k_roll), None, length=T)
+            ts, m = update(ts, data, k_upd, lr_scale)
+            m["reward_per_step"] = jnp.mean(data.reward)
+            sums = jax.tree.map(lambda x: jnp.sum(x, axis=0), sums)
+            if rcfg is not None:
+                for k, wd in enumerate(wds):
+                    rs = wd["replay"]
+                    sums[k]["buffer_size"] = jnp.sum(rs.valid.astype(jnp.float32))
+                    sums[k]["buffer_added"] = rs.added.astype(jnp.float32)
+                    sums[k]["buffer_replayed"] = rs.replayed.astype(jnp.float32)
+            return (ts, wds, key), m, sums
+
+        return iteration
+
+    # ------------------------------------------------------------------ save / resume
+    def train_meta(self, extra_meta: dict[str, Any] | None = None) -> dict[str, Any]:
+        return {"engine": "jax", "scenarios": [c.scenario for c in self.cfgs], "worlds": list(self.worlds),
+                "env_steps": int(self.env_steps), "iterations": int(self.iteration), "seed": self.seed,
+                "ppo": ppo_meta(self.ppo), "replay": None if self.replay is None else vars(self.replay),
+                **(extra_meta or {})}
+
+    def save(self, path: str | Path, extra_meta: dict[str, Any] | None = None) -> str:
+        """Write the policy file (MLP format 1 or encoder format 2); returns its SHA-256."""
+        return save_policy_file(path, self.ppo, self.arch, self.cfgs[0], self.state, self.train_meta(extra_meta))
+
+    def save_state(self, path: str | Path, wds: tuple[dict[str, Any], ...] | None = None) -> None:
+        """The resumable learner state, RNG key, counters and the worlds' ``total_steps`` (annealing)."""
+        extra = {}
+        if wds is not None:
+            for k, wd in enumerate(wds):
+                extra[f"total_steps_{k}"] = np.asarray(wd["env"].info["total_steps"])
+        save_train_state(path, self.state, self.key, {"engine": "jax", "env_steps": int(self.env_steps),
+                                                      "iteration": int(self.iteration),
+                                                      "lr_scale": float(self._lr_scale)}, extra)
+
+    def resume(self, path: str | Path) -> None:
+        """Continue from a :meth:`save_state` file (parameters, Adam state, normalizer, RNG, counters,
+        annealing clocks). Worlds start fresh episodes; the replay buffer starts empty."""
+        self.state, self.key, sc, extra = load_train_state(path, self.state)
+        self.env_steps, self.iteration = int(sc["env_steps"]), int(sc["iteration"])
+        self.lr_start = float(sc.get("lr_scale", 1.0))
+        self._resume_total_steps = [extra[f"total_steps_{k}"] for k in range(len(self.cfgs))
+                                    if f"total_steps_{k}" in extra] or None
+        if self._resume_total_steps is not None and len(self._resume_total_steps) != len(self.cfgs):
+            self._resume_total_steps = None
+
+    # ------------------------------------------------------------------ training loop
+    def train(self, total_steps: int | None = None, seconds: float | None = None, out_dir: str | Path | None = None,
+              log_every: int = 1, checkpoint_every_s: float = 300.0, progress: bool = True,
+              callback: Callable[[dict[str, Any]], None] | None = None,
+              history: list[dict[str, Any]] | None = None) -> list[dict[str, Any]]:
+        """Train until this run has done ``total_steps`` agent-steps or ``seconds`` of wall time (the
+        compile counts against ``seconds``). Writes ``progress.csv``/``progress.json``, ``curves.png``,
+        ``checkpoints/`` (policy files and ``train_state.npz``) and ``final.npz`` into ``out_dir``."""
+        if total_steps is None and seconds is None:
+            raise ValueError("give a budget: total_steps and/or seconds")
+        out = Path(out_dir) if out_dir is not None else None
+        if out is not None:
+            (out / "checkpoints").mkdir(parents=True, exist_ok=True)
+        per_iter = self.num_agents * self.ppo.unroll_length
+        rows: list[dict[str, Any]] = list(history or [])  # a resumed run's earlier rows
+        self._wall0 = float(rows[-1]["wall_s"]) if rows else 0.0
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=total_steps if total_steps is not None else int(seconds), unit="step" if total_steps
+                       is not None else "s", dynamic_ncols=True, smoothing=0.05)
+        t0 = time.perf_counter()
+        last_ckpt = t0
+        self.key, k_env = jax.random.split(self.key)
+        carry = (self.state, self.init_worlds(k_env), self.key)
+        steps0 = self._steps0 = self.env_steps
+        t_first = None
+        while True:
+            elapsed = time.perf_counter() - t0
+            if total_steps is not None and self.env_steps - steps0 >= total_steps:
+                break
+            if seconds is not None and elapsed >= seconds:
+                break
+            frac = 0.0
+            if total_steps is not None:
+                frac = max(frac, (self.env_steps - steps0) / max(total_steps, 1))
+            if seconds is not None:
+                frac = max(frac, elapsed / seconds)
+            self._lr_scale = linear_lr_scale(self.ppo, frac, self.lr_start)
+            carry, m, sums = self._iteration(carry, jnp.float32(self._lr_scale))
+            m, sums = jax.device_get((m, sums))  # one small transfer per iteration
+            self.state, wds, self.key = carry
+            self.env_steps += per_iter
+            self.iteration += 1
+            now = time.perf_counter()
+            if t_first is None:
+                t_first = now
+                self.compile_s = now - t0
+                steps_first = self.env_steps
+            if bar is not None:
+                bar.update(per_iter if total_steps is not None else int(now - t0) - bar.n)
+            row = self._log_row(now - t0, m, sums)
+            if t_first is not None and now > t_first:
+                row["steps_per_s_compiled"] = round((self.env_steps - steps_first) / (now - t_first), 1)
+            rows.append(row)
+            if bar is not None:
+                bar.set_postfix({"r/step": f"{row['reward_per_step']:.4f}"})
+            if callback is not None and self.iteration % log_every == 0:
+                callback(row)
+            if out is not None and self.iteration % (10 * log_every) == 0:
+                write_logs(out, rows)
+            if out is not None and now - last_ckpt >= checkpoint_every_s:
+                self.save(out / "checkpoints" / f"step_{self.env_steps:012d}.npz")
+                self.save_state(out / "checkpoints" / TRAIN_STATE_FILE, wds)
+                last_ckpt = now
+                write_logs(out, rows)
+                plot_curves(out / "progress.json", out / "curves.png")
+        if bar is not None:
+            bar.close()
+        if out is not None:
+            self.save(out / "final.npz", {"wall_seconds": round(time.perf_counter() - t0, 1)})
+            self.save_state(out / "checkpoints" / TRAIN_STATE_FILE, carry[1])
+            write_logs(out, rows)
+            plot_curves(out / "progress.json", out / "curves.png")
+        return rows
+
+    def _log_row(self, wall: float, m: dict[str, Any], sums: tuple[dict[str, Any], ...]) -> dict[str, Any]:
+        row: dict[str, Any] = {"iteration": self.iteration, "env_steps": int(self.env_steps),
+                               "learning_rate": float(m["learning_rate"]), "wall_s": round(self._wall0 + wall, 2),
+                               "steps_per_s": round((self.env_steps - self._steps0) / max(wall, 1e-9), 1),
+                               "reward_per_step": float(m["reward_per_step"])}
+        for key in ("total_loss", "policy_loss", "v_loss", "kl_mean", "policy_dist_mean_std"):
+            if key in m:
+                row[key] = float(m[key])
+        for c, sm in zip(self.cfgs, sums):
+            scn = c.scenario
+            ne = float(sm["episodes"])
+            row[f"{scn}/episodes"] = int(ne)
+            for key in METRIC_KEYS:
+                cnt = float(sm[key + "#n"])
+                row[f"{scn}/{key}"] = float(sm[key]) / cnt if cnt > 0 else float("nan")
+            row[f"{scn}/return"] = float(sm["return"]) / ne if ne > 0 else float("nan")
+            if "replays" in sm:
+                ended = float(sm["ended"])
+                row[f"{scn}/replay_rate"] = float(sm["replays"]) / ended if ended > 0 else float("nan")
+                row[f"{scn}/replay_buffer_size"] = int(sm["buffer_size"])
+                row[f"{scn}/replay_added"] = int(sm["buffer_added"])
+        return row
+
+
+def split_worlds(num_worlds: int, weights: list[float]) -> list[int]:
+    """Worlds per scenario in proportion to ``weights`` (largest remainder), each >= 1."""
+    w = np.asarray(weights, float)
+    if w.ndim != 1 or len(w) == 0 or np.any(~np.isfinite(w)) or np.any(w <= 0):
+        raise ValueError(f"scenario weights must be positive numbers, got {weights!r}")
+    if num_worlds < len(w):
+        raise ValueError(f"ppo.num_worlds={num_worlds} is fewer than the {len(w)} scenarios")
+    exact = num_worlds * w / w.sum()
+    out = np.maximum(np.floor(exact).astype(int), 1)
+    while out.sum() < num_worlds:
+        out[np.argmax(exact - out)] += 1
+    while out.sum() > num_worlds:
+        out[np.argmax(np.where(out > 1, out - exact, -np.inf))] -= 1
+    return [int(x) for x in out]
+
+
+# ---------------------------------------------------------------------------------- measurement
+def measure_trainers(cfg: EnvConfig, ppo: PPOConfig, iterations: int = 4, engines: tuple[str, ...] = ("jax", "mujoco",
+                     "brax")) -> dict[str, dict[str, float]]:
+    """Agent-steps/s of the trainers on ``cfg`` with the same PPO settings, measured one after the other in
+    this process: ``jax`` (:class:`JaxPPOTrainer`, after its first, compiling iteration), ``mujoco``
+    (:class:`~quadswarm_mj.training.ppo.PPOTrainer` on the CPU engine, after its first iteration) and
+    ``brax`` (``brax.training.agents.ppo.train`` on ``BraxQuadSwarmEnv``, its own ``training/sps`` of the
+    second training epoch, i.e. without compile; the same networks, loss settings and batch). Each entry:
+    ``agent_steps_per_s``, ``compile_s`` (first iteration / first epoch, incl. compile), ``iterations``."""
+    import functools
+
+    out: dict[str, dict[str, float]] = {}
+    per_iter = ppo.num_worlds * cfg.num_quads * ppo.unroll_length
+    for eng in engines:
+        if eng in ("jax", "mujoco"):
+            tr: Any = (JaxPPOTrainer([cfg], ppo) if eng == "jax" else PPOTrainer([cfg], ppo))
+            t0 = time.perf_counter()
+            rows = tr.train(total_steps=per_iter * (iterations + 1), progress=False)
+            first = rows[0]["wall_s"]
+            rest = rows[-1]["wall_s"] - first
+            out[eng] = {"agent_steps_per_s": per_iter * iterations / max(rest, 1e-9), "compile_s": first,
+                        "iterations": iterations, "total_s": time.perf_counter() - t0}
+        elif eng == "brax":
+            from brax.training.agents.ppo import networks as bnet
+            from brax.training.agents.ppo import train as brax_ppo
+
+            from quadswarm_mj.envs.brax_env import BraxQuadSwarmEnv
+
+            env = BraxQuadSwarmEnv(cfg)
+            agents = ppo.num_worlds * cfg.num_quads
+            log: list[tuple[float, int, dict]] = []
+            t0 = time.perf_counter()
+
+            def progress(step: int, m: dict, log: list = log) -> None:
+                log.append((time.perf_counter(), step, dict(m)))
+
+            brax_ppo.train(env, wrap_env=False, num_timesteps=per_iter * 2 * iterations,
+                           episode_length=cfg.episode_steps,
+                           num_envs=agents, num_eval_envs=cfg.num_quads, batch_size=agents // ppo.num_minibatches,
+                           num_minibatches=ppo.num_minibatches, unroll_length=ppo.unroll_length,
+                           num_updates_per_batch=ppo.num_epochs, learning_rate=ppo.learning_rate,
+                           entropy_cost=ppo.entropy_cost, discounting=ppo.discounting, gae_lambda=ppo.gae_lambda,
+                           clipping_epsilon=ppo.clipping_epsilon, reward_scaling=ppo.reward_scaling,
+                           normalize_observations=ppo.normalize_observations, max_grad_norm=ppo.max_grad_norm,
+                           action_repeat=1, num_evals=3, seed=0,
+                           network_factory=functools.partial(bnet.make_ppo_networks,
+                                                             policy_hidden_layer_sizes=ppo.policy_hidden,
+                                                             value_hidden_layer_sizes=ppo.value_hidden),
+                           progress_fn=progress)
+            sps = [float(m["training/sps"]) for _, _, m in log if "training/sps" in m]
+            out[eng] = {"agent_steps_per_s": sps[-1] if sps else float("nan"),
+                        "first_epoch_sps": sps[0] if sps else float("nan"), "iterations": iterations,
+                        "total_s": time.perf_counter() - t0}
+        else:
+            raise ValueError(f"unknown trainer {eng!r}: use jax, mujoco, brax")
+    return out
+
+
+if __name__ == "__main__":  # pragma: no cover
+    import argparse
+    import json
+
+    ap = argparse.ArgumentParser(description="agent-steps/s of the trainers (same run, same PPO settings)")
+    ap.add_argument("--num-quads", type=int, default=8)
+    ap.add_argument("--num-worlds", type=int, default=128)
+    ap.add_argument("--scenario", default="static_diff_goal")
+    ap.add_argument("--iterations", type=int, default=4)
+    ap.add_argument("--arch", default="mlp")
+    ap.add_argument("--engines", default="jax,mujoco,brax")
+    a = ap.parse_args()
+    res = measure_trainers(EnvConfig(num_quads=a.num_quads, scenario=a.scenario),
+                           PPOConfig(num_worlds=a.num_worlds, arch=a.arch), a.iterations,
+                           tuple(a.engines.split(",")))
+    print(json.dumps(res, indent=1))
