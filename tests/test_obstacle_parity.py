@@ -9,7 +9,7 @@ of diameter 0.6 at (0, 0) and (3, 3); the obstacle draws take their means. Done 
   driver (MuJoCo free body + the actuation chain + :func:`quadswarm_mj.obstacles.obstacle_step` +
   :func:`quadswarm_mj.obstacles.obstacle_features`), in the order of the control step the engines
   will use.
-* The env-level versions (CPU env and JAX engine) are skipped until the stages are wired in.
+* :func:`test_env_parity_cpu` and :func:`test_env_parity_mjx`: the same case through the CPU env and the JAX engine.
 """
 
 from __future__ import annotations
@@ -108,7 +108,6 @@ def test_pipeline_parity_numpy_driver():
     check(out, ref)
 
 
-@pytest.mark.skip(reason="obstacles not yet wired into the engines")
 def test_env_parity_cpu():
     from quadswarm_mj import QuadSwarmEnv
 
@@ -140,7 +139,6 @@ def test_env_parity_cpu():
     assert pen.sum() == -cfg.obstacles.collision_reward and pen[76, 0] == -cfg.obstacles.collision_reward
 
 
-@pytest.mark.skip(reason="obstacles not yet wired into the engines")
 def test_env_parity_mjx():
     jax = pytest.importorskip("jax")
     import jax.numpy as jnp
