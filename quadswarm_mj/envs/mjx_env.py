@@ -128,17 +128,24 @@ from quadswarm_mj.downwash import (
     downwash_slot_spec,
     expand_downwash_draws,
 )
-from quadswarm_mj.envs.validation import check_state
+from quadswarm_mj.envs.validation import check_obstacles, check_state
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.random_draws import DrawSpec, JaxSampler, MeanSampler, Normal, Uniform
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
-from quadswarm_mj.rewards import TERMS, anneal_factor, reward_terms, total_reward
+from quadswarm_mj.rewards import anneal_factor, env_terms, reward_terms, total_reward
 from quadswarm_mj.scenarios import get_scenario
-from quadswarm_mj.scenarios.base import spawn_num_uniforms
+from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
 from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
 
 INIT_STATE_KEYS = ("pos", "vel", "rot", "omega", "motors", "goals")
 PHYSICS = ("freebody", "mjx")
+
+
+def _obst_lib() -> Any:
+    """:mod:`quadswarm_mj.obstacles` (imported where obstacles are on)."""
+    from quadswarm_mj import obstacles
+
+    return obstacles
 
 
 def _have_freebody() -> bool:
@@ -276,7 +283,10 @@ class MjxQuadSwarmEnv:
         # the quads' free joints are the whole qpos/qvel: read and write them with reshapes, no scatter
         self._whole = self._qs == 0 and self._vs == 0 and self.mj_model.nq == 7 * n and self.mj_model.nv == 6 * n
         self.scenario = get_scenario(cfg.scenario)
-        self._n_scn = self.scenario.num_uniforms(n)
+        self._n_scn = scenario_num_uniforms(self.scenario, cfg)
+        self._terms = env_terms(cfg)
+        self._obst = cfg.obstacles
+        self._obst_respond = cfg.collision_model == "paper"  # else MuJoCo's contacts resolve the columns
         self._rotor_pos = rotor_positions(cfg.quad)
         self._mix = wrench_matrix(self._rotor_pos)
         low, high = obs_bounds(cfg)
@@ -293,7 +303,8 @@ class MjxQuadSwarmEnv:
         self._reset_spec = {
             **(_prefixed("rand", randomization_draw_spec(cfg)) if cfg.randomize else {}),
             "scenario": Uniform(0.0, 1.0, (self._n_scn,)),
-            "spawn": Uniform(0.0, 1.0, (spawn_num_uniforms(n),)),
+            "spawn": Uniform(0.0, 1.0, (scenario_spawn_uniforms(cfg),)),
+            **(_prefixed("omap", _obst_lib().map_draw_spec(self._obst)) if self._obst is not None else {}),
             **(_prefixed("sensor", self._spec_sensor) if self._sensor_on else {}),
         }
         coll_spec = {
@@ -301,6 +312,9 @@ class MjxQuadSwarmEnv:
             **_prefixed("wall", wall_draw_spec(WALL_BUDGET, cfg.collision_decay, c.kick_omega)),
             **_prefixed("quad", quad_collision_slot_spec(c.tries, QUAD_PAIR_BUDGET, c.shared_noise_std,
                                                          c.own_noise_std, n, cfg.collision_decay, c.kick_omega)),
+            # obstacle response: per-quad draws (at most one column per quad and step)
+            **(_prefixed("obst", _obst_lib().response_draw_spec(n))
+               if self._obst is not None and self._obst_respond else {}),
         }
         down_spec = _prefixed("down", downwash_slot_spec(DOWNWASH_BUDGET)) if cfg.downwash else {}
         self._step_spec = {
@@ -399,12 +413,23 @@ class MjxQuadSwarmEnv:
         return integrate_mjx
 
     def _observe(self, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, draws: dict[str, Any],
-                 dist: Any = None) -> jax.Array:
+                 dist: Any = None, omap: Any = None) -> jax.Array:
         f = _float()
         noise = _sub(draws, "sensor") if self._sensor_on else None
         scale = None if self._obs_scale is None else jnp.asarray(self._obs_scale, f)
         return build_obs(self.cfg, pos, vel, R, omega, goals, noise, jnp.asarray(self._obs_low, f),
-                         jnp.asarray(self._obs_high, f), scale, dist=dist)
+                         jnp.asarray(self._obs_high, f), scale, dist=dist,
+                         obstacles=None if omap is None else tuple(omap))
+
+    def _omap(self, info: dict[str, Any]) -> Any:
+        """The world's column map (ObstacleMap) from ``info``."""
+        return _obst_lib().ObstacleMap(info["obstacles"], info["obstacles_valid"], info["obstacle_radius"])
+
+    def _episode_metrics(self, acc: dict[str, Any], om: dict[str, Any], t: Any) -> dict[str, Any]:
+        """Episode metrics with obstacles: the standard ones, then obstacle_collisions, collision_rate, success."""
+        out = metrics_lib.finalize(acc, t)
+        out.update(_obst_lib().metrics_finalize(om, acc["collisions"]))
+        return out
 
     def _surface_flags(self, pos: Any, vel: Any, omega: Any) -> tuple[Any, Any, Any]:
         """(on_floor, at_wall, at_ceiling) of quads at ``pos``, from the collision functions
@@ -437,17 +462,33 @@ class MjxQuadSwarmEnv:
         """
         cfg, n = self.cfg, self.N
         f = _float()
-        init_state = check_state({} if init_state is None else init_state, n, name="init_state",
-                                 room=(cfg.room_low, cfg.room_high))
+        init_state = dict({} if init_state is None else init_state)
+        given_obst = init_state.pop("obstacles", None)
+        if given_obst is not None:
+            given_obst = check_obstacles(given_obst, cfg, name="init_state['obstacles']")
+        init_state = check_state(init_state, n, name="init_state", room=(cfg.room_low, cfg.room_high))
         k_draw, k_next = jax.random.split(key)
         rnd = self._draw(self._reset_spec, k_draw)
         draws = _sub(rnd, "rand") if cfg.randomize else nominal_draws(cfg, jnp.zeros((n,), f))
-        init = pipeline.initial_state(cfg, self.scenario, draws, rnd["scenario"], rnd["spawn"], init_state, jnp, f)
+        omap = None
+        if self._obst is not None:
+            ob = _obst_lib()
+            omap = ob.reset_map(self._obst, _sub(rnd, "omap"), given_obst, xp=jnp)
+            omap = ob.ObstacleMap(omap.centres.astype(f), omap.valid, jnp.asarray(omap.radius, f))
+        init = pipeline.initial_state(cfg, self.scenario, draws, rnd["scenario"], rnd["spawn"], init_state, jnp, f,
+                                      obstacles=omap)
         params, sstate, goals = init["params"], init["scenario"], init["scenario"].goals
         pos, vel, R, omega, u0 = init["pos"], init["vel"], init["rot"], init["omega"], init["u0"]
         data = self._write(self._data0, jnp.concatenate([pos, rotmat_to_quat(R)], -1),
                            jnp.concatenate([vel, omega], -1))
         data = data.replace(time=jnp.zeros_like(data.time))
+        if omap is not None:  # move the column pool (MuJoCo contacts with physics="mjx"; rendering)
+            from quadswarm_mj.arena import obstacle_mocap_pos
+
+            a = self.arena
+            data = data.replace(mocap_pos=obstacle_mocap_pos(data.mocap_pos, a.obstacle_mocap_ids[0], omap.centres,
+                                                             omap.valid, cfg.room_size[2], a.obstacle_park
+                                                             ).astype(data.mocap_pos.dtype))
         q, v = self._read(data)  # as stored (quaternion round trip), like the CPU env
         pos, vel, omega = q[:, :3].astype(f), v[:, :3].astype(f), v[:, 3:].astype(f)
         R = quat_to_rotmat(q[:, 3:7]).astype(f)
@@ -455,7 +496,7 @@ class MjxQuadSwarmEnv:
         contact, dist = pairwise_contacts(pos, cfg.hitbox)
         acc = metrics_lib.init(jnp.zeros((n,), f), (), n)
         f_norm = u0 * u0
-        obs = self._observe(pos, vel, R, omega, goals, rnd, dist)
+        obs = self._observe(pos, vel, R, omega, goals, rnd, dist, omap)
         zero_n = jnp.zeros((n,), f)
         info = {
             "state": {"pos": pos, "vel": vel, "rot": R, "omega": omega, "thrust": f_norm},
@@ -468,7 +509,13 @@ class MjxQuadSwarmEnv:
             "step": jnp.zeros((), jnp.int32), "time": jnp.zeros((), f), "total_steps": jnp.zeros((), jnp.int32),
             "truncation": jnp.zeros((), f), "rng": k_next,
         }
-        metrics = {f"reward/{k}": zero_n for k in TERMS}
+        if omap is not None:
+            ob = _obst_lib()
+            info.update({"obstacles": omap.centres, "obstacles_valid": omap.valid, "obstacle_radius": omap.radius,
+                         "obstacle_contact": ob.detect(pos, *omap, cfg.quad.arm)[0],
+                         "obstacle_metrics": ob.metrics_init(zero_n, (), n)})
+            info["episode_metrics"] = self._episode_metrics(acc, info["obstacle_metrics"], jnp.zeros((), f))
+        metrics = {f"reward/{k}": zero_n for k in self._terms}
         return State(data=data, obs=obs, reward=zero_n, done=jnp.zeros((), bool), metrics=metrics, info=info)
 
     # ------------------------------------------------------------------ physics
@@ -543,7 +590,12 @@ class MjxQuadSwarmEnv:
         else:
             contact, _ = pairwise_contacts(pos, cfg.hitbox)
             qc = {"contact": contact, "new_contact": contact & ~info["contact"]}
-        pos, vel, omega = pipeline.obstacle_stage(pos, vel, omega)  # extension point: obstacles
+        obst: dict[str, Any] = {}
+        if self._obst is not None:  # SPEC_obstacles A.3, after quad-quad
+            r = pipeline.obstacle_stage(pos, vel, omega, info["obstacle_contact"], self._omap(info), cfg.quad.arm,
+                                        _sub(rnd, "obst") if self._obst_respond else None, self._obst_respond)
+            vel, omega = r["vel"], r["omega"]
+            obst = {"obst_new": r["new_contact"], "obst_contact": r["contact"]}
         _, dist = pairwise_contacts(pos, cfg.hitbox)
         if cfg.downwash:
             dmask, _ = downwash_mask(pos, R)
@@ -555,7 +607,7 @@ class MjxQuadSwarmEnv:
         k = {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": qc["new_contact"],
              "contact": qc["contact"], "hit_floor": hit_floor, "hit_wall": w["hit_wall"],
              "hit_ceiling": w["hit_ceiling"], "at_wall": w["at_wall"], "at_ceiling": w["at_ceiling"],
-             "on_floor": on_floor, "u": u, "f_norm": f_norm, "eps": eps}
+             "on_floor": on_floor, "u": u, "f_norm": f_norm, "eps": eps, **obst}
         return data, k
 
     # ------------------------------------------------------------------ step
@@ -576,7 +628,13 @@ class MjxQuadSwarmEnv:
         total_steps = info["total_steps"] + 1
         t = steps.astype(f) * cfg.control_dt
         prev_goals = info["scenario"].goals
-        sstate = self.scenario.step(cfg, info["scenario"], t, k["pos"], rnd["scenario"])
+        if self._obst is None:
+            sstate = self.scenario.step(cfg, info["scenario"], t, k["pos"], rnd["scenario"])
+        else:
+            from quadswarm_mj.scenarios.obstacle_scenarios import scenario_step
+
+            sstate = scenario_step(self.scenario, cfg, info["scenario"], t, k["pos"], rnd["scenario"],
+                                   self._omap(info))
         goals, goal_vel = sstate.goals, sstate.goal_vel
         jump = metrics_lib.goal_jump(prev_goals, goals, goal_vel, cfg.control_dt)
         dist_goal = jnp.sqrt(jnp.sum((goals - k["pos"]) ** 2, axis=-1))
@@ -585,11 +643,15 @@ class MjxQuadSwarmEnv:
                              k["dist"], anneal_factor(cfg, total_steps), goal_dist=dist_goal)
         # explicit dtype: a zero-scale term may come back weakly typed, and a state whose leaf types
         # change between reset and step would make jit compile step twice
+        if self._obst is not None:
+            terms["obstacle_collision"] = _obst_lib().obstacle_penalty(
+                k["obst_new"], self._obst.collision_reward, anneal_factor(cfg, total_steps))
         terms = {name: v.astype(f) for name, v in terms.items()}
         reward = total_reward(terms)
         acc = metrics_lib.update(info["metrics_acc"], t, dist_goal, k["new_contact"], k["hit_floor"], k["hit_wall"],
                                  k["hit_ceiling"], jump, cfg.grace_period_s)
-        obs = self._observe(k["pos"], k["vel"], k["R"], k["omega"], goals, rnd, k["dist"])
+        obs = self._observe(k["pos"], k["vel"], k["R"], k["omega"], goals, rnd, k["dist"],
+                            None if self._obst is None else self._omap(info))
         done = steps >= cfg.episode_steps
         new_info = {
             "state": {"pos": k["pos"], "vel": k["vel"], "rot": k["R"], "omega": k["omega"], "thrust": k["f_norm"]},
@@ -602,7 +664,16 @@ class MjxQuadSwarmEnv:
             "step": steps, "time": t, "total_steps": total_steps,
             "truncation": done.astype(f), "rng": k_next,
         }
-        metrics = {f"reward/{name}": terms[name] for name in TERMS}
+        if self._obst is not None:
+            from quadswarm_mj.scenarios.obstacle_scenarios import approach_threshold
+
+            om = _obst_lib().metrics_update(info["obstacle_metrics"], t, k["obst_new"], acc["last_dist"],
+                                            acc["steps"], approach_threshold(self.scenario, cfg, sstate),
+                                            cfg.grace_period_s)
+            new_info.update({k2: info[k2] for k2 in ("obstacles", "obstacles_valid", "obstacle_radius")})
+            new_info.update({"obstacle_contact": k["obst_contact"], "obstacle_metrics": om,
+                             "episode_metrics": self._episode_metrics(acc, om, t)})
+        metrics = {f"reward/{name}": terms[name] for name in self._terms}
         return State(data=data, obs=obs, reward=reward, done=done, metrics=metrics, info=new_info)
 
 
