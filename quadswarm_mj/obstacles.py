@@ -227,20 +227,33 @@ def feature_bounds(cfg: EnvConfig) -> tuple[np.ndarray, np.ndarray]:
 # ------------------------------------------------------------------------------ detection
 
 
+def contact_hits(pos: Any, centres: Any, valid: Any, radius: Any, arm: float) -> Any:
+    """(..., N, M) bool: quad n touches valid column m, ``||p_xy - o_xy|| <= arm + radius`` (at any
+    height; compared squared)."""
+    xp = array_namespace(pos, centres)
+    dx = pos[..., :, None, 0] - centres[..., None, :, 0]
+    dy = pos[..., :, None, 1] - centres[..., None, :, 1]
+    lim = arm + xp.asarray(radius, dtype=pos.dtype)
+    return ((dx * dx + dy * dy) <= (lim * lim)[..., None, None]) & valid[..., None, :]
+
+
+def first_hit(hit: Any, centres: Any) -> tuple[Any, Any]:
+    """``index`` (..., N) of the first column hit (index order; 0 without contact) and its centre (..., N, 2)."""
+    xp = array_namespace(centres)
+    index = xp.argmax(hit, axis=-1)
+    cx = xp.take_along_axis(centres[..., 0], index, axis=-1)
+    cy = xp.take_along_axis(centres[..., 1], index, axis=-1)
+    return index, xp.stack([cx, cy], axis=-1)
+
+
 def detect(pos: Any, centres: Any, valid: Any, radius: Any, arm: float) -> tuple[Any, Any, Any]:
     """Contacts (A.3): a quad touches column m if ``||p_xy - o_xy|| <= arm + radius`` (at any
     height). Columns are scanned in index order and only the first hit is kept. Returns
     ``contact`` (..., N) bool, ``index`` (..., N) int (0 without contact) and that column's centre
-    (..., N, 2)."""
-    xp = array_namespace(pos, centres)
-    d = _dist2d(xp, pos[..., :, None, :2], centres[..., None, :, :])  # (..., N, M)
-    r = xp.asarray(radius, dtype=pos.dtype)
-    hit = (d <= (arm + r)[..., None, None]) & valid[..., None, :]
-    index = xp.argmax(hit, axis=-1)  # first True (0 if none)
-    contact = xp.any(hit, axis=-1)
-    cx = xp.take_along_axis(centres[..., 0], index, axis=-1)
-    cy = xp.take_along_axis(centres[..., 1], index, axis=-1)
-    return contact, index, xp.stack([cx, cy], axis=-1)
+    (..., N, 2) (:func:`contact_hits`, :func:`first_hit`)."""
+    hit = contact_hits(pos, centres, valid, radius, arm)
+    index, centre = first_hit(hit, centres)
+    return hit.any(axis=-1), index, centre
 
 
 def new_contacts(contact: Any, prev_contact: Any) -> Any:

@@ -130,6 +130,9 @@ class _MjDataPhysics:
         """Move the column pool of worlds ``idx`` onto their maps (and set the radius under size randomization)."""
         from quadswarm_mj.arena import place_obstacles, set_obstacle_radius
 
+        if self.arena.obstacle_mocap_ids is None:  # a lean paper-model arena has no column geoms
+            return
+
         place_obstacles(self.arena, self.data.mocap_pos, omap.centres, omap.valid, cfg.room_size[2], worlds=idx)
         if cfg.obstacles.size_random:
             set_obstacle_radius(self.model, self.arena, omap.radius, worlds=idx)
@@ -222,6 +225,9 @@ class _BatchPhysics:
     def set_obstacles(self, cfg: EnvConfig, idx: Any, omap: Any) -> None:
         """Move the column pool of worlds ``idx`` onto their maps, in their simulations' rows."""
         from quadswarm_mj.arena import obstacle_positions
+
+        if self.arena.obstacle_mocap_ids is None:  # a lean paper-model arena has no column geoms
+            return
 
         wid = np.arange(self.B)[idx]
         sims, loc = wid // self.C, wid % self.C
@@ -335,6 +341,9 @@ class CpuSwarm:
         self._spec_obst = ob.response_draw_spec(N)
         self._spec_map = ob.map_draw_spec(o)
         self._obst_respond = self.cfg.collision_model == "paper"  # else MuJoCo's contacts resolve it
+        # the success distance of the scenario (per world only for mix, which draws a sub-scenario)
+        thr = getattr(self.scenario, "approach_goal_metric", 0.5)
+        self._obst_thr = None if self.cfg.scenario == "mix" else np.full(B, float(thr))
 
     def _obst_new_maps(self, idx: Any, M: int, given: Any) -> Any:
         """Maps of the M reset worlds: ``given`` centres ((B, K, 2) or (K, 2) m, world-local), else drawn."""
@@ -355,14 +364,16 @@ class CpuSwarm:
         """Obstacle contacts of this step (pipeline.obstacle_stage, event-gated: the paper model's
         response runs, and draws, only for worlds with a new contact); writes vel/omega in place.
         Returns (new contacts (B, N), whether vel/omega changed)."""
-        from quadswarm_mj.obstacles import detect, obstacle_response
+        from quadswarm_mj.obstacles import contact_hits, first_hit, obstacle_response
 
         om = self.omap
-        contact, _, centre = detect(pos, om.centres, om.valid, om.radius, self.cfg.quad.arm)
+        hit = contact_hits(pos, om.centres, om.valid, om.radius, self.cfg.quad.arm)
+        contact = hit.any(-1)
         new = contact & ~self.obst_contact
         self.obst_contact = contact
         if not (self._obst_respond and new.any()):
             return new, False
+        centre = first_hit(hit, om.centres)[1]
         w = self._worlds(new)
         draws = self._sampler(self.cfg.noise.stochastic_collisions).draw(self._spec_obst, (self._count(w),))
         vel[w], omega[w] = obstacle_response(pos[w], vel[w], omega[w], centre[w], om.radius[w], new[w], draws)
@@ -657,7 +668,8 @@ class CpuSwarm:
         from quadswarm_mj.obstacles import metrics_update
         from quadswarm_mj.scenarios.obstacle_scenarios import approach_threshold
 
-        thr = approach_threshold(self.scenario, self.cfg, self.sstate)
+        thr = self._obst_thr if self._obst_thr is not None else approach_threshold(self.scenario, self.cfg,
+                                                                                   self.sstate)
         self.obst_metrics = metrics_update(self.obst_metrics, t[:, None], new, self.metrics["last_dist"],
                                            self.metrics["steps"], thr, self.cfg.grace_period_s)
 
