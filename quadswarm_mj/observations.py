@@ -12,6 +12,7 @@ slice                  size  content (units; frame)
 18 ("floor" only)      1     z (m)
 18:24 ("wall" only)    6     distances to the walls -x, +x, -y, +y, floor, ceiling (m, <= 5)
 then, per neighbour    6     p_j - p_i (m), v_j - v_i (m/s), nearest first
+last (obstacles on)    9     obstacle distance features (m; SPEC_obstacles A.2, true positions)
 ====================== ===== ==========================================================
 
 Sensor noise (Gaussian: p 0.005 m, v 0.01 m/s, omega 1.75e-4 rad/s) perturbs the quad's own
@@ -146,7 +147,8 @@ def neighbor_obs(cfg: EnvConfig, pos: Any, vel: Any, dist: Any | None = None, cl
 
 
 @functools.lru_cache(maxsize=16)
-def _obs_neighbor_bounds(self_dim: int, k: int, bound: tuple[float, ...], tail: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def _obs_neighbor_bounds(self_dim: int, k: int, bound: tuple[float, ...],
+                         tail: int = 0) -> tuple[np.ndarray, np.ndarray]:
     hi = np.concatenate([np.full(self_dim, np.inf), np.tile(np.asarray(bound), k), np.full(tail, np.inf)])
     lo = -hi
     lo.setflags(write=False)

@@ -60,7 +60,8 @@ passes thrust, torque and motor constants to the actuation functions.
   ``qpos`` writes ``rot`` too).
 * ``obs`` (N, obs_dim), ``reward`` (N,) per quad, ``done`` () bool (time limit; there is no
   termination), ``metrics`` {"reward/<term>": (N,)} for every term of
-  :data:`quadswarm_mj.rewards.TERMS` (they sum to ``reward``).
+  :func:`quadswarm_mj.rewards.env_terms` (``TERMS``, plus ``obstacle_collision`` with obstacles on;
+  they sum to ``reward``).
 * ``info``: ``state`` {pos (N, 3) m world, vel (N, 3) m/s world, rot (N, 3, 3) body->world,
   omega (N, 3) rad/s body, thrust (N, 4) normalized rotor thrusts} as the CPU env's
   ``info["state"]``; ``params`` (per-quad dynamics parameters, see
@@ -72,6 +73,15 @@ passes thrust, torque and motor constants to the actuation functions.
   ``step`` () int control steps in this episode; ``time`` () s;
   ``total_steps`` () int across episodes (reward annealing; kept by :class:`AutoResetWrapper`);
   ``truncation`` () float (1.0 at the time limit); ``rng`` (the key for the next step's draws).
+  With obstacles (``cfg.obstacles``): ``obstacles`` (M_max, 2) column centres (x, y m; fixed
+  slots), ``obstacles_valid`` (M_max,) bool (the columns in force), ``obstacle_radius`` () m,
+  ``obstacle_contact`` (N,) bool (quads touching a column), ``obstacle_metrics`` (accumulators of
+  :func:`quadswarm_mj.obstacles.metrics_update`); ``episode_metrics`` then adds
+  ``obstacle_collisions`` and ``collision_rate``. The map is drawn at every reset (or given as
+  ``init_state["obstacles"]``) and the column geoms are moved there through ``data.mocap_pos``
+  (MuJoCo contacts with ``physics="mjx"`` and "mujoco"/"blend"; under size randomization the
+  contact geoms keep the largest radius on MJX, the paper model uses the drawn one). The obstacle
+  response draws per quad (one column per quad and step).
 
 ``collision_model`` "mujoco" and "blend" run with ``physics="mjx"`` (MJX's contact solver: the quads'
 hitbox spheres against each other and the room's floor plane and wall/ceiling boxes; "blend" keeps
@@ -453,7 +463,8 @@ class MjxQuadSwarmEnv:
         (N, 3) m/s, ``rot`` (N, 3, 3) body->world, ``omega`` (N, 3) rad/s body, ``goals`` (N, 3)
         m and ``motors``: "zero" or "hover" (a Python string, so static: known at trace time,
         e.g. close over it), or (N, 4) normalized rotor thrusts in [0, 1]. Missing keys take the
-        defaults (scenario goals, spawn near the goals at rest, ``cfg.motor_start``).
+        defaults (scenario goals, spawn near the goals at rest, ``cfg.motor_start``). With obstacles
+        on, ``obstacles`` (M, 2) column centres (x, y m, M <= the column slots) replace the random map.
 
         ``init_state`` is checked as the CPU env checks it (:func:`~quadswarm_mj.envs.validation.
         check_state`: keys, shapes, finite values, proper rotations, ``pos`` and ``goals`` inside
