@@ -239,3 +239,23 @@ def test_brax_env_with_obstacles():
     for _ in range(cfg.episode_steps):
         s = step(s, jnp.zeros((s.obs.shape[0], 4)))
     assert np.all(np.isfinite(np.asarray(s.obs))) and "reward/obstacle_collision" in s.metrics
+
+
+@pytest.mark.parametrize("backend", ["mjdata", "batch"])
+def test_cpu_backends_move_the_columns_for_mujoco_contacts(backend):
+    """Both physics back ends of the CPU engine put the columns where the map says (world 1 of a
+    2-world chunk in the batch back end included): a quad flying at a column is stopped there."""
+    from quadswarm_mj.envs.cpu_core import CpuSwarm
+
+    cfg = EnvConfig(num_quads=1, collision_model="mujoco", obstacles=ObstacleConfig(), motor_start="hover",
+                    episode_seconds=2.0).without_noise()
+    c = CpuSwarm(cfg, 3, backend=backend, visual=False, chunk_worlds=2)
+    cols = np.array([[[0.0, 0.0]], [[1.0, 1.0]], [[-2.0, 2.0]]])
+    start = cols[:, :, None, :] + np.array([-0.8, 0.0])  # (B, 1 quad, 1, 2)
+    pos = np.concatenate([start[:, :, 0], np.full((3, 1, 1), 2.0)], -1)
+    c.reset(state={"pos": pos, "vel": np.tile([1.5, 0.0, 0.0], (3, 1, 1)), "motors": "hover", "obstacles": cols})
+    xmax = np.full(3, -np.inf)
+    for _ in range(100):
+        c.step(np.full((3, 1, 4), cfg.quad.hover_action))
+        xmax = np.maximum(xmax, c.state_dict()["pos"][:, 0, 0] - cols[:, 0, 0])
+    assert np.all(xmax < -(0.3 + cfg.quad.arm) + 0.02), xmax
