@@ -14,9 +14,10 @@ Order of a control step (:meth:`quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv._physi
    ``cfg.obstacles``) -> downwash.
 4. scenario (goals) -> reward terms -> episode metrics -> observations.
 
-The extension points below are identities today; the helpers that add control modes,
-aerodynamics and obstacles replace their bodies (keeping the signatures: pure, any leading dims,
-``jax.numpy`` or NumPy) and add their draws to the step's spec.
+The control and aerodynamics extension points below are identities today; the helpers that add
+control modes and aerodynamics replace their bodies (keeping the signatures: pure, any leading dims,
+``jax.numpy`` or NumPy) and add their draws to the step's spec. :func:`obstacle_stage` is the
+obstacle stage of the JAX engine (the CPU engine runs the same functions event-gated).
 """
 
 from __future__ import annotations
