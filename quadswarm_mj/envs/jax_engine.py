@@ -366,7 +366,9 @@ class JaxSingleBackend:
         if self._renderer is None:
             arena = build_arena(self.cfg, 1)
             self._renderer = SwarmRenderer(types.SimpleNamespace(arena=arena, model=arena.model))
-        return self._renderer.render(qpos=self._last["qpos"], goals=self._last["goals"])
+        v = self._last
+        obst = v["obstacles"][v["obstacles_valid"] > 0.5] if "obstacles" in v else None
+        return self._renderer.render(qpos=v["qpos"], goals=v["goals"], obstacles=obst)
 
     def close(self) -> None:
         if self._renderer is not None:
