@@ -266,7 +266,11 @@ def build_arena(cfg: EnvConfig, num_worlds: int = 1, visual: bool = True) -> Are
             name = f"q{i}" if num_worlds == 1 else f"w{b}q{i}"
             body = frame.attach_body(cf_body, f"{name}/", "")
             body.name = name
-    add_obstacle_geoms(spec, cfg, offsets, contacts)  # after the quads: their bodies stay first and contiguous
+    # columns: after the quads (their bodies stay first and contiguous); a lean arena (visual=False) of
+    # the paper model has none (they would only cost kinematics: no contacts, nothing to render)
+    columns = visual or contacts
+    if columns:
+        add_obstacle_geoms(spec, cfg, offsets, contacts)
     total = num_worlds * n
     if total > 256:
         spec.memory = int(4e6 + 60_000 * total)  # bytes; large worlds need more arena memory
@@ -280,7 +284,7 @@ def build_arena(cfg: EnvConfig, num_worlds: int = 1, visual: bool = True) -> Are
     qpos_start, qvel_start = int(model.jnt_qposadr[jnt]), int(model.jnt_dofadr[jnt])
     if model.nq != qpos_start + 7 * total or model.nv != qvel_start + 6 * total:
         raise RuntimeError("quad free joints are not contiguous in the compiled model")
-    obst_geoms, obst_mocap = _obstacle_ids(model, cfg, num_worlds)
+    obst_geoms, obst_mocap = _obstacle_ids(model, cfg, num_worlds) if columns else (None, None)
     return Arena(model=model, num_worlds=num_worlds, num_quads=n, body_ids=body_ids, first_body=first,
                  qpos_start=qpos_start, qvel_start=qvel_start, world_offsets=offsets,
                  obstacle_geom_ids=obst_geoms, obstacle_mocap_ids=obst_mocap,

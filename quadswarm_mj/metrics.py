@@ -2,7 +2,8 @@
 
 ``info["episode_metrics"]`` at the end of an episode holds, per world (means over quads):
 ``success``, ``collisions``, ``floor_hits``, ``wall_hits``, ``ceiling_hits``, ``mean_distance``,
-``goal_reach_rate`` (see :func:`finalize`).
+``goal_reach_rate`` (see :func:`finalize`); with obstacles also ``obstacle_collisions`` and
+``collision_rate`` (:func:`quadswarm_mj.obstacles.metrics_finalize`, :func:`metric_keys`).
 """
 
 from __future__ import annotations
@@ -18,6 +19,13 @@ REACH_DISTANCE = 0.3  # m
 MIN_SEGMENT_S = 3.0  # s, shorter goal segments are not counted in goal_reach_rate
 METRIC_KEYS = ("success", "collisions", "floor_hits", "wall_hits", "ceiling_hits", "mean_distance",
                "goal_reach_rate")
+#: added with obstacles on (``success`` then also counts obstacle contacts; SPEC_obstacles A.4)
+OBSTACLE_METRIC_KEYS = ("obstacle_collisions", "collision_rate")
+
+
+def metric_keys(cfg: Any) -> tuple[str, ...]:
+    """Keys of ``info["episode_metrics"]`` of an env with ``cfg``."""
+    return METRIC_KEYS + (OBSTACLE_METRIC_KEYS if getattr(cfg, "obstacles", None) is not None else ())
 
 
 def init(like: Any, batch_shape: tuple[int, ...], n: int) -> dict[str, Any]:

@@ -12,6 +12,7 @@ slice                  size  content (units; frame)
 18 ("floor" only)      1     z (m)
 18:24 ("wall" only)    6     distances to the walls -x, +x, -y, +y, floor, ceiling (m, <= 5)
 then, per neighbour    6     p_j - p_i (m), v_j - v_i (m/s), nearest first
+last (obstacles on)    9     obstacle distance features (m; SPEC_obstacles A.2, true positions)
 ====================== ===== ==========================================================
 
 Sensor noise (Gaussian: p 0.005 m, v 0.01 m/s, omega 1.75e-4 rad/s) perturbs the quad's own
@@ -57,6 +58,11 @@ def obs_bounds(cfg: EnvConfig) -> tuple[np.ndarray, np.ndarray]:
     nb_hi = [L, W, H] + [MAX_NEIGHBOR_VEL] * 3
     lo += [-x for x in nb_hi] * cfg.neighbors
     hi += nb_hi * cfg.neighbors
+    if cfg.obstacles is not None:  # the 9 obstacle distance features, last (SPEC_obstacles A.2)
+        from quadswarm_mj.obstacles import feature_bounds
+
+        f_lo, f_hi = feature_bounds(cfg)
+        lo, hi = lo + f_lo.tolist(), hi + f_hi.tolist()
     return np.asarray(lo, dtype=np.float32), np.asarray(hi, dtype=np.float32)
 
 
@@ -141,8 +147,9 @@ def neighbor_obs(cfg: EnvConfig, pos: Any, vel: Any, dist: Any | None = None, cl
 
 
 @functools.lru_cache(maxsize=16)
-def _obs_neighbor_bounds(self_dim: int, k: int, bound: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
-    hi = np.concatenate([np.full(self_dim, np.inf), np.tile(np.asarray(bound), k)])
+def _obs_neighbor_bounds(self_dim: int, k: int, bound: tuple[float, ...],
+                         tail: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    hi = np.concatenate([np.full(self_dim, np.inf), np.tile(np.asarray(bound), k), np.full(tail, np.inf)])
     lo = -hi
     lo.setflags(write=False)
     hi.setflags(write=False)
@@ -151,10 +158,11 @@ def _obs_neighbor_bounds(self_dim: int, k: int, bound: tuple[float, ...]) -> tup
 
 def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any,
               noise: dict[str, Any] | None, low: Any, high: Any, scale: Any | None = None,
-              dist: Any | None = None) -> Any:
-    """Full observation (..., N, obs_dim): noisy own state + neighbours, clipped into [low, high]
-    and divided by ``scale`` when normalization is on. ``dist``: optional (..., N, N) distances
-    between the true ``pos`` (see :func:`neighbor_obs`).
+              dist: Any | None = None, obstacles: Any | None = None) -> Any:
+    """Full observation (..., N, obs_dim): noisy own state + neighbours (+ the 9 obstacle features
+    of the true ``pos`` when ``obstacles`` = (centres, valid, radius) of the map is given), clipped
+    into [low, high] and divided by ``scale`` when normalization is on. ``dist``: optional
+    (..., N, N) distances between the true ``pos`` (see :func:`neighbor_obs`).
 
     The neighbour clip of :func:`neighbor_obs` is folded into the final clip: clipping into one
     interval and then into another equals clipping into their intersection."""
@@ -169,8 +177,13 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
             parts.append(neighbor_obs(cfg, m_pos, m_vel, clip=False))
         else:
             parts.append(neighbor_obs(cfg, pos, vel, dist, clip=False))
-        nb_lo, nb_hi = _obs_neighbor_bounds(cfg.self_obs_dim, cfg.neighbors, tuple(_neighbor_bounds(cfg)))
+        nb_lo, nb_hi = _obs_neighbor_bounds(cfg.self_obs_dim, cfg.neighbors, tuple(_neighbor_bounds(cfg)),
+                                      9 if cfg.obstacles is not None else 0)
         low = xp.maximum(xp.asarray(low), xp.asarray(nb_lo, dtype=pos.dtype))
         high = xp.minimum(xp.asarray(high), xp.asarray(nb_hi, dtype=pos.dtype))
+    if obstacles is not None:
+        from quadswarm_mj.obstacles import obstacle_features
+
+        parts.append(obstacle_features(pos, *obstacles))
     obs = xp.minimum(xp.maximum(xp.concatenate(parts, axis=-1), low), high)  # = clip into the bounds
     return obs if scale is None else obs / scale

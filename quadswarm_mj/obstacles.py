@@ -204,11 +204,14 @@ def obstacle_features(pos: Any, centres: Any, valid: Any, radius: Any) -> Any:
     ``radius`` (...,). No clipping. Goes LAST in each quad's observation.
     """
     xp = array_namespace(pos, centres)
-    off = xp.asarray(_sample_offsets(SDF_RESOLUTION), dtype=pos.dtype)
-    pts = pos[..., :, None, :2] + off  # (..., N, 9, 2)
-    d = _dist2d(xp, pts[..., :, :, None, :], centres[..., None, None, :, :])  # (..., N, 9, M)
-    d = xp.where(valid[..., None, None, :], d, xp.inf)
-    dmin = xp.min(d, axis=-1)
+    # separable grid: squared x and y distances per offset (..., N, 3, M), summed to (..., N, 3, 3, M);
+    # the same values as the 9 points' distances (sqrt is monotonic: sqrt of the min = min of the sqrt)
+    off = xp.asarray(np.array([-SDF_RESOLUTION, 0.0, SDF_RESOLUTION]), dtype=pos.dtype)[:, None]
+    dx = (pos[..., :, None, None, 0] + off) - centres[..., None, None, :, 0]
+    dy = (pos[..., :, None, None, 1] + off) - centres[..., None, None, :, 1]
+    dx2 = xp.where(valid[..., None, None, :], dx * dx, xp.inf)  # invalid slots: never the nearest
+    d2 = dx2[..., :, :, None, :] + (dy * dy)[..., :, None, :, :]  # (..., N, 3 x, 3 y, M)
+    dmin = xp.sqrt(xp.min(d2, axis=-1)).reshape(pos.shape[:-1] + (NUM_FEATURES,))  # x-major: 3 i + j
     dmin = xp.where(xp.isinf(dmin), NO_OBSTACLE_DIST, dmin)
     r = xp.asarray(radius, dtype=pos.dtype)
     return dmin - r[..., None, None]
@@ -224,20 +227,33 @@ def feature_bounds(cfg: EnvConfig) -> tuple[np.ndarray, np.ndarray]:
 # ------------------------------------------------------------------------------ detection
 
 
+def contact_hits(pos: Any, centres: Any, valid: Any, radius: Any, arm: float) -> Any:
+    """(..., N, M) bool: quad n touches valid column m, ``||p_xy - o_xy|| <= arm + radius`` (at any
+    height; compared squared)."""
+    xp = array_namespace(pos, centres)
+    dx = pos[..., :, None, 0] - centres[..., None, :, 0]
+    dy = pos[..., :, None, 1] - centres[..., None, :, 1]
+    lim = arm + xp.asarray(radius, dtype=pos.dtype)
+    return ((dx * dx + dy * dy) <= (lim * lim)[..., None, None]) & valid[..., None, :]
+
+
+def first_hit(hit: Any, centres: Any) -> tuple[Any, Any]:
+    """``index`` (..., N) of the first column hit (index order; 0 without contact) and its centre (..., N, 2)."""
+    xp = array_namespace(centres)
+    index = xp.argmax(hit, axis=-1)
+    cx = xp.take_along_axis(centres[..., 0], index, axis=-1)
+    cy = xp.take_along_axis(centres[..., 1], index, axis=-1)
+    return index, xp.stack([cx, cy], axis=-1)
+
+
 def detect(pos: Any, centres: Any, valid: Any, radius: Any, arm: float) -> tuple[Any, Any, Any]:
     """Contacts (A.3): a quad touches column m if ``||p_xy - o_xy|| <= arm + radius`` (at any
     height). Columns are scanned in index order and only the first hit is kept. Returns
     ``contact`` (..., N) bool, ``index`` (..., N) int (0 without contact) and that column's centre
-    (..., N, 2)."""
-    xp = array_namespace(pos, centres)
-    d = _dist2d(xp, pos[..., :, None, :2], centres[..., None, :, :])  # (..., N, M)
-    r = xp.asarray(radius, dtype=pos.dtype)
-    hit = (d <= (arm + r)[..., None, None]) & valid[..., None, :]
-    index = xp.argmax(hit, axis=-1)  # first True (0 if none)
-    contact = xp.any(hit, axis=-1)
-    full = xp.broadcast_to(centres[..., None, :, :], d.shape + (2,))
-    centre = xp.take_along_axis(full, index[..., None, None], axis=-2)[..., 0, :]
-    return contact, index, centre
+    (..., N, 2) (:func:`contact_hits`, :func:`first_hit`)."""
+    hit = contact_hits(pos, centres, valid, radius, arm)
+    index, centre = first_hit(hit, centres)
+    return hit.any(axis=-1), index, centre
 
 
 def new_contacts(contact: Any, prev_contact: Any) -> Any:

@@ -11,11 +11,13 @@ Order of a control step (:meth:`quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv._physi
    configuration) -> floor normal and friction ->
    rigid-body integrator (passed in: ``freebody_step`` or ``mjx.step``) -> omega clip -> floor
    landing.
-3. once per control step: walls and ceiling -> quad-quad -> :func:`obstacle_stage` -> downwash.
+3. once per control step: walls and ceiling -> quad-quad -> :func:`obstacle_stage` (with
+   ``cfg.obstacles``) -> downwash.
 4. scenario (goals) -> reward terms -> episode metrics -> observations.
 
 The stages are pure (any leading dims, ``jax.numpy`` or NumPy); their draws are in the step's and
-the reset's specs.
+the reset's specs. :func:`obstacle_stage` is the obstacle stage of the JAX engine (the CPU engine
+runs the same functions event-gated).
 """
 
 from __future__ import annotations
@@ -85,16 +87,23 @@ def dynamics_params(cfg: Any, rand_draws: dict[str, Any], aero_draws: dict[str, 
     return {**params, **aero_params_from_draws(cfg, aero_draws)}
 
 
-def obstacle_stage(pos: Any, vel: Any, omega: Any) -> tuple[Any, Any, Any]:
-    """Extension point, once per control step after quad-quad: obstacle response on (pos m world,
-    vel m/s world, omega rad/s body). The obstacle helper also appends SDF features to the
-    observations and an ``obstacle_collision`` reward term. Identity (no obstacles)."""
-    return pos, vel, omega
+def obstacle_stage(pos: Any, vel: Any, omega: Any, prev_contact: Any, omap: Any, arm: float, draws: Any,
+                   respond: bool = True) -> dict[str, Any]:
+    """Once per control step after quad-quad: the obstacle stage (SPEC_obstacles A.3) on (pos m
+    world, vel m/s world, omega rad/s body) with the map ``omap`` (:class:`~quadswarm_mj.obstacles.
+    ObstacleMap`) and the previous step's contacts ``prev_contact`` (..., N) bool. ``respond``
+    False (MuJoCo contacts) only detects. Returns :func:`quadswarm_mj.obstacles.obstacle_step`'s
+    dict (``vel``, ``omega``, ``contact``, ``new_contact``, ``index``). The engines also append the
+    9 features to the observations and add the ``obstacle_collision`` reward term."""
+    from quadswarm_mj.obstacles import obstacle_step
+
+    return obstacle_step(pos, vel, omega, prev_contact, omap.centres, omap.valid, omap.radius, arm, draws,
+                         respond=respond)
 
 
 def initial_state(cfg: Any, scenario: Any, rand_draws: dict[str, Any], scenario_u: Any, spawn_u: Any,
-                  overrides: dict[str, Any], xp: Any, dtype: Any, aero_draws: dict[str, Any] | None = None
-                  ) -> dict[str, Any]:
+                  overrides: dict[str, Any], xp: Any, dtype: Any, aero_draws: dict[str, Any] | None = None,
+                  obstacles: Any = None) -> dict[str, Any]:
     """The reset math of both engines: dynamics parameters, scenario start, spawn, and the overrides of
     ``options["state"]`` / ``init_state`` (already validated, rows of the reset worlds).
 
@@ -104,16 +113,28 @@ def initial_state(cfg: Any, scenario: Any, rand_draws: dict[str, Any], scenario_
     may hold ``pos``, ``vel``, ``rot``, ``omega``, ``goals`` arrays (..., N, ...) and ``motors`` ("zero",
     "hover" or (..., N, 4) normalized thrusts; default ``cfg.motor_start``). Returns ``params``,
     ``scenario`` (ScenarioState), ``pos`` m world, ``vel`` m/s world, ``rot`` body->world, ``omega``
-    rad/s body and ``u0`` (normalized rotor speeds)."""
+    rad/s body and ``u0`` (normalized rotor speeds). ``obstacles``: the worlds' column map
+    (``ObstacleMap``, with ``cfg.obstacles``): scenarios and spawns then avoid the columns
+    (:mod:`quadswarm_mj.scenarios.obstacle_scenarios`)."""
     from quadswarm_mj.actuation import hover_motor_state_mapped
     from quadswarm_mj.scenarios.base import spawn_state
     from quadswarm_mj.spatial import yaw_rotmat
 
     params = dynamics_params(cfg, rand_draws, aero_draws)
-    sstate = scenario.init(cfg, scenario_u)
+    if cfg.obstacles is None:
+        sstate = scenario.init(cfg, scenario_u)
+    else:
+        from quadswarm_mj.scenarios.obstacle_scenarios import scenario_init
+
+        sstate = scenario_init(scenario, cfg, scenario_u, obstacles)
     if overrides.get("goals") is not None:
         sstate = sstate._replace(goals=xp.asarray(overrides["goals"], dtype=dtype).reshape(sstate.goals.shape))
-    sp = spawn_state(cfg, sstate.goals, spawn_u)
+    if cfg.obstacles is None:
+        sp = spawn_state(cfg, sstate.goals, spawn_u)
+    else:
+        from quadswarm_mj.scenarios.obstacle_scenarios import scenario_spawn
+
+        sp = scenario_spawn(cfg, sstate.goals, spawn_u, obstacles)
     pos, R = sp["pos"], yaw_rotmat(sp["yaw"])
     shape = pos.shape
 

@@ -40,6 +40,14 @@ ANNEALED = ("quad_collision", "proximity")
 STATE_TERMS = ("pos", "effort", "spin", "crash", "orient", "vel", "action_change", "yaw", "rot")
 CONTROL_DT_TERMS = ("proximity",)
 EVENT_TERMS = ("quad_collision", "obstacle_collision", "floor_hit", "wall_hit", "ceiling_hit")
+#: Terms present only with obstacles on (``cfg.obstacles``): summed after ``TERMS`` by :func:`total_reward`.
+OBSTACLE_TERMS = ("obstacle_collision",)
+
+
+def env_terms(cfg: EnvConfig) -> tuple[str, ...]:
+    """The reward terms of an env with ``cfg`` (keys of ``info["reward_terms"]``, MJX
+    ``metrics["reward/<term>"]``): ``TERMS``, plus ``obstacle_collision`` with obstacles on."""
+    return TERMS + (OBSTACLE_TERMS if cfg.obstacles is not None else ())
 
 
 def term_dt(cfg: EnvConfig, term: str) -> float:
@@ -109,9 +117,10 @@ def zero_terms(cfg: EnvConfig) -> tuple[str, ...]:
 
 
 def total_reward(terms: dict[str, Any], skip: tuple[str, ...] = ()) -> Any:
-    """Sum of the terms, in the fixed order of ``TERMS`` (so sums are reproducible). ``skip`` may
-    name terms that are exactly -0.0 (:func:`zero_terms`): adding -0.0 changes nothing."""
-    keys = [k for k in TERMS if k not in skip]
+    """Sum of the terms, in the fixed order of ``TERMS`` then ``OBSTACLE_TERMS`` present in ``terms``
+    (so sums are reproducible). ``skip`` may name terms that are exactly -0.0 (:func:`zero_terms`):
+    adding -0.0 changes nothing."""
+    keys = [k for k in TERMS if k not in skip] + [k for k in OBSTACLE_TERMS if k in terms]
     total = terms[keys[0]]
     for k in keys[1:]:
         total = total + terms[k]

@@ -11,6 +11,13 @@ Policies: ``controller`` (``quadswarm_mj.controllers.PositionController``, defau
 (constant hover thrust), ``random`` (uniform actions), and trained policies, ``pretrained:<name>``
 or a policy ``.npz`` path, loaded by ``quadswarm_mj.policies.load_policy`` (the env then takes the
 observation settings the policy was trained with).
+
+Obstacles: ``--obstacles`` turns the columns on (``ObstacleConfig()``: 12 columns of 0.6 m on the
+8 x 8 m area, a new map per episode) for any scenario; the ``o_*`` scenarios turn them on by
+themselves. The columns are drawn and the controller steers around them (a potential-field term,
+``ControllerGains(obstacle_radius=...)``)::
+
+    python scripts/render_rollout.py --scenario o_random --num-quads 8 --seconds 6 --out o.mp4
 """
 
 from __future__ import annotations
@@ -27,12 +34,15 @@ import numpy as np
 
 import quadswarm_mj
 from quadswarm_mj import QuadSwarmEnv
-from quadswarm_mj.controllers import PositionController
+from quadswarm_mj.config import ObstacleConfig
+from quadswarm_mj.controllers import ControllerGains, PositionController
 from quadswarm_mj.render import SwarmRenderer
 
 #: A policy maps (observation, info) of ``QuadSwarmEnv`` to an action of its action space.
 Policy = Callable[[np.ndarray, dict[str, Any]], np.ndarray]
 BUILTIN_POLICIES = ("controller", "hover", "random")
+#: m from a column's surface within which the controller steers away (with obstacles on)
+OBSTACLE_STEER_RADIUS = 0.6
 
 
 def load_external_policy(spec: str) -> Any:
@@ -54,10 +64,14 @@ def make_policy(name: str, env: QuadSwarmEnv, seed: int | None, external: Any = 
     if external is not None:
         return lambda obs, info: np.asarray(external.act(obs, info), dtype=np.float64).reshape(shape)
     if name == "controller":
-        ctrl = PositionController(env.cfg)
+        o = env.cfg.obstacles
+        gains = ControllerGains() if o is None else ControllerGains(obstacle_radius=OBSTACLE_STEER_RADIUS,
+                                                                    column_radius=0.5 * o.size)
+        ctrl = PositionController(env.cfg, gains)
 
         def controller(obs: np.ndarray, info: dict[str, Any]) -> np.ndarray:
-            return ctrl(info["state"], info["goals"], info["goal_vel"], info["params"]).reshape(shape)
+            return ctrl(info["state"], info["goals"], info["goal_vel"], info["params"],
+                        obstacles=info.get("obstacles")).reshape(shape)
 
         return controller
     if name == "hover":
@@ -92,6 +106,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--fps", type=float, default=30.0)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--obstacles", action="store_true",
+                   help="columns in the room (ObstacleConfig() defaults; the o_* scenarios turn them on anyway)")
     p.add_argument("--trail", type=int, default=20, help="trail length in rendered frames (0: none)")
     p.add_argument("--shadows", action=argparse.BooleanOptionalAction, default=True)
     p.add_argument("--antialias", action=argparse.BooleanOptionalAction, default=False)
@@ -116,7 +132,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     mediapy.set_ffmpeg(imageio_ffmpeg.get_ffmpeg_exe())
     external = None if args.policy in BUILTIN_POLICIES else load_external_policy(args.policy)
-    env_kwargs = {"num_quads": args.num_quads}
+    env_kwargs: dict[str, Any] = {"num_quads": args.num_quads}
+    if args.obstacles or args.scenario.startswith("o_"):
+        env_kwargs["obstacles"] = ObstacleConfig()
     if external is not None:  # the observation layout the policy was trained on
         env_kwargs.update(getattr(external, "env_kwargs", {}) or {})
         if env_kwargs["num_quads"] != args.num_quads:

@@ -68,7 +68,7 @@ from quadswarm_mj.random_draws import MeanSampler, NumpySampler
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
 from quadswarm_mj.rewards import anneal_factor, reward_terms, total_reward, zero_terms
 from quadswarm_mj.scenarios import ScenarioState, get_scenario
-from quadswarm_mj.scenarios.base import spawn_num_uniforms
+from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
 from quadswarm_mj.spatial import norm_last, quat_to_rotmat, rotmat_to_quat
 
 BACKENDS = ("mjdata", "batch")
@@ -126,6 +126,17 @@ class _MjDataPhysics:
     def after_reset(self, idx: Any) -> None:
         self.data.time = 0.0
         mujoco.mj_forward(self.model, self.data)
+
+    def set_obstacles(self, cfg: EnvConfig, idx: Any, omap: Any) -> None:
+        """Move the column pool of worlds ``idx`` onto their maps (and set the radius under size randomization)."""
+        from quadswarm_mj.arena import place_obstacles, set_obstacle_radius
+
+        if self.arena.obstacle_mocap_ids is None:  # a lean paper-model arena has no column geoms
+            return
+
+        place_obstacles(self.arena, self.data.mocap_pos, omap.centres, omap.valid, cfg.room_size[2], worlds=idx)
+        if cfg.obstacles.size_random:
+            set_obstacle_radius(self.model, self.arena, omap.radius, worlds=idx)
 
 
 _CHUNK_MODELS: dict[Any, Any] = {}  # (cfg, worlds) -> lean arena, compiled once per process
@@ -212,6 +223,22 @@ class _BatchPhysics:
         sims = np.arange(self.B)[idx] // self.C
         self._time[np.unique(sims)] = 0.0
 
+    def set_obstacles(self, cfg: EnvConfig, idx: Any, omap: Any) -> None:
+        """Move the column pool of worlds ``idx`` onto their maps, in their simulations' rows."""
+        from quadswarm_mj.arena import obstacle_positions
+
+        if self.arena.obstacle_mocap_ids is None:  # a lean paper-model arena has no column geoms
+            return
+
+        wid = np.arange(self.B)[idx]
+        sims, loc = wid // self.C, wid % self.C
+        a = self.arena
+        p = obstacle_positions(a, omap.centres, omap.valid, cfg.room_size[2], worlds=loc)
+        self.batch.bind("mocap_pos")[sims[:, None], a.obstacle_mocap_ids[loc]] = p
+        if cfg.obstacles.size_random:
+            r = np.broadcast_to(np.asarray(omap.radius, np.float64).reshape(-1), (len(wid),))
+            self.batch.expand("geom_size")[sims[:, None], a.obstacle_geom_ids[loc], 0] = r[:, None]
+
 
 def _put(arr: np.ndarray, idx: Any, value: Any) -> np.ndarray:
     """``arr`` with rows ``idx`` replaced (a fresh array; ``value`` itself when idx is every row)."""
@@ -278,7 +305,7 @@ class CpuSwarm:
         self._sensor_keys = tuple(spec_sensor)
         self._sensor_std = np.array([spec_sensor[k].std for k in self._sensor_keys])[:, None, None, None]
         self._motor_noise = cfg.noise.motor_noise_ratio > 0
-        self._n_scn = self.scenario.num_uniforms(N)
+        self._n_scn = scenario_num_uniforms(self.scenario, cfg)
         zeros = np.zeros((B, N))
         self.params = pipeline.dynamics_params(cfg, nominal_draws(cfg, zeros, (B,)))
         self._act = pipeline.make_substep_actuation(cfg)  # None: the paper's chain (no extra work)
@@ -300,6 +327,68 @@ class CpuSwarm:
         self.sstate: ScenarioState | None = None
         self.metrics = metrics_lib.init(zeros, (B,), N)
         self._R: np.ndarray | None = None  # rotations of the current qpos (None: recompute)
+        self._obst_init()
+
+    # ------------------------------------------------------------------ obstacles (SPEC_obstacles A)
+    def _obst_init(self) -> None:
+        """Per-world column maps ``omap`` (ObstacleMap (B, M_max, 2), (B, M_max), (B,); None without
+        obstacles), the previous step's contacts and the obstacle metric accumulators."""
+        o, B, N = self.cfg.obstacles, self.B, self.N
+        self.omap: Any = None
+        if o is None:
+            return
+        from quadswarm_mj import obstacles as ob
+
+        m = o.slots
+        self.omap = ob.ObstacleMap(np.zeros((B, m, 2)), np.zeros((B, m), bool), np.full(B, 0.5 * o.size))
+        self.obst_contact = np.zeros((B, N), bool)
+        self.obst_metrics = ob.metrics_init(np.zeros(1), (B,), N)
+        self._spec_obst = ob.response_draw_spec(N)
+        self._spec_map = ob.map_draw_spec(o)
+        self._obst_respond = self.cfg.collision_model == "paper"  # else MuJoCo's contacts resolve it
+        # the success distance of the scenario (per world only for mix, which draws a sub-scenario)
+        thr = getattr(self.scenario, "approach_goal_metric", 0.5)
+        self._obst_thr = None if self.cfg.scenario == "mix" else np.full(B, float(thr))
+
+    def _obst_new_maps(self, idx: Any, M: int, given: Any) -> Any:
+        """Maps of the M reset worlds: ``given`` centres ((B, K, 2) or (K, 2) m, world-local), else drawn."""
+        from quadswarm_mj import obstacles as ob
+
+        o = self.cfg.obstacles
+        if given is None:
+            return ob.reset_map(o, NumpySampler(self.rng).draw(self._spec_map, (M,)))
+        c = np.asarray(given, dtype=np.float64)
+        c = np.broadcast_to(c, (self.B,) + c.shape) if c.ndim == 2 else c
+        c = c[idx]
+        one = ob.map_from_centres(o, c[0])  # checks the shape and the count
+        centres = np.repeat(one.centres[None], M, axis=0)
+        centres[:, :c.shape[1]] = c[..., :2]
+        return ob.ObstacleMap(centres, np.repeat(one.valid[None], M, axis=0), np.full(M, float(one.radius)))
+
+    def _obstacle_stage(self, pos: np.ndarray, vel: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, bool]:
+        """Obstacle contacts of this step (pipeline.obstacle_stage, event-gated: the paper model's
+        response runs, and draws, only for worlds with a new contact); writes vel/omega in place.
+        Returns (new contacts (B, N), whether vel/omega changed)."""
+        from quadswarm_mj.obstacles import contact_hits, first_hit, obstacle_response
+
+        om = self.omap
+        hit = contact_hits(pos, om.centres, om.valid, om.radius, self.cfg.quad.arm)
+        contact = hit.any(-1)
+        new = contact & ~self.obst_contact
+        self.obst_contact = contact
+        if not (self._obst_respond and new.any()):
+            return new, False
+        centre = first_hit(hit, om.centres)[1]
+        w = self._worlds(new)
+        draws = self._sampler(self.cfg.noise.stochastic_collisions).draw(self._spec_obst, (self._count(w),))
+        vel[w], omega[w] = obstacle_response(pos[w], vel[w], omega[w], centre[w], om.radius[w], new[w], draws)
+        return new, True
+
+    def obstacle_centres(self, world: int = 0) -> np.ndarray:
+        """(M, 2) centres (m, world-local) of the columns in force in ``world`` (empty without obstacles)."""
+        if self.omap is None:
+            return np.zeros((0, 2))
+        return self.omap.centres[world][self.omap.valid[world]].copy()
 
     # ------------------------------------------------------------------ samplers
     def _sampler(self, stochastic: bool) -> Any:
@@ -359,8 +448,9 @@ class CpuSwarm:
             draws = NumpySampler(self.rng).draw(randomization_draw_spec(cfg), (M,))
         else:
             draws = nominal_draws(cfg, np.zeros((M, N)), (M,))
+        new_map = None if self.omap is None else self._obst_new_maps(idx, M, (state or {}).get("obstacles"))
         scenario_u = self.rng.uniform(size=(M, self._n_scn))
-        spawn_u = self.rng.uniform(size=(M, spawn_num_uniforms(N)))
+        spawn_u = self.rng.uniform(size=(M, scenario_spawn_uniforms(cfg)))
         overrides: dict[str, Any] = {k: r for k, tail in (("pos", (3,)), ("vel", (3,)), ("rot", (3, 3)),
                                                          ("omega", (3,)), ("goals", (3,)))
                                      if (r := rows(k, tail)) is not None}
@@ -369,7 +459,7 @@ class CpuSwarm:
         aero_draws = (NumpySampler(self.rng).draw(aero_draw_spec(cfg), (M,)) if cfg.randomize and cfg.aero.any
                       else None)
         init = pipeline.initial_state(cfg, self.scenario, draws, scenario_u, spawn_u, overrides, np, np.float64,
-                                      aero_draws)
+                                      aero_draws, obstacles=new_map)
         # 1. dynamics parameters
         new_params = init["params"]
         self.params = {k: (v if k == "gravity" else _put(self.params[k], idx, v)) for k, v in new_params.items()}
@@ -408,6 +498,14 @@ class CpuSwarm:
         self.steps = _put(self.steps, idx, 0)
         fresh = metrics_lib.init(np.zeros((M, N)), (M,), N)
         self.metrics = {k: _put(v, idx, fresh[k]) for k, v in self.metrics.items()}
+        if new_map is not None:
+            from quadswarm_mj import obstacles as ob
+
+            self.omap = ob.ObstacleMap(*(_put(a, idx, b) for a, b in zip(self.omap, new_map)))
+            self.phys.set_obstacles(cfg, idx, new_map)
+            self.obst_contact = _put(self.obst_contact, idx, ob.detect(cur_pos, *new_map, cfg.quad.arm)[0])
+            fresh_o = ob.metrics_init(np.zeros(1), (M,), N)
+            self.obst_metrics = {k: _put(v, idx, fresh_o[k]) for k, v in self.obst_metrics.items()}
         self.xfrc[...] = 0.0
         self.phys.after_reset(idx)
 
@@ -489,6 +587,10 @@ class CpuSwarm:
             vel[w], omega[w] = q["vel"], q["omega"]
             changed = True
         self.contact = contact
+        obst_new = None
+        if self.omap is not None:
+            obst_new, ch = self._obstacle_stage(pos, vel, omega)
+            changed = changed or ch
         if cfg.downwash:
             draws = self._sampler(cfg.noise.stochastic_downwash).draw(self._spec_down, (B,))
             vel, omega = apply_downwash(pos, vel, omega, R, cfg.control_dt, draws)
@@ -499,7 +601,7 @@ class CpuSwarm:
             self.qvel[..., 3:] = omega
             self.phys.touch()
         return {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": new_contact,
-                "hit_floor": hit_floor, "hit_wall": hit_wall, "hit_ceiling": hit_ceiling}
+                "hit_floor": hit_floor, "hit_wall": hit_wall, "hit_ceiling": hit_ceiling, "obst_new": obst_new}
 
     def _actuate(self, action: np.ndarray, cmd: np.ndarray | None, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One sub-step of :func:`pipeline.make_substep_actuation` (control mode, thrust map,
@@ -555,7 +657,12 @@ class CpuSwarm:
         t = self.steps * cfg.control_dt  # (B,)
         prev_goals = self.sstate.goals
         u = self.rng.uniform(size=(self.B, self._n_scn))
-        self.sstate = self.scenario.step(cfg, self.sstate, t, k["pos"], u)
+        if self.omap is None:
+            self.sstate = self.scenario.step(cfg, self.sstate, t, k["pos"], u)
+        else:
+            from quadswarm_mj.scenarios.obstacle_scenarios import scenario_step
+
+            self.sstate = scenario_step(self.scenario, cfg, self.sstate, t, k["pos"], u, self.omap)
         goals, goal_vel = self.sstate.goals, self.sstate.goal_vel
         if goals is prev_goals:  # the scenario kept its goals: no jump (moved 0 <= 1e-3 + ...)
             jump = np.zeros(goals.shape[:-1], bool)
@@ -566,12 +673,28 @@ class CpuSwarm:
         terms = reward_terms(cfg, k["pos"], k["vel"], k["R"], k["omega"], goals, effort, self.f_norm,
                              self.prev_f_norm, self.on_floor, k["hit_floor"], k["hit_wall"], k["hit_ceiling"],
                              k["new_contact"], k["dist"], anneal_factor(cfg, self.total_steps), goal_dist=dist_goal)
+        if self.omap is not None:
+            from quadswarm_mj.obstacles import obstacle_penalty
+
+            terms["obstacle_collision"] = obstacle_penalty(k["obst_new"], cfg.obstacles.collision_reward,
+                                                           anneal_factor(cfg, self.total_steps))
         rewards = total_reward(terms, self._zero_terms)
         self.metrics = metrics_lib.update(self.metrics, t[:, None], dist_goal, k["new_contact"], k["hit_floor"],
                                           k["hit_wall"], k["hit_ceiling"], jump, cfg.grace_period_s)
+        if self.omap is not None:
+            self._obstacle_metrics(t, k["obst_new"])
         truncated = self.steps >= cfg.episode_steps
         return {"obs": self.observe(k), "rewards": rewards, "terms": terms, "truncated": truncated,
                 "kin": k, "t": t}
+
+    def _obstacle_metrics(self, t: np.ndarray, new: np.ndarray) -> None:
+        from quadswarm_mj.obstacles import metrics_update
+        from quadswarm_mj.scenarios.obstacle_scenarios import approach_threshold
+
+        thr = self._obst_thr if self._obst_thr is not None else approach_threshold(self.scenario, self.cfg,
+                                                                                   self.sstate)
+        self.obst_metrics = metrics_update(self.obst_metrics, t[:, None], new, self.metrics["last_dist"],
+                                           self.metrics["steps"], thr, self.cfg.grace_period_s)
 
     def observe(self, kin: dict[str, Any] | None = None, worlds: Any = None) -> np.ndarray:
         """Observations (B, N, obs_dim) float64 (sensor noise drawn now), or (len(worlds), N,
@@ -588,8 +711,11 @@ class CpuSwarm:
         if self._sensor_on:  # = NumpySampler(rng).draw(sensor_noise_spec(cfg), (B,)): 0 + std * N(0, 1)
             z = 0.0 + self._sensor_std * self.rng.standard_normal((3,) + pos.shape)
             noise = dict(zip(self._sensor_keys, z))
+        obst = None
+        if self.omap is not None:
+            obst = tuple(self.omap) if worlds is None or kin is not None else tuple(a[worlds] for a in self.omap)
         return build_obs(self.cfg, pos, vel, R, omega, goals, noise, self.obs_low, self.obs_high,
-                         self.obs_scale, dist=dist)
+                         self.obs_scale, dist=dist, obstacles=obst)
 
     def state_into(self, out: dict[str, np.ndarray]) -> None:
         """Write :meth:`state_dict`'s arrays into ``out`` (preallocated (B, N, ...) arrays)."""
@@ -602,7 +728,12 @@ class CpuSwarm:
     def episode_metrics(self) -> dict[str, np.ndarray]:
         """Per-world episode metrics (B,) so far."""
         t_end = self.steps * self.cfg.control_dt
-        return metrics_lib.finalize(self.metrics, t_end[:, None])
+        out = metrics_lib.finalize(self.metrics, t_end[:, None])
+        if self.omap is not None:
+            from quadswarm_mj.obstacles import metrics_finalize
+
+            out.update(metrics_finalize(self.obst_metrics, self.metrics["collisions"]))
+        return out
 
     def state_dict(self, kin: dict[str, Any] | None = None) -> dict[str, np.ndarray]:
         """Fresh copies: pos, vel (world), rot (body->world), omega (body), thrust (normalized, (B, N, 4))."""

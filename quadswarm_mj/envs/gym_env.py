@@ -21,7 +21,7 @@ from gymnasium import spaces
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.control_modes import action_box_bounds
 from quadswarm_mj.envs.cpu_core import CpuSwarm
-from quadswarm_mj.envs.validation import check_action, check_engine, check_state
+from quadswarm_mj.envs.validation import check_action, check_engine, check_obstacles, check_state
 from quadswarm_mj.observations import obs_bounds
 
 
@@ -84,19 +84,25 @@ class QuadSwarmEnv(gym.Env):
             "params": {k: v[0] for k, v in c.params_dict().items()},
             "on_floor": c.on_floor[0].copy(),
             "time": float(c.steps[0] * self.cfg.control_dt),
+            **({"obstacles": c.obstacle_centres(0)} if c.omap is not None else {}),
         }
 
     # ------------------------------------------------------------------ API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         """Start an episode. ``options={"state": {...}}`` starts from exactly that state: keys
         ``pos`` (N, 3), ``vel`` (N, 3), ``rot`` (N, 3, 3), ``omega`` (N, 3), ``motors`` ("zero",
-        "hover" or (N, 4) normalized thrusts), ``goals`` (N, 3); missing keys take the defaults."""
+        "hover" or (N, 4) normalized thrusts), ``goals`` (N, 3); missing keys take the defaults.
+        With obstacles on, ``options={"obstacles": (M, 2)}`` places exactly those columns (centres
+        x, y in m; radius ``obstacles.size / 2``) instead of a random map; ``info["obstacles"]`` is
+        the (M, 2) array of the columns in force (after reset and every step)."""
         state = None
         if options is not None:
             if not isinstance(options, dict):
                 raise ValueError(f"options must be a dict, got {type(options).__name__}")
             if options.get("state") is not None:
                 state = check_state(options["state"], self.cfg.num_quads, room=(self.cfg.room_low, self.cfg.room_high))
+            if options.get("obstacles") is not None:
+                state = {**(state or {}), "obstacles": check_obstacles(options["obstacles"], self.cfg)}
         super().reset(seed=seed)
         if self._jax is not None:
             if seed is not None or not self._jax.seeded:

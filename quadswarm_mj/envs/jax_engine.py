@@ -32,8 +32,8 @@ import numpy as np
 
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.envs.mjx_env import MjxQuadSwarmEnv, State
-from quadswarm_mj.metrics import METRIC_KEYS
-from quadswarm_mj.rewards import TERMS
+from quadswarm_mj.metrics import METRIC_KEYS, OBSTACLE_METRIC_KEYS, metric_keys
+from quadswarm_mj.rewards import OBSTACLE_TERMS, TERMS, env_terms
 
 STATE_KEYS = ("pos", "vel", "rot", "omega", "thrust")
 VECTOR_INFO_KEYS = ("rewards", "reward_terms", "state", "goals", "goal_vel", "params", "on_floor",
@@ -126,12 +126,16 @@ class PytreePacker:
 def _outputs(s: State, new_collisions: jax.Array, extra: dict[str, jax.Array]) -> dict[str, jax.Array]:
     """Everything the host reads after a reset or step of one world (unbatched)."""
     info = s.info
+    terms = [k for k in TERMS + OBSTACLE_TERMS if f"reward/{k}" in s.metrics]  # = env_terms(cfg)
     out = {"obs": s.obs, "reward": jnp.mean(s.reward), "rewards": s.reward,
-           "terms": jnp.stack([s.metrics[f"reward/{k}"] for k in TERMS])}
+           "terms": jnp.stack([s.metrics[f"reward/{k}"] for k in terms])}
     out.update({f"state/{k}": info["state"][k] for k in STATE_KEYS})
     out.update({"goals": info["goals"], "goal_vel": info["goal_vel"]})
     out.update({f"params/{k}": v for k, v in info["params"].items()})
-    out["metrics"] = jnp.stack([jnp.asarray(info["episode_metrics"][k], s.reward.dtype) for k in METRIC_KEYS])
+    mkeys = [k for k in METRIC_KEYS + OBSTACLE_METRIC_KEYS if k in info["episode_metrics"]]  # = metric_keys(cfg)
+    out["metrics"] = jnp.stack([jnp.asarray(info["episode_metrics"][k], s.reward.dtype) for k in mkeys])
+    if "obstacles" in info:  # the (M_max, 2) column centres and their validity
+        out.update({"obstacles": info["obstacles"], "obstacles_valid": info["obstacles_valid"]})
     out.update({"time": info["time"], "on_floor": info["on_floor"], "new_collisions": new_collisions,
                 "done": s.done})
     out.update(extra)
@@ -316,7 +320,8 @@ class JaxSingleBackend:
         return {"state": {"pos": v["state/pos"], "vel": v["state/vel"], "rot": v["state/rot"],
                           "omega": v["state/omega"], "thrust": v["state/thrust"]},
                 "goals": v["goals"], "goal_vel": v["goal_vel"], "params": params,
-                "on_floor": v["on_floor"] > 0.5, "time": float(v["time"])}
+                "on_floor": v["on_floor"] > 0.5, "time": float(v["time"]),
+                **({"obstacles": v["obstacles"][v["obstacles_valid"] > 0.5]} if "obstacles" in v else {})}
 
     def _split(self, out: jax.Array) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         o = np.array(out)  # one transfer, writable
@@ -343,11 +348,11 @@ class JaxSingleBackend:
         obs, v = self._split(out)
         info = self._info(v, {k: x.copy() for k, x in self._params.items()})
         info["rewards"] = v["rewards"]
-        info["reward_terms"] = dict(zip(TERMS, v["terms"]))
+        info["reward_terms"] = dict(zip(env_terms(self.cfg), v["terms"]))
         info["new_collisions"] = v["new_collisions"] > 0.5
         truncated = bool(v["done"] > 0.5)
         if truncated:
-            info["episode_metrics"] = dict(zip(METRIC_KEYS, v["metrics"].tolist()))
+            info["episode_metrics"] = dict(zip(metric_keys(self.cfg), v["metrics"].tolist()))
         return obs, float(v["reward"]), truncated, info
 
     def render(self) -> np.ndarray:
@@ -361,7 +366,9 @@ class JaxSingleBackend:
         if self._renderer is None:
             arena = build_arena(self.cfg, 1)
             self._renderer = SwarmRenderer(types.SimpleNamespace(arena=arena, model=arena.model))
-        return self._renderer.render(qpos=self._last["qpos"], goals=self._last["goals"])
+        v = self._last
+        obst = v["obstacles"][v["obstacles_valid"] > 0.5] if "obstacles" in v else None
+        return self._renderer.render(qpos=v["qpos"], goals=v["goals"], obstacles=obst)
 
     def close(self) -> None:
         if self._renderer is not None:
@@ -400,7 +407,7 @@ class JaxVectorBackend:
         if step and "rewards" in keys:
             out["rewards"] = v["rewards"]
         if step and "reward_terms" in keys:
-            out["reward_terms"] = {k: v["terms"][:, i] for i, k in enumerate(TERMS)}
+            out["reward_terms"] = {k: v["terms"][:, i] for i, k in enumerate(env_terms(self.cfg))}
         if "state" in keys:
             out["state"] = {k: v[f"state/{k}"] for k in STATE_KEYS}
         for k in ("goals", "goal_vel"):
@@ -414,6 +421,8 @@ class JaxVectorBackend:
             out["new_collisions"] = v["new_collisions"] > 0.5
         if "time" in keys:
             out["time"] = v["time"]
+        if "obstacles" in v:  # (B, M_max, 2) centres, NaN in unused slots
+            out["obstacles"] = np.where(v["obstacles_valid"][..., None] > 0.5, v["obstacles"], np.nan)
         return out
 
     def reset(self, mask: np.ndarray | None, state: dict[str, Any] | None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -436,7 +445,8 @@ class JaxVectorBackend:
         info = self._info(v, step=True)
         done = v["done"] > 0.5
         if done.any():
-            info["episode_metrics"] = {k: np.where(done, v["metrics"][:, i], np.nan) for i, k in enumerate(METRIC_KEYS)}
+            info["episode_metrics"] = {k: np.where(done, v["metrics"][:, i], np.nan)
+                                       for i, k in enumerate(metric_keys(self.cfg))}
             info["_episode_metrics"] = done.copy()
             info["final_obs"] = v["final_obs32"]
             info["_final_obs"] = done.copy()
@@ -446,7 +456,7 @@ class JaxVectorBackend:
         """Episode metrics (B,) of the running episodes so far (as of the last reset or step)."""
         if self._v is None:
             raise RuntimeError("call reset() first")
-        return {k: self._v["metrics"][:, i].copy() for i, k in enumerate(METRIC_KEYS)}
+        return {k: self._v["metrics"][:, i].copy() for i, k in enumerate(metric_keys(self.cfg))}
 
     def close(self) -> None:
         self._bufs = None

@@ -60,7 +60,8 @@ passes thrust, torque and motor constants to the actuation functions.
   ``qpos`` writes ``rot`` too).
 * ``obs`` (N, obs_dim), ``reward`` (N,) per quad, ``done`` () bool (time limit; there is no
   termination), ``metrics`` {"reward/<term>": (N,)} for every term of
-  :data:`quadswarm_mj.rewards.TERMS` (they sum to ``reward``).
+  :func:`quadswarm_mj.rewards.env_terms` (``TERMS``, plus ``obstacle_collision`` with obstacles on;
+  they sum to ``reward``).
 * ``info``: ``state`` {pos (N, 3) m world, vel (N, 3) m/s world, rot (N, 3, 3) body->world,
   omega (N, 3) rad/s body, thrust (N, 4) normalized rotor thrusts} as the CPU env's
   ``info["state"]``; ``params`` (per-quad dynamics parameters, see
@@ -72,6 +73,15 @@ passes thrust, torque and motor constants to the actuation functions.
   ``step`` () int control steps in this episode; ``time`` () s;
   ``total_steps`` () int across episodes (reward annealing; kept by :class:`AutoResetWrapper`);
   ``truncation`` () float (1.0 at the time limit); ``rng`` (the key for the next step's draws).
+  With obstacles (``cfg.obstacles``): ``obstacles`` (M_max, 2) column centres (x, y m; fixed
+  slots), ``obstacles_valid`` (M_max,) bool (the columns in force), ``obstacle_radius`` () m,
+  ``obstacle_contact`` (N,) bool (quads touching a column), ``obstacle_metrics`` (accumulators of
+  :func:`quadswarm_mj.obstacles.metrics_update`); ``episode_metrics`` then adds
+  ``obstacle_collisions`` and ``collision_rate``. The map is drawn at every reset (or given as
+  ``init_state["obstacles"]``) and the column geoms are moved there through ``data.mocap_pos``
+  (MuJoCo contacts with ``physics="mjx"`` and "mujoco"/"blend"; under size randomization the
+  contact geoms keep the largest radius on MJX, the paper model uses the drawn one). The obstacle
+  response draws per quad (one column per quad and step).
 
 ``collision_model`` "mujoco" and "blend" run with ``physics="mjx"`` (MJX's contact solver: the quads'
 hitbox spheres against each other and the room's floor plane and wall/ceiling boxes; "blend" keeps
@@ -129,17 +139,24 @@ from quadswarm_mj.downwash import (
     downwash_slot_spec,
     expand_downwash_draws,
 )
-from quadswarm_mj.envs.validation import check_state
+from quadswarm_mj.envs.validation import check_obstacles, check_state
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.random_draws import DrawSpec, JaxSampler, MeanSampler, Normal, Uniform
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
-from quadswarm_mj.rewards import TERMS, anneal_factor, reward_terms, total_reward
+from quadswarm_mj.rewards import anneal_factor, env_terms, reward_terms, total_reward
 from quadswarm_mj.scenarios import get_scenario
-from quadswarm_mj.scenarios.base import spawn_num_uniforms
+from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
 from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
 
 INIT_STATE_KEYS = ("pos", "vel", "rot", "omega", "motors", "goals")
 PHYSICS = ("freebody", "mjx")
+
+
+def _obst_lib() -> Any:
+    """:mod:`quadswarm_mj.obstacles` (imported where obstacles are on)."""
+    from quadswarm_mj import obstacles
+
+    return obstacles
 
 
 def _have_freebody() -> bool:
@@ -279,7 +296,10 @@ class MjxQuadSwarmEnv:
         # the quads' free joints are the whole qpos/qvel: read and write them with reshapes, no scatter
         self._whole = self._qs == 0 and self._vs == 0 and self.mj_model.nq == 7 * n and self.mj_model.nv == 6 * n
         self.scenario = get_scenario(cfg.scenario)
-        self._n_scn = self.scenario.num_uniforms(n)
+        self._n_scn = scenario_num_uniforms(self.scenario, cfg)
+        self._terms = env_terms(cfg)
+        self._obst = cfg.obstacles
+        self._obst_respond = cfg.collision_model == "paper"  # else MuJoCo's contacts resolve the columns
         self._rotor_pos = rotor_positions(cfg.quad)
         self._mix = wrench_matrix(self._rotor_pos)
         low, high = obs_bounds(cfg)
@@ -296,7 +316,8 @@ class MjxQuadSwarmEnv:
         self._reset_spec = {
             **(_prefixed("rand", randomization_draw_spec(cfg)) if cfg.randomize else {}),
             "scenario": Uniform(0.0, 1.0, (self._n_scn,)),
-            "spawn": Uniform(0.0, 1.0, (spawn_num_uniforms(n),)),
+            "spawn": Uniform(0.0, 1.0, (scenario_spawn_uniforms(cfg),)),
+            **(_prefixed("omap", _obst_lib().map_draw_spec(self._obst)) if self._obst is not None else {}),
             **(_prefixed("sensor", self._spec_sensor) if self._sensor_on else {}),
             **(_prefixed("aero", aero_draw_spec(cfg)) if cfg.randomize and cfg.aero.any else {}),
         }
@@ -307,6 +328,9 @@ class MjxQuadSwarmEnv:
             **_prefixed("wall", wall_draw_spec(WALL_BUDGET, cfg.collision_decay, c.kick_omega)),
             **_prefixed("quad", quad_collision_slot_spec(c.tries, QUAD_PAIR_BUDGET, c.shared_noise_std,
                                                          c.own_noise_std, n, cfg.collision_decay, c.kick_omega)),
+            # obstacle response: per-quad draws (at most one column per quad and step)
+            **(_prefixed("obst", _obst_lib().response_draw_spec(n))
+               if self._obst is not None and self._obst_respond else {}),
         }
         down_spec = _prefixed("down", downwash_slot_spec(DOWNWASH_BUDGET)) if cfg.downwash else {}
         self._step_spec = {
@@ -412,12 +436,23 @@ class MjxQuadSwarmEnv:
         return integrate_mjx
 
     def _observe(self, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, draws: dict[str, Any],
-                 dist: Any = None) -> jax.Array:
+                 dist: Any = None, omap: Any = None) -> jax.Array:
         f = _float()
         noise = _sub(draws, "sensor") if self._sensor_on else None
         scale = None if self._obs_scale is None else jnp.asarray(self._obs_scale, f)
         return build_obs(self.cfg, pos, vel, R, omega, goals, noise, jnp.asarray(self._obs_low, f),
-                         jnp.asarray(self._obs_high, f), scale, dist=dist)
+                         jnp.asarray(self._obs_high, f), scale, dist=dist,
+                         obstacles=None if omap is None else tuple(omap))
+
+    def _omap(self, info: dict[str, Any]) -> Any:
+        """The world's column map (ObstacleMap) from ``info``."""
+        return _obst_lib().ObstacleMap(info["obstacles"], info["obstacles_valid"], info["obstacle_radius"])
+
+    def _episode_metrics(self, acc: dict[str, Any], om: dict[str, Any], t: Any) -> dict[str, Any]:
+        """Episode metrics with obstacles: the standard ones, then obstacle_collisions, collision_rate, success."""
+        out = metrics_lib.finalize(acc, t)
+        out.update(_obst_lib().metrics_finalize(om, acc["collisions"]))
+        return out
 
     def _surface_flags(self, pos: Any, vel: Any, omega: Any) -> tuple[Any, Any, Any]:
         """(on_floor, at_wall, at_ceiling) of quads at ``pos``, from the collision functions
@@ -441,7 +476,8 @@ class MjxQuadSwarmEnv:
         (N, 3) m/s, ``rot`` (N, 3, 3) body->world, ``omega`` (N, 3) rad/s body, ``goals`` (N, 3)
         m and ``motors``: "zero" or "hover" (a Python string, so static: known at trace time,
         e.g. close over it), or (N, 4) normalized rotor thrusts in [0, 1]. Missing keys take the
-        defaults (scenario goals, spawn near the goals at rest, ``cfg.motor_start``).
+        defaults (scenario goals, spawn near the goals at rest, ``cfg.motor_start``). With obstacles
+        on, ``obstacles`` (M, 2) column centres (x, y m, M <= the column slots) replace the random map.
 
         ``init_state`` is checked as the CPU env checks it (:func:`~quadswarm_mj.envs.validation.
         check_state`: keys, shapes, finite values, proper rotations, ``pos`` and ``goals`` inside
@@ -450,19 +486,34 @@ class MjxQuadSwarmEnv:
         """
         cfg, n = self.cfg, self.N
         f = _float()
-        init_state = check_state({} if init_state is None else init_state, n, name="init_state",
-                                 room=(cfg.room_low, cfg.room_high))
+        init_state = dict({} if init_state is None else init_state)
+        given_obst = init_state.pop("obstacles", None)
+        if given_obst is not None:
+            given_obst = check_obstacles(given_obst, cfg, name="init_state['obstacles']")
+        init_state = check_state(init_state, n, name="init_state", room=(cfg.room_low, cfg.room_high))
         k_draw, k_next = jax.random.split(key)
         rnd = self._draw(self._reset_spec, k_draw)
         draws = _sub(rnd, "rand") if cfg.randomize else nominal_draws(cfg, jnp.zeros((n,), f))
         aero_draws = _sub(rnd, "aero") if cfg.randomize and cfg.aero.any else None
+        omap = None
+        if self._obst is not None:
+            ob = _obst_lib()
+            omap = ob.reset_map(self._obst, _sub(rnd, "omap"), given_obst, xp=jnp)
+            omap = ob.ObstacleMap(omap.centres.astype(f), omap.valid, jnp.asarray(omap.radius, f))
         init = pipeline.initial_state(cfg, self.scenario, draws, rnd["scenario"], rnd["spawn"], init_state, jnp, f,
-                                      aero_draws)
+                                      aero_draws, obstacles=omap)
         params, sstate, goals = init["params"], init["scenario"], init["scenario"].goals
         pos, vel, R, omega, u0 = init["pos"], init["vel"], init["rot"], init["omega"], init["u0"]
         data = self._write(self._data0, jnp.concatenate([pos, rotmat_to_quat(R)], -1),
                            jnp.concatenate([vel, omega], -1))
         data = data.replace(time=jnp.zeros_like(data.time))
+        if omap is not None:  # move the column pool (MuJoCo contacts with physics="mjx"; rendering)
+            from quadswarm_mj.arena import obstacle_mocap_pos
+
+            a = self.arena
+            data = data.replace(mocap_pos=obstacle_mocap_pos(data.mocap_pos, a.obstacle_mocap_ids[0], omap.centres,
+                                                             omap.valid, cfg.room_size[2], a.obstacle_park
+                                                             ).astype(data.mocap_pos.dtype))
         q, v = self._read(data)  # as stored (quaternion round trip), like the CPU env
         pos, vel, omega = q[:, :3].astype(f), v[:, :3].astype(f), v[:, 3:].astype(f)
         R = quat_to_rotmat(q[:, 3:7]).astype(f)
@@ -470,7 +521,7 @@ class MjxQuadSwarmEnv:
         contact, dist = pairwise_contacts(pos, cfg.hitbox)
         acc = metrics_lib.init(jnp.zeros((n,), f), (), n)
         f_norm = u0 * u0
-        obs = self._observe(pos, vel, R, omega, goals, rnd, dist)
+        obs = self._observe(pos, vel, R, omega, goals, rnd, dist, omap)
         zero_n = jnp.zeros((n,), f)
         info = {
             "state": {"pos": pos, "vel": vel, "rot": R, "omega": omega, "thrust": f_norm},
@@ -484,7 +535,13 @@ class MjxQuadSwarmEnv:
             "truncation": jnp.zeros((), f), "rng": k_next,
             **({"ctrl_state": jnp.zeros((n, 6), f)} if self._modes else {}),  # control-mode integrators
         }
-        metrics = {f"reward/{k}": zero_n for k in TERMS}
+        if omap is not None:
+            ob = _obst_lib()
+            info.update({"obstacles": omap.centres, "obstacles_valid": omap.valid, "obstacle_radius": omap.radius,
+                         "obstacle_contact": ob.detect(pos, *omap, cfg.quad.arm)[0],
+                         "obstacle_metrics": ob.metrics_init(zero_n, (), n)})
+            info["episode_metrics"] = self._episode_metrics(acc, info["obstacle_metrics"], jnp.zeros((), f))
+        metrics = {f"reward/{k}": zero_n for k in self._terms}
         return State(data=data, obs=obs, reward=zero_n, done=jnp.zeros((), bool), metrics=metrics, info=info)
 
     # ------------------------------------------------------------------ physics
@@ -563,7 +620,12 @@ class MjxQuadSwarmEnv:
         else:
             contact, _ = pairwise_contacts(pos, cfg.hitbox)
             qc = {"contact": contact, "new_contact": contact & ~info["contact"]}
-        pos, vel, omega = pipeline.obstacle_stage(pos, vel, omega)  # extension point: obstacles
+        obst: dict[str, Any] = {}
+        if self._obst is not None:  # SPEC_obstacles A.3, after quad-quad
+            r = pipeline.obstacle_stage(pos, vel, omega, info["obstacle_contact"], self._omap(info), cfg.quad.arm,
+                                        _sub(rnd, "obst") if self._obst_respond else None, self._obst_respond)
+            vel, omega = r["vel"], r["omega"]
+            obst = {"obst_new": r["new_contact"], "obst_contact": r["contact"]}
         _, dist = pairwise_contacts(pos, cfg.hitbox)
         if cfg.downwash:
             dmask, _ = downwash_mask(pos, R)
@@ -575,7 +637,7 @@ class MjxQuadSwarmEnv:
         k = {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": qc["new_contact"],
              "contact": qc["contact"], "hit_floor": hit_floor, "hit_wall": w["hit_wall"],
              "hit_ceiling": w["hit_ceiling"], "at_wall": w["at_wall"], "at_ceiling": w["at_ceiling"],
-             "on_floor": on_floor, "u": u, "f_norm": f_norm, "eps": eps, "ctrl": ctrl}
+             "on_floor": on_floor, "u": u, "f_norm": f_norm, "eps": eps, "ctrl": ctrl, **obst}
         return data, k
 
     def _ctrl0(self, info: dict[str, Any], eps: Any) -> Any:
@@ -603,7 +665,13 @@ class MjxQuadSwarmEnv:
         total_steps = info["total_steps"] + 1
         t = steps.astype(f) * cfg.control_dt
         prev_goals = info["scenario"].goals
-        sstate = self.scenario.step(cfg, info["scenario"], t, k["pos"], rnd["scenario"])
+        if self._obst is None:
+            sstate = self.scenario.step(cfg, info["scenario"], t, k["pos"], rnd["scenario"])
+        else:
+            from quadswarm_mj.scenarios.obstacle_scenarios import scenario_step
+
+            sstate = scenario_step(self.scenario, cfg, info["scenario"], t, k["pos"], rnd["scenario"],
+                                   self._omap(info))
         goals, goal_vel = sstate.goals, sstate.goal_vel
         jump = metrics_lib.goal_jump(prev_goals, goals, goal_vel, cfg.control_dt)
         dist_goal = jnp.sqrt(jnp.sum((goals - k["pos"]) ** 2, axis=-1))
@@ -613,11 +681,15 @@ class MjxQuadSwarmEnv:
                              k["dist"], anneal_factor(cfg, total_steps), goal_dist=dist_goal)
         # explicit dtype: a zero-scale term may come back weakly typed, and a state whose leaf types
         # change between reset and step would make jit compile step twice
+        if self._obst is not None:
+            terms["obstacle_collision"] = _obst_lib().obstacle_penalty(
+                k["obst_new"], self._obst.collision_reward, anneal_factor(cfg, total_steps))
         terms = {name: v.astype(f) for name, v in terms.items()}
         reward = total_reward(terms)
         acc = metrics_lib.update(info["metrics_acc"], t, dist_goal, k["new_contact"], k["hit_floor"], k["hit_wall"],
                                  k["hit_ceiling"], jump, cfg.grace_period_s)
-        obs = self._observe(k["pos"], k["vel"], k["R"], k["omega"], goals, rnd, k["dist"])
+        obs = self._observe(k["pos"], k["vel"], k["R"], k["omega"], goals, rnd, k["dist"],
+                            None if self._obst is None else self._omap(info))
         done = steps >= cfg.episode_steps
         new_info = {
             "state": {"pos": k["pos"], "vel": k["vel"], "rot": k["R"], "omega": k["omega"], "thrust": k["f_norm"]},
@@ -631,7 +703,16 @@ class MjxQuadSwarmEnv:
             "truncation": done.astype(f), "rng": k_next,
             **({"ctrl_state": k["ctrl"][1]} if self._modes else {}),
         }
-        metrics = {f"reward/{name}": terms[name] for name in TERMS}
+        if self._obst is not None:
+            from quadswarm_mj.scenarios.obstacle_scenarios import approach_threshold
+
+            om = _obst_lib().metrics_update(info["obstacle_metrics"], t, k["obst_new"], acc["last_dist"],
+                                            acc["steps"], approach_threshold(self.scenario, cfg, sstate),
+                                            cfg.grace_period_s)
+            new_info.update({k2: info[k2] for k2 in ("obstacles", "obstacles_valid", "obstacle_radius")})
+            new_info.update({"obstacle_contact": k["obst_contact"], "obstacle_metrics": om,
+                             "episode_metrics": self._episode_metrics(acc, om, t)})
+        metrics = {f"reward/{name}": terms[name] for name in self._terms}
         return State(data=data, obs=obs, reward=reward, done=done, metrics=metrics, info=new_info)
 
 

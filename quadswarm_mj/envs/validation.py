@@ -94,6 +94,31 @@ def check_state(state: Any, num_quads: int, lead: tuple[int, ...] = (), name: st
     return out
 
 
+def check_obstacles(obstacles: Any, cfg: Any, lead: tuple[int, ...] = (), name: str = "options['obstacles']") -> Any:
+    """Validate given column centres (SPEC_obstacles; ``reset(options={"obstacles": ...})``): an
+    (M, 2) array (x, y m, world-local; or ``lead + (M, 2)``: one map per world), M <= the column
+    slots, finite, inside the room. Needs ``cfg.obstacles``. Tracers get the shape checks only."""
+    o = cfg.obstacles
+    if o is None:
+        raise ValueError(f"{name} given but obstacles are off; turn them on with EnvConfig(obstacles=ObstacleConfig())")
+    shape = tuple(np.shape(obstacles))
+    if len(shape) not in (2, 2 + len(lead)) or shape[-1] != 2 or (len(shape) > 2 and shape[:-2] != tuple(lead)):
+        want = "(M, 2)" + (f" or {tuple(lead) + ('M', 2)}" if lead else "")
+        raise ValueError(f"{name} must be an array of column centres (x, y) in m of shape {want}, got shape {shape}")
+    if shape[-2] > o.slots:
+        raise ValueError(f"{name}: {shape[-2]} columns given, more than the {o.slots} column slots per world "
+                         f"(raise ObstacleConfig.max_columns, at most {o.num_cells})")
+    if _is_tracer(obstacles):
+        return obstacles
+    a = np.asarray(obstacles, dtype=np.float64)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or inf")
+    lo, hi = np.asarray(cfg.room_low[:2], np.float64), np.asarray(cfg.room_high[:2], np.float64)
+    if ((a < lo) | (a > hi)).any():
+        raise ValueError(f"{name} must hold centres inside the room [{lo[0]:g}, {hi[0]:g}] x [{lo[1]:g}, {hi[1]:g}] m")
+    return a.copy()
+
+
 ENGINES = ("mujoco", "jax")
 
 

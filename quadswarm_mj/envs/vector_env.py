@@ -91,10 +91,10 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.control_modes import action_box_bounds
 from quadswarm_mj.envs.cpu_core import CpuSwarm
-from quadswarm_mj.envs.validation import check_action, check_engine, check_state
-from quadswarm_mj.metrics import METRIC_KEYS
+from quadswarm_mj.envs.validation import check_action, check_engine, check_obstacles, check_state
+from quadswarm_mj.metrics import metric_keys
 from quadswarm_mj.observations import obs_bounds
-from quadswarm_mj.rewards import TERMS
+from quadswarm_mj.rewards import env_terms
 
 INFO_KEYS = ("rewards", "reward_terms", "state", "goals", "goal_vel", "params", "on_floor", "new_collisions",
              "time")
@@ -119,13 +119,15 @@ def _layout(cfg: EnvConfig, B: int) -> list[tuple[str, tuple[int, ...], Any]]:
     stacked ``terms`` (T, B, N) and ``metrics`` (M, B)."""
     N, D = cfg.num_quads, cfg.obs_dim
     out = [("actions", (B, N, 4), np.float64), ("obs", (B, N, D), np.float32), ("reward", (B,), np.float64),
-           ("rewards", (B, N), np.float64), ("terms", (len(TERMS), B, N), np.float64),
+           ("rewards", (B, N), np.float64), ("terms", (len(env_terms(cfg)), B, N), np.float64),
            ("truncated", (B,), np.bool_), ("done", (B,), np.bool_), ("final_obs", (B, N, D), np.float32),
-           ("metrics", (len(METRIC_KEYS), B), np.float64), ("goals", (B, N, 3), np.float64),
+           ("metrics", (len(metric_keys(cfg)), B), np.float64), ("goals", (B, N, 3), np.float64),
            ("goal_vel", (B, N, 3), np.float64), ("on_floor", (B, N), np.bool_),
            ("new_collisions", (B, N), np.bool_), ("time", (B,), np.float64)]
     out += [(f"state/{k}", (B, N) + t, np.float64) for k, t in STATE_FIELDS.items()]
     out += [(f"params/{k}", (B, N) + t, np.float64) for k, t in param_fields(cfg).items()]
+    if cfg.obstacles is not None:  # column centres (B, M_max, 2), NaN in unused slots
+        out.append(("obstacles", (B, cfg.obstacles.slots, 2), np.float64))
     return out
 
 
@@ -177,7 +179,7 @@ class _Shard:
         a["rewards"][...] = rewards
         a["reward"][...] = np.mean(rewards, axis=-1)  # the team reward, as QuadSwarmEnv's float(mean)
         if "reward_terms" in self.info_keys:
-            for i, k in enumerate(TERMS):
+            for i, k in enumerate(env_terms(self.cfg)):
                 a["terms"][i] = out["terms"][k]
         a["new_collisions"][...] = out["kin"]["new_contact"].any(-1)
         done = out["truncated"]
@@ -188,7 +190,7 @@ class _Shard:
             w = np.flatnonzero(done)
             a["final_obs"][w] = a["obs"][w]
             m = c.episode_metrics()
-            for i, k in enumerate(METRIC_KEYS):
+            for i, k in enumerate(metric_keys(self.cfg)):
                 a["metrics"][i] = np.where(done, m[k], np.nan)
             c.reset(mask=done)
             a["obs"][w] = c.observe(worlds=w)
@@ -209,6 +211,8 @@ class _Shard:
         if params and "params" in keys:
             for k in param_fields(self.cfg):
                 a[f"params/{k}"][...] = c.params[k]
+        if params and c.omap is not None:  # the maps change only at resets
+            a["obstacles"][...] = np.where(c.omap.valid[..., None], c.omap.centres, np.nan)
 
     def run(self, msg: Any) -> Any:
         """Run one message: ``STEP`` or a command tuple (same in the main process and in workers)."""
@@ -618,7 +622,7 @@ class QuadSwarmVectorEnv(VectorEnv):
         if step and "rewards" in keys:
             out["rewards"] = self._out(a["rewards"])
         if step and "reward_terms" in keys:
-            out["reward_terms"] = {k: self._out(a["terms"][i]) for i, k in enumerate(TERMS)}
+            out["reward_terms"] = {k: self._out(a["terms"][i]) for i, k in enumerate(env_terms(self.cfg))}
         if "state" in keys:
             out["state"] = {k: self._out(a[f"state/{k}"]) for k in STATE_FIELDS}
         for k in ("goals", "goal_vel"):
@@ -629,6 +633,8 @@ class QuadSwarmVectorEnv(VectorEnv):
         for k in ("on_floor", "new_collisions", "time"):
             if k in keys and (step or k != "new_collisions"):
                 out[k] = self._out(a[k])
+        if "obstacles" in a:
+            out["obstacles"] = self._out(a["obstacles"])
         return out
 
     # ------------------------------------------------------------------ API
@@ -639,6 +645,9 @@ class QuadSwarmVectorEnv(VectorEnv):
         ``QuadSwarmEnv.reset`` and a leading world axis: ``pos`` (B, N, 3), ``vel`` (B, N, 3), ``rot``
         (B, N, 3, 3), ``omega`` (B, N, 3), ``motors`` ("zero", "hover" or (B, N, 4) normalized
         thrusts), ``goals`` (B, N, 3). ``seed`` (an int) reseeds every world (see the module doc).
+        With obstacles on, ``options={"obstacles": c}`` places exactly the columns ``c`` (centres x, y
+        m): (M, 2) for every reset world, or (B, M, 2) one map per world; ``info["obstacles"]`` is
+        the (B, M_max, 2) array of the columns in force, NaN in unused slots.
         After a failure (see the module doc) the workers are rebuilt first."""
         if self.closed:
             raise RuntimeError("the vector env is closed")
@@ -647,11 +656,15 @@ class QuadSwarmVectorEnv(VectorEnv):
         if options is not None:
             if not isinstance(options, dict):
                 raise ValueError(f"options must be a dict, got {type(options).__name__}")
-            unknown = set(options) - {"state", "reset_mask"}
+            unknown = set(options) - {"state", "reset_mask", "obstacles"}
             if unknown:
-                raise ValueError(f"unknown reset options {sorted(unknown)}; allowed: ['reset_mask', 'state']")
+                raise ValueError(f"unknown reset options {sorted(unknown)}; allowed: ['obstacles', 'reset_mask', "
+                                 f"'state']")
             if options.get("state") is not None:
                 state = check_state(options["state"], N, lead=(B,), room=(self.cfg.room_low, self.cfg.room_high))
+            if options.get("obstacles") is not None:
+                c = check_obstacles(options["obstacles"], self.cfg, lead=(B,))
+                state = {**(state or {}), "obstacles": np.broadcast_to(c, (B,) + c.shape[-2:]).copy()}
             if options.get("reset_mask") is not None:
                 mask = np.asarray(options["reset_mask"])
                 if mask.shape != (B,) or mask.dtype != np.bool_:
@@ -702,7 +715,7 @@ class QuadSwarmVectorEnv(VectorEnv):
         info = self._info(step=True)
         done = A["done"]
         if done.any():
-            info["episode_metrics"] = {k: A["metrics"][i].copy() for i, k in enumerate(METRIC_KEYS)}
+            info["episode_metrics"] = {k: A["metrics"][i].copy() for i, k in enumerate(metric_keys(self.cfg))}
             info["_episode_metrics"] = done.copy()
             info["final_obs"] = A["final_obs"].copy()
             info["_final_obs"] = done.copy()
@@ -715,7 +728,7 @@ class QuadSwarmVectorEnv(VectorEnv):
         if self._jax is not None:
             return self._jax.episode_metrics()
         parts = self._run("episode_metrics", lambda k: ("episode_metrics",))
-        return {k: np.concatenate([p[k] for p in parts]) for k in METRIC_KEYS}
+        return {k: np.concatenate([p[k] for p in parts]) for k in metric_keys(self.cfg)}
 
     def close_extras(self, **kwargs: Any) -> None:
         self._finalizer()  # ends the workers (once), frees the shared block
