@@ -69,19 +69,16 @@ def anneal_steps_for(agent_steps: float, num_worlds: int, num_quads: int) -> int
 
 
 def check_engine_config(env: Any, cfg: EnvConfig) -> None:
-    """Raise ValueError if the JAX engine cannot simulate ``cfg`` as configured (e.g. obstacles not wired:
-    the observation would lack the 9 obstacle features)."""
+    """Raise ValueError if the JAX engine cannot simulate ``cfg`` as configured (its reset fails or its
+    observation does not have the config's layout)."""
     try:
         st = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
     except Exception as e:  # noqa: BLE001
-        extra = (" (obstacles are not wired into the JAX engine yet)" if cfg.obstacles is not None else "")
-        raise ValueError(f"the JAX engine rejects this configuration (scenario {cfg.scenario!r}){extra}: "
+        raise ValueError(f"the JAX engine rejects this configuration (scenario {cfg.scenario!r}): "
                          f"{type(e).__name__}: {e}") from e
     if tuple(st.obs.shape) != (cfg.num_quads, cfg.obs_dim):
-        why = (" : the engine does not produce the 9 obstacle features yet (obstacles are not wired into "
-               "MjxQuadSwarmEnv)" if cfg.obstacles is not None else "")
         raise ValueError(f"the JAX engine's observation has shape {tuple(st.obs.shape)}, the config needs "
-                         f"{(cfg.num_quads, cfg.obs_dim)}{why}")
+                         f"{(cfg.num_quads, cfg.obs_dim)}")
 
 
 class JaxPPOTrainer:
@@ -114,8 +111,7 @@ class JaxPPOTrainer:
             try:
                 env = AutoResetWrapper(MjxQuadSwarmEnv(c))
             except Exception as e:  # noqa: BLE001
-                extra = " (obstacles are not wired into the JAX engine yet)" if c.obstacles is not None else ""
-                raise ValueError(f"the JAX engine rejects this configuration (scenario {c.scenario!r}){extra}: "
+                raise ValueError(f"the JAX engine rejects this configuration (scenario {c.scenario!r}): "
                                  f"{type(e).__name__}: {e}") from e
             check_engine_config(env, c)
             self.envs.append(env)

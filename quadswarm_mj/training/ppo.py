@@ -137,18 +137,10 @@ class AgentBatch:
         self.engines = [CpuSwarm(c, b) for c, b in zip(cfgs, worlds)]
         for k, e in enumerate(self.engines):
             e.seed(seed * 1000 + k)
-            try:
-                e.reset()
-                got = e.observe().shape[-1]
-            except Exception as err:  # noqa: BLE001
-                if e.cfg.obstacles is None:
-                    raise
-                raise ValueError(f"the MuJoCo engine rejects this obstacle configuration (obstacles are not wired "
-                                 f"into the CPU engine yet?): {type(err).__name__}: {err}") from err
+            e.reset()
+            got = e.observe().shape[-1]
             if got != d:
-                why = (" (obstacles are not wired into the CPU engine yet: no obstacle features)"
-                       if e.cfg.obstacles is not None else "")
-                raise ValueError(f"the MuJoCo engine's observation has {got} features, the config needs {d}{why}")
+                raise ValueError(f"the MuJoCo engine's observation has {got} features, the config needs {d}")
             e.seed(seed * 1000 + k)  # the check's reset leaves the seeded streams as before
         self.sizes = [e.B * n for e in self.engines]
         self.num_agents = sum(self.sizes)
