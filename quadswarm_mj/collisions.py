@@ -316,3 +316,70 @@ def expand_per_quad(mask: Any, slots: dict[str, Any]) -> dict[str, Any]:
     S = next(iter(slots.values())).shape[0]
     hot = event_slots(xp, mask, S)
     return {k: spread(xp, hot, v) for k, v in slots.items()}
+
+
+def quad_collisions_budgeted(pos: Any, vel: Any, omega: Any, prev_contact: Any, hitbox: float,
+                             slots: dict[str, Any]) -> dict[str, Any]:
+    """:func:`quad_collisions` of ONE world (``pos`` (N, 3)) computed only on the budgeted pairs (the
+    JAX engine's path; O(S) response work instead of (T, N, N, 3) tensors).
+
+    ``slots`` are the per-slot draws of :func:`quad_collision_slot_spec` (S slots). The new pairs
+    (i < j) are ranked row-major; the first S take slots 0..S-1 and get exactly the response that
+    :func:`quad_collisions` gives them with :func:`expand_quad_draws`' draws (the same formulas
+    per pair, summed per quad). New pairs beyond the budget are *deferred*: they get no response
+    this step and are left out of the returned ``contact`` (and ``new_contact``), so they are new
+    pairs again at the next control step. Returns ``vel, omega, contact, new_contact`` as
+    :func:`quad_collisions` (``new_contact``: the resolved pairs, symmetric).
+    """
+    xp = array_namespace(pos, vel)
+    n = pos.shape[-2]
+    S = slots["kick_mag"].shape[-1]
+    contact, dist = pairwise_contacts(pos, hitbox)
+    upper = np.triu(np.ones((n, n), bool), k=1)
+    new_u = (contact & ~prev_contact & upper).reshape(n * n)
+    rank = xp.cumsum(new_u.astype(xp.int32)) - 1
+    hot = new_u[:, None] & (rank[:, None] == np.arange(S))  # (N N, S): pair -> slot, first S only
+    resolved = xp.any(hot, axis=-1).reshape(n, n)
+    deferred = new_u.reshape(n, n) & ~resolved
+    hot3 = hot.reshape(n, n, S)
+    hi, hj = xp.any(hot3, axis=1), xp.any(hot3, axis=0)  # (N, S): quad q is i / j of slot s
+
+    def gather(x: Any, h: Any) -> Any:  # (N, D) rows of the slots' quads -> (S, D)
+        return xp.sum(xp.where(h[:, :, None], x[:, None, :], 0.0), axis=0)
+
+    def scatter(x: Any, h: Any) -> Any:  # (S, D) -> (N, D), summed over the quad's slots
+        return xp.sum(xp.where(h[:, :, None], x[None, :, :], 0.0), axis=1)
+
+    p_i, p_j, v_i, v_j = gather(pos, hi), gather(pos, hj), gather(vel, hi), gather(vel, hj)
+    rel = p_i - p_j
+    d = xp.sqrt(xp.sum(rel * rel, axis=-1))
+    nrm = rel / xp.where(d > 0, d, 1.0)[:, None]  # (S, 3) unit(p_i - p_j)
+    vin = xp.sum(v_i * nrm, axis=-1)
+    vjn = xp.sum(v_j * nrm, axis=-1)
+    change = (vjn - vin)[:, None] * nrm
+    shift_i = change + slots["shared"] + slots["own_i"]  # (T, S, 3)
+    shift_j = -change - slots["shared"] + slots["own_j"]
+    sep_i = xp.sum((v_i + shift_i) * nrm, axis=-1)  # (T, S)
+    sep_j = -xp.sum((v_j + shift_j) * nrm, axis=-1)
+    ok = (sep_i > 0) & (sep_j > 0)
+    tries = ok.shape[0]
+    sel_i, sel_j = shift_i[tries - 1], shift_j[tries - 1]
+    for t in range(tries - 2, -1, -1):  # first try that separates (static, tiny loop)
+        sel_i = xp.where(ok[t][:, None], shift_i[t], sel_i)
+        sel_j = xp.where(ok[t][:, None], shift_j[t], sel_j)
+    dv = scatter(sel_i, hi) + scatter(sel_j, hj)
+    s_pair = xp.maximum(xp.sqrt(xp.sum(v_i * v_i, axis=-1)), xp.sqrt(xp.sum(v_j * v_j, axis=-1)))  # (S,)
+    h_any = hi | hj
+    involved = xp.any(h_any, axis=-1)
+    vmax = xp.max(xp.where(h_any, s_pair[None, :], 0.0), axis=-1)
+    v_new = (vel + dv) * slots["decay"][:, None]
+    s_new = xp.sqrt(xp.sum(v_new * v_new, axis=-1))
+    scale = xp.minimum(1.0, vmax / xp.where(s_new > 0, s_new, 1.0))
+    v_new = v_new * scale[:, None]
+    kick = safe_normalize(xp, slots["kick_dir"]) * slots["kick_mag"][:, None]  # (S, 3): +w for i, -w for j
+    d_omega = scatter(kick, hi) - scatter(kick, hj)
+    inv = involved[:, None]
+    drop = deferred | deferred.T
+    res = resolved | resolved.T
+    return {"vel": xp.where(inv, v_new, vel), "omega": xp.where(inv, omega + d_omega, omega),
+            "contact": contact & ~drop, "new_contact": res, "dist": dist}

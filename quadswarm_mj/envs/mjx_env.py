@@ -108,14 +108,12 @@ from quadswarm_mj.collisions import (
     WALL_BUDGET,
     collision_draw_specs,
     expand_per_quad,
-    expand_quad_draws,
     floor_draw_spec,
     floor_impact,
     floor_wrench,
-    new_pairs_upper,
     pairwise_contacts,
     quad_collision_slot_spec,
-    quad_collisions,
+    quad_collisions_budgeted,
     wall_bounces,
     wall_collisions,
     wall_draw_spec,
@@ -536,9 +534,7 @@ class MjxQuadSwarmEnv:
             w = {"hit_wall": at_wall & ~info["at_wall"], "hit_ceiling": at_ceiling & ~info["at_ceiling"],
                  "at_wall": at_wall, "at_ceiling": at_ceiling}
         if self._paper_quads:
-            new_upper = new_pairs_upper(pos, info["contact"], cfg.hitbox)
-            q_draws = expand_quad_draws(new_upper, _sub(rnd, "quad"))
-            qc = quad_collisions(pos, vel, omega, info["contact"], cfg.hitbox, q_draws)
+            qc = quad_collisions_budgeted(pos, vel, omega, info["contact"], cfg.hitbox, _sub(rnd, "quad"))
             vel, omega = qc["vel"], qc["omega"]
         else:
             contact, _ = pairwise_contacts(pos, cfg.hitbox)
