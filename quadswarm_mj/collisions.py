@@ -19,7 +19,7 @@ import numpy as np
 
 from quadswarm_mj._xp import array_namespace, safe_normalize
 from quadswarm_mj.random_draws import DrawSpec, Normal, Uniform
-from quadswarm_mj.spatial import norm_last, yaw_of, yaw_quat, yaw_rotmat
+from quadswarm_mj.spatial import norm_last, yaw_cos_sin, yaw_of, yaw_quat, yaw_quat_cs, yaw_rotmat, yaw_rotmat_cs
 
 # ---------------------------------------------------------------------------------------- floor
 
@@ -61,7 +61,8 @@ def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any
 
 
 def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_floor: Any,
-                 floor_z: float, yaw_draw: Any, with_rotmat: bool = True) -> dict[str, Any]:
+                 floor_z: float, yaw_draw: Any, with_rotmat: bool = True,
+                 yaw_draw_cs: tuple[Any, Any] | None = None) -> dict[str, Any]:
     """Floor contact after a physics sub-step (SPEC §4).
 
     A quad at or below ``floor_z`` that was airborne *hits* the floor: z is set to ``floor_z``,
@@ -70,6 +71,10 @@ def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_f
     z = floor_z, no downward velocity, no roll/pitch rate) until its thrust lifts it above the
     height. Returns a dict with the new ``pos, vel, omega, quat, R, u, on_floor, hit_floor``
     (without ``R`` when ``with_rotmat`` is False, for callers that derive it from ``quat``).
+
+    ``yaw_draw_cs`` (the JAX engine's trig-free path): (cos, sin) of the yaw draws instead of
+    ``yaw_draw`` (then ignored); the yaw rotation is built from the heading's cosine and sine
+    (:func:`~quadswarm_mj.spatial.yaw_cos_sin`), equal to the angle path up to round-off.
     """
     xp = array_namespace(pos, vel)
     z = pos[..., 2]
@@ -77,19 +82,27 @@ def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_f
     staying = on_floor & (z <= floor_z + FLOOR_TOL)
     grounded = hit | staying
     upside_down = R[..., 2, 2] < 0
-    yaw = yaw_of(R) + xp.where(hit & upside_down, yaw_draw, 0.0)
+    if yaw_draw_cs is not None:
+        c, s = yaw_cos_sin(R)
+        flip = hit & upside_down
+        dc, ds = yaw_draw_cs
+        c, s = xp.where(flip, c * dc - s * ds, c), xp.where(flip, s * dc + c * ds, s)
+        yaw_q, yaw_R = yaw_quat_cs(c, s), (yaw_rotmat_cs(c, s) if with_rotmat else None)
+    else:
+        yaw = yaw_of(R) + xp.where(hit & upside_down, yaw_draw, 0.0)
+        yaw_q, yaw_R = yaw_quat(yaw), (yaw_rotmat(yaw) if with_rotmat else None)
     new_pos = xp.concatenate([pos[..., :2], xp.where(grounded, floor_z, z)[..., None]], axis=-1)
     zero2 = xp.zeros_like(vel[..., :2])
     vel_stay = xp.concatenate([vel[..., :2], zero2[..., :1]], axis=-1)
     new_vel = xp.where(hit[..., None], 0.0 * vel, xp.where(staying[..., None], vel_stay, vel))
     omega_stay = xp.concatenate([zero2, omega[..., 2:]], axis=-1)
     new_omega = xp.where(hit[..., None], 0.0 * omega, xp.where(staying[..., None], omega_stay, omega))
-    new_quat = xp.where(grounded[..., None], yaw_quat(yaw), quat)
+    new_quat = xp.where(grounded[..., None], yaw_q, quat)
     new_u = xp.where(hit[..., None], 0.0 * u, u)
     out = {"pos": new_pos, "vel": new_vel, "omega": new_omega, "quat": new_quat, "u": new_u, "on_floor": grounded,
            "hit_floor": hit}
     if with_rotmat:
-        out["R"] = xp.where(grounded[..., None, None], yaw_rotmat(yaw), R)
+        out["R"] = xp.where(grounded[..., None, None], yaw_R, R)
     return out
 
 

@@ -145,7 +145,8 @@ def neighbor_obs(cfg: EnvConfig, pos: Any, vel: Any, dist: Any | None = None, cl
     if xp is not np:
         # jax: rank by comparison + one-hot selection (a stable argsort's first K, same order and ties)
         hot = _nearest_one_hot(xp, key, k)  # (..., N, K, N)
-        g = xp.sum(xp.where(hot[..., None], pv[..., None, None, :, :], 0.0), axis=-2) - pv[..., :, None, :]
+        idx = xp.sum(xp.where(hot, np.arange(n, dtype=np.int32), 0), axis=-1)  # (..., N, K)
+        g = xp.take_along_axis(pv[..., None, :, :], idx[..., None], axis=-2) - pv[..., :, None, :]
         if clip:
             bound = xp.asarray(_neighbor_bounds(cfg), dtype=pos.dtype)
             g = xp.minimum(xp.maximum(g, -bound), bound)
