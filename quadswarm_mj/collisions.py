@@ -327,6 +327,10 @@ def expand_per_quad(mask: Any, slots: dict[str, Any]) -> dict[str, Any]:
 
     xp = array_namespace(mask, *slots.values())
     S = next(iter(slots.values())).shape[0]
+    if xp is not np and mask.ndim == 1:  # one world under jax: gather the slot rows (no batched dot)
+        slot = (xp.cumsum(mask.astype(xp.int32)) - 1) % S
+        return {k: xp.where(mask.reshape((-1,) + (1,) * (v.ndim - 1)), xp.take(v, slot, axis=0), 0.0)
+                for k, v in slots.items()}
     hot = event_slots(xp, mask, S)
     return {k: spread(xp, hot, v) for k, v in slots.items()}
 
