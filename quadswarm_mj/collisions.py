@@ -19,7 +19,7 @@ import numpy as np
 
 from quadswarm_mj._xp import array_namespace, safe_normalize
 from quadswarm_mj.random_draws import DrawSpec, Normal, Uniform
-from quadswarm_mj.spatial import norm_last, yaw_of, yaw_quat, yaw_rotmat
+from quadswarm_mj.spatial import norm_last, yaw_cos_sin, yaw_of, yaw_quat, yaw_quat_cs, yaw_rotmat, yaw_rotmat_cs
 
 # ---------------------------------------------------------------------------------------- floor
 
@@ -61,7 +61,8 @@ def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any
 
 
 def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_floor: Any,
-                 floor_z: float, yaw_draw: Any, with_rotmat: bool = True) -> dict[str, Any]:
+                 floor_z: float, yaw_draw: Any, with_rotmat: bool = True,
+                 yaw_draw_cs: tuple[Any, Any] | None = None) -> dict[str, Any]:
     """Floor contact after a physics sub-step (SPEC §4).
 
     A quad at or below ``floor_z`` that was airborne *hits* the floor: z is set to ``floor_z``,
@@ -70,6 +71,10 @@ def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_f
     z = floor_z, no downward velocity, no roll/pitch rate) until its thrust lifts it above the
     height. Returns a dict with the new ``pos, vel, omega, quat, R, u, on_floor, hit_floor``
     (without ``R`` when ``with_rotmat`` is False, for callers that derive it from ``quat``).
+
+    ``yaw_draw_cs`` (the JAX engine's trig-free path): (cos, sin) of the yaw draws instead of
+    ``yaw_draw`` (then ignored); the yaw rotation is built from the heading's cosine and sine
+    (:func:`~quadswarm_mj.spatial.yaw_cos_sin`), equal to the angle path up to round-off.
     """
     xp = array_namespace(pos, vel)
     z = pos[..., 2]
@@ -77,19 +82,27 @@ def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_f
     staying = on_floor & (z <= floor_z + FLOOR_TOL)
     grounded = hit | staying
     upside_down = R[..., 2, 2] < 0
-    yaw = yaw_of(R) + xp.where(hit & upside_down, yaw_draw, 0.0)
+    if yaw_draw_cs is not None:
+        c, s = yaw_cos_sin(R)
+        flip = hit & upside_down
+        dc, ds = yaw_draw_cs
+        c, s = xp.where(flip, c * dc - s * ds, c), xp.where(flip, s * dc + c * ds, s)
+        yaw_q, yaw_R = yaw_quat_cs(c, s), (yaw_rotmat_cs(c, s) if with_rotmat else None)
+    else:
+        yaw = yaw_of(R) + xp.where(hit & upside_down, yaw_draw, 0.0)
+        yaw_q, yaw_R = yaw_quat(yaw), (yaw_rotmat(yaw) if with_rotmat else None)
     new_pos = xp.concatenate([pos[..., :2], xp.where(grounded, floor_z, z)[..., None]], axis=-1)
     zero2 = xp.zeros_like(vel[..., :2])
     vel_stay = xp.concatenate([vel[..., :2], zero2[..., :1]], axis=-1)
     new_vel = xp.where(hit[..., None], 0.0 * vel, xp.where(staying[..., None], vel_stay, vel))
     omega_stay = xp.concatenate([zero2, omega[..., 2:]], axis=-1)
     new_omega = xp.where(hit[..., None], 0.0 * omega, xp.where(staying[..., None], omega_stay, omega))
-    new_quat = xp.where(grounded[..., None], yaw_quat(yaw), quat)
+    new_quat = xp.where(grounded[..., None], yaw_q, quat)
     new_u = xp.where(hit[..., None], 0.0 * u, u)
     out = {"pos": new_pos, "vel": new_vel, "omega": new_omega, "quat": new_quat, "u": new_u, "on_floor": grounded,
            "hit_floor": hit}
     if with_rotmat:
-        out["R"] = xp.where(grounded[..., None, None], yaw_rotmat(yaw), R)
+        out["R"] = xp.where(grounded[..., None, None], yaw_R, R)
     return out
 
 
@@ -314,5 +327,76 @@ def expand_per_quad(mask: Any, slots: dict[str, Any]) -> dict[str, Any]:
 
     xp = array_namespace(mask, *slots.values())
     S = next(iter(slots.values())).shape[0]
+    if xp is not np and mask.ndim == 1:  # one world under jax: gather the slot rows (no batched dot)
+        slot = (xp.cumsum(mask.astype(xp.int32)) - 1) % S
+        return {k: xp.where(mask.reshape((-1,) + (1,) * (v.ndim - 1)), xp.take(v, slot, axis=0), 0.0)
+                for k, v in slots.items()}
     hot = event_slots(xp, mask, S)
     return {k: spread(xp, hot, v) for k, v in slots.items()}
+
+
+def quad_collisions_budgeted(pos: Any, vel: Any, omega: Any, prev_contact: Any, hitbox: float,
+                             slots: dict[str, Any]) -> dict[str, Any]:
+    """:func:`quad_collisions` of ONE world (``pos`` (N, 3)) computed only on the budgeted pairs (the
+    JAX engine's path; O(S) response work instead of (T, N, N, 3) tensors).
+
+    ``slots`` are the per-slot draws of :func:`quad_collision_slot_spec` (S slots). The new pairs
+    (i < j) are ranked row-major; the first S take slots 0..S-1 and get exactly the response that
+    :func:`quad_collisions` gives them with :func:`expand_quad_draws`' draws (the same formulas
+    per pair, summed per quad). New pairs beyond the budget are *deferred*: they get no response
+    this step and are left out of the returned ``contact`` (and ``new_contact``), so they are new
+    pairs again at the next control step. Returns ``vel, omega, contact, new_contact`` as
+    :func:`quad_collisions` (``new_contact``: the resolved pairs, symmetric).
+    """
+    xp = array_namespace(pos, vel)
+    n = pos.shape[-2]
+    S = slots["kick_mag"].shape[-1]
+    contact, dist = pairwise_contacts(pos, hitbox)
+    upper = np.triu(np.ones((n, n), bool), k=1)
+    new_u = (contact & ~prev_contact & upper).reshape(n * n)
+    rank = xp.cumsum(new_u.astype(xp.int32)) - 1
+    hot = new_u[:, None] & (rank[:, None] == np.arange(S))  # (N N, S): pair -> slot, first S only
+    resolved = xp.any(hot, axis=-1).reshape(n, n)
+    deferred = new_u.reshape(n, n) & ~resolved
+    hot3 = hot.reshape(n, n, S)
+    hi, hj = xp.any(hot3, axis=1), xp.any(hot3, axis=0)  # (N, S): quad q is i / j of slot s
+
+    def gather(x: Any, h: Any) -> Any:  # (N, D) rows of the slots' quads -> (S, D)
+        return xp.sum(xp.where(h[:, :, None], x[:, None, :], 0.0), axis=0)
+
+    def scatter(x: Any, h: Any) -> Any:  # (S, D) -> (N, D), summed over the quad's slots
+        return xp.sum(xp.where(h[:, :, None], x[None, :, :], 0.0), axis=1)
+
+    p_i, p_j, v_i, v_j = gather(pos, hi), gather(pos, hj), gather(vel, hi), gather(vel, hj)
+    rel = p_i - p_j
+    d = xp.sqrt(xp.sum(rel * rel, axis=-1))
+    nrm = rel / xp.where(d > 0, d, 1.0)[:, None]  # (S, 3) unit(p_i - p_j)
+    vin = xp.sum(v_i * nrm, axis=-1)
+    vjn = xp.sum(v_j * nrm, axis=-1)
+    change = (vjn - vin)[:, None] * nrm
+    shift_i = change + slots["shared"] + slots["own_i"]  # (T, S, 3)
+    shift_j = -change - slots["shared"] + slots["own_j"]
+    sep_i = xp.sum((v_i + shift_i) * nrm, axis=-1)  # (T, S)
+    sep_j = -xp.sum((v_j + shift_j) * nrm, axis=-1)
+    ok = (sep_i > 0) & (sep_j > 0)
+    tries = ok.shape[0]
+    sel_i, sel_j = shift_i[tries - 1], shift_j[tries - 1]
+    for t in range(tries - 2, -1, -1):  # first try that separates (static, tiny loop)
+        sel_i = xp.where(ok[t][:, None], shift_i[t], sel_i)
+        sel_j = xp.where(ok[t][:, None], shift_j[t], sel_j)
+    dv = scatter(sel_i, hi) + scatter(sel_j, hj)
+    s_pair = xp.maximum(xp.sqrt(xp.sum(v_i * v_i, axis=-1)), xp.sqrt(xp.sum(v_j * v_j, axis=-1)))  # (S,)
+    h_any = hi | hj
+    involved = xp.any(h_any, axis=-1)
+    vmax = xp.max(xp.where(h_any, s_pair[None, :], 0.0), axis=-1)
+    v_new = (vel + dv) * slots["decay"][:, None]
+    s_new = xp.sqrt(xp.sum(v_new * v_new, axis=-1))
+    scale = xp.minimum(1.0, vmax / xp.where(s_new > 0, s_new, 1.0))
+    v_new = v_new * scale[:, None]
+    kick = safe_normalize(xp, slots["kick_dir"]) * slots["kick_mag"][:, None]  # (S, 3): +w for i, -w for j
+    d_omega = scatter(kick, hi) - scatter(kick, hj)
+    inv = involved[:, None]
+    drop = deferred | deferred.T
+    res = resolved | resolved.T
+    return {"vel": xp.where(inv, v_new, vel), "omega": xp.where(inv, omega + d_omega, omega),
+            "contact": contact & ~drop, "new_contact": res, "dist": dist}

@@ -107,6 +107,21 @@ def _gather_index(rows: int, n: int, k: int) -> tuple[np.ndarray, np.ndarray]:
     return first, own
 
 
+def _nearest_one_hot(xp: Any, key: Any, k: int) -> Any:
+    """(..., N, K, N) bool: [i, r, j] = j is the r-th smallest ``key[..., i, :]``, exactly as a stable
+    argsort (``jnp.argsort``) orders them: ascending, NaNs last, ties by index. A sort-free form for
+    small N (an (N, N, N) comparison count), which XLA fuses and vectorizes."""
+    n = key.shape[-1]
+    nan = xp.isnan(key)
+    kk = xp.where(nan, xp.inf, key)
+    before = np.arange(n)[None, :] < np.arange(n)[:, None]  # [j, l] = l < j
+    kl, kj = kk[..., :, None, :], kk[..., :, :, None]  # [i, j, l] = key[i, l], key[i, j]
+    nl, nj = nan[..., :, None, :], nan[..., :, :, None]
+    less = (nl < nj) | ((nl == nj) & ((kl < kj) | ((kl == kj) & before)))
+    rank = xp.sum(less.astype(xp.int32), axis=-1)  # (..., N, N): sorted position of j in row i
+    return rank[..., :, None, :] == np.arange(k)[:, None]
+
+
 def _neighbor_bounds(cfg: EnvConfig) -> np.ndarray:
     return np.asarray(tuple(cfg.room_size) + (cfg.neighbor_vel_clip,) * 3, dtype=np.float64)
 
@@ -133,6 +148,15 @@ def neighbor_obs(cfg: EnvConfig, pos: Any, vel: Any, dist: Any | None = None, cl
     else:
         key = dist
     key = xp.where(off_diagonal(n), key, xp.inf)
+    if xp is not np:
+        # jax: rank by comparison + one-hot selection (a stable argsort's first K, same order and ties)
+        hot = _nearest_one_hot(xp, key, k)  # (..., N, K, N)
+        idx = xp.sum(xp.where(hot, np.arange(n, dtype=np.int32), 0), axis=-1)  # (..., N, K)
+        g = xp.take_along_axis(pv[..., None, :, :], idx[..., None], axis=-2) - pv[..., :, None, :]
+        if clip:
+            bound = xp.asarray(_neighbor_bounds(cfg), dtype=pos.dtype)
+            g = xp.minimum(xp.maximum(g, -bound), bound)
+        return g.reshape(pos.shape[:-1] + (6 * k,))
     idx = xp.argsort(key, axis=-1)[..., :k]  # (..., N, K)
     # gather rows of (p, v): the K neighbours j of every (world, quad) row i, and i itself K times;
     # p_j - p_i is computed on the gathered rows (one contiguous subtraction)

@@ -129,6 +129,39 @@ def yaw_rotmat(yaw: Any) -> Any:
     return xp.stack([c, -s, z, s, c, z, z, z, o], axis=-1).reshape(yaw.shape + (3, 3))
 
 
+def yaw_cos_sin(R: Any) -> tuple[Any, Any]:
+    """(cos, sin) of :func:`yaw_of` without trigonometry: the body x axis' xy projection normalized
+    ((1, 0) where it vanishes, as ``atan2(0, 0) = 0``). Equal to ``cos/sin(yaw_of(R))`` up to round-off."""
+    xp = array_namespace(R)
+    c0, s0 = R[..., 0, 0], R[..., 1, 0]
+    h = xp.sqrt(c0 * c0 + s0 * s0)
+    ok = h > 0
+    inv = 1.0 / xp.where(ok, h, 1.0)
+    return xp.where(ok, c0 * inv, 1.0), xp.where(ok, s0 * inv, 0.0)
+
+
+def yaw_quat_cs(c: Any, s: Any) -> Any:
+    """:func:`yaw_quat` of the yaw with cosine ``c`` and sine ``s`` (trig-free, the half-angle
+    formulas in their well-conditioned branches; the representative with w >= 0, as ``yaw_quat``
+    of an angle in [-pi, pi])."""
+    xp = array_namespace(c, s)
+    pos_branch = c >= 0
+    ch_a = xp.sqrt(xp.maximum(0.5 * (1.0 + c), 0.0))
+    sh_b = xp.sqrt(xp.maximum(0.5 * (1.0 - c), 0.0))
+    sh_b = xp.where(s < 0, -sh_b, sh_b) if xp is np else xp.copysign(sh_b, s)
+    ch = xp.where(pos_branch, ch_a, s / xp.where(pos_branch, 1.0, 2.0 * sh_b))
+    sh = xp.where(pos_branch, s / xp.where(pos_branch, 2.0 * ch_a, 1.0), sh_b)
+    z = xp.zeros_like(c)
+    return xp.stack([ch, z, z, sh], axis=-1)
+
+
+def yaw_rotmat_cs(c: Any, s: Any) -> Any:
+    """:func:`yaw_rotmat` from the yaw's cosine and sine."""
+    xp = array_namespace(c, s)
+    z, o = xp.zeros_like(c), xp.ones_like(c)
+    return xp.stack([c, -s, z, s, c, z, z, z, o], axis=-1).reshape(c.shape + (3, 3))
+
+
 def rotate(R: Any, v: Any) -> Any:
     """Apply (..., 3, 3) rotations to (..., 3) vectors."""
     xp = array_namespace(R, v)

@@ -111,3 +111,34 @@ def test_post_collision_speed_and_spin_distributions_match_cpu_engine():
     s0 = jax.jit(jax.vmap(one_quiet))(jax.random.split(jax.random.key(5), 200))
     spin0 = np.linalg.norm(np.asarray(s0.info["state"]["omega"]), axis=-1)[:, 0]
     assert stats.ks_2samp(cpu_spin[:, 0], spin0).pvalue < 1e-6
+
+
+def test_budgeted_quad_collisions_equal_the_dense_model_within_the_budget_and_defer_beyond():
+    from quadswarm_mj.collisions import new_pairs_upper, quad_collisions, quad_collisions_budgeted
+    from quadswarm_mj.spatial import yaw_cos_sin, yaw_of, yaw_quat, yaw_quat_cs
+
+    rng = np.random.default_rng(3)
+    n, T, S, hb = 6, 3, 2, 0.3
+    seen = {"within": 0, "beyond": 0}
+    for _ in range(300):
+        pos, vel, om = rng.uniform(-0.4, 0.4, (n, 3)), rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+        prev = rng.random((n, n)) < 0.5
+        prev = prev | prev.T
+        slots = {"shared": rng.normal(size=(T, S, 3)), "own_i": rng.normal(size=(T, S, 3)),
+                 "own_j": rng.normal(size=(T, S, 3)), "kick_dir": rng.normal(size=(S, 3)),
+                 "kick_mag": rng.uniform(size=(S,)), "decay": rng.uniform(0.2, 1.0, size=(n,))}
+        new = new_pairs_upper(pos, prev, hb)
+        b = quad_collisions_budgeted(pos, vel, om, prev, hb, slots)
+        if new.sum() <= S:
+            seen["within"] += 1
+            a = quad_collisions(pos, vel, om, prev, hb, expand_quad_draws(new, slots))
+            for key in ("vel", "omega", "contact", "new_contact"):
+                np.testing.assert_allclose(b[key], a[key], rtol=1e-12, atol=1e-12, err_msg=key)
+        else:  # the pairs beyond the budget are left out of contact: new again at the next step
+            seen["beyond"] += 1
+            ranked = np.argwhere(new)[S:]
+            assert not b["contact"][ranked[:, 0], ranked[:, 1]].any() and b["new_contact"].sum() == 2 * S
+    assert seen["within"] > 50 and seen["beyond"] > 0
+    R = rng.normal(size=(200, 3, 3))
+    c, s = yaw_cos_sin(R)
+    np.testing.assert_allclose(yaw_quat_cs(c, s), yaw_quat(yaw_of(R)), atol=1e-12)

@@ -34,7 +34,9 @@ quad-quad pairs: ``collisions.QUAD_PAIR_BUDGET``; wall/ceiling bounces: ``WALL_B
 landings per sub-step: ``FLOOR_BUDGET``; downwash pairs: ``downwash.DOWNWASH_BUDGET``). Events
 are ranked in index order (pairs i < j row-major); event r takes slot r mod budget, so every
 event's draws have SPEC §5's distribution exactly, and only beyond the budget (more simultaneous
-events in one world and step) do events repeat the draws of an earlier event of that step. The
+events in one world and step) do events repeat the draws of an earlier event of that step; new
+quad-quad pairs beyond ``QUAD_PAIR_BUDGET`` are instead deferred to the next control step (their
+response is computed only for the budgeted pairs: ``collisions.quad_collisions_budgeted``). The
 CPU engine draws per event. ``tests/test_draw_budget.py`` compares post-collision speeds and spins
 of both engines with a KS test.
 
@@ -119,14 +121,12 @@ from quadswarm_mj.collisions import (
     WALL_BUDGET,
     collision_draw_specs,
     expand_per_quad,
-    expand_quad_draws,
     floor_draw_spec,
     floor_impact,
     floor_wrench,
-    new_pairs_upper,
     pairwise_contacts,
     quad_collision_slot_spec,
-    quad_collisions,
+    quad_collisions_budgeted,
     wall_bounces,
     wall_collisions,
     wall_draw_spec,
@@ -463,7 +463,8 @@ class MjxQuadSwarmEnv:
         zero_u = jnp.zeros((n, 4), f)
         eye = jnp.broadcast_to(jnp.eye(3, dtype=f), (n, 3, 3))
         quat = jnp.broadcast_to(jnp.asarray([1.0, 0.0, 0.0, 0.0], f), (n, 4))
-        fl = floor_impact(pos, vel, omega, quat, eye, zero_u, yes, cfg.quad.arm, jnp.zeros((n,), f))
+        fl = floor_impact(pos, vel, omega, quat, eye, zero_u, yes, cfg.quad.arm, None,
+                          yaw_draw_cs=(jnp.ones((n,), f), jnp.zeros((n,), f)))
         w = wall_collisions(pos, vel, omega, yes, yes, jnp.asarray(cfg.room_low, f), jnp.asarray(cfg.room_high, f),
                             MeanSampler(dtype=f, xp=jnp).draw(self._spec_wall), cfg.collision.wall_speed_limits)
         return fl["on_floor"], w["at_wall"], w["at_ceiling"]
@@ -583,8 +584,9 @@ class MjxQuadSwarmEnv:
                 v = jnp.concatenate([v[:, :3], omega], -1)
                 return (q, v, R, u, f_norm, on_floor, hit_floor, aux, ctrl), None
             landing = (q[:, 2] <= floor_z) & ~on_floor
-            yaw = expand_per_quad(landing, {"yaw": yaw_slots})["yaw"]
-            r = floor_impact(q[:, :3], v[:, :3], omega, q[:, 3:7], R, u, on_floor, floor_z, yaw)
+            d = expand_per_quad(landing, {"c": yaw_slots[0], "s": yaw_slots[1]})  # trig-free yaw draws
+            r = floor_impact(q[:, :3], v[:, :3], omega, q[:, 3:7], R, u, on_floor, floor_z, None,
+                             yaw_draw_cs=(d["c"], d["s"]))
             q = jnp.concatenate([r["pos"], r["quat"]], -1)
             v = jnp.concatenate([r["vel"], r["omega"]], -1)
             return (q, v, r["R"], r["u"], f_norm, r["on_floor"], hit_floor | r["hit_floor"], aux, ctrl), None
@@ -593,7 +595,8 @@ class MjxQuadSwarmEnv:
         aux0 = data if self.physics == "mjx" else None
         carry0 = (q0.astype(f), v0.astype(f), info["state"]["rot"], info["motor_u"], info["state"]["thrust"],
                   info["on_floor"], jnp.zeros((n,), bool), aux0, self._ctrl0(info, eps))
-        (q, v, R, u, f_norm, on_floor, hit_floor, aux, ctrl), _ = jax.lax.scan(substep, carry0, rnd["floor/yaw"])
+        yaw_cs = (jnp.cos(rnd["floor/yaw"]), jnp.sin(rnd["floor/yaw"]))  # (substeps, slots) each
+        (q, v, R, u, f_norm, on_floor, hit_floor, aux, ctrl), _ = jax.lax.scan(substep, carry0, yaw_cs)
         data = data if aux is None else aux
         # once per control step: walls, ceiling, quad-quad, (obstacles), downwash (velocity-level models)
         pos, vel, omega = q[:, :3], v[:, :3], v[:, 3:]
@@ -613,9 +616,7 @@ class MjxQuadSwarmEnv:
             w = {"hit_wall": at_wall & ~info["at_wall"], "hit_ceiling": at_ceiling & ~info["at_ceiling"],
                  "at_wall": at_wall, "at_ceiling": at_ceiling}
         if self._paper_quads:
-            new_upper = new_pairs_upper(pos, info["contact"], cfg.hitbox)
-            q_draws = expand_quad_draws(new_upper, _sub(rnd, "quad"))
-            qc = quad_collisions(pos, vel, omega, info["contact"], cfg.hitbox, q_draws)
+            qc = quad_collisions_budgeted(pos, vel, omega, info["contact"], cfg.hitbox, _sub(rnd, "quad"))
             vel, omega = qc["vel"], qc["omega"]
         else:
             contact, _ = pairwise_contacts(pos, cfg.hitbox)
