@@ -180,25 +180,7 @@ def bench_jax_batch(cfg: EnvConfig, worlds: int, steps: int, **kw: Any) -> dict[
 
 def bench_single_jax(n: int, seconds: float, repeat: int, cfg: EnvConfig | None = None) -> float:
     """``QuadSwarmEnv(engine="jax")``: one world, one Python ``step`` per control step, hover actions."""
-    cfg = cfg or EnvConfig(num_quads=n)
-    env = QuadSwarmEnv(cfg, engine="jax")
-    env.reset(seed=0)
-    a = hover_like(env.action_space.shape)
-    for _ in range(3):  # compile
-        env.step(a)
-
-    def run(steps: int) -> float:
-        t = time.perf_counter()
-        for _ in range(steps):
-            _, _, _, trunc, _ = env.step(a)
-            if trunc:
-                env.reset()
-        return time.perf_counter() - t
-
-    try:
-        return cfg.num_quads * timed(run, seconds, repeat)
-    finally:
-        env.close()
+    return _bench_single_cfg(cfg or EnvConfig(num_quads=n), seconds, repeat, "jax")
 
 
 def crazyflow_rates(worlds: int, n: int, steps: int, seconds: float, repeat: int) -> dict[str, float] | None:
@@ -564,6 +546,8 @@ def _bench_single_cfg(cfg: EnvConfig, seconds: float, repeat: int, engine: str =
     env = QuadSwarmEnv(cfg, engine=engine) if engine != "mujoco" else QuadSwarmEnv(cfg)
     env.reset(seed=0)
     a = hover_like(env.action_space.shape)
+    for _ in range(3):  # compile (JAX engine) and warm up
+        env.step(a)
 
     def run(steps: int) -> float:
         t = time.perf_counter()
