@@ -499,22 +499,24 @@ def _jax_rows(rows: set[str], args: Any, seconds: float, repeat: int, steps: int
             if res is not None:
                 print("ablation", variant, res, flush=True)
                 out.append((f"JAX engine, {W} x 8, {variant}", res["samples_per_s"], f"{res['compile_s']:.1f}", ""))
-    if "obstacles" in rows:
+    if "obstacles" in rows:  # the same swarm and scenario with and without 12 columns, then o_random
         from quadswarm_mj.config import ObstacleConfig
 
-        ocfg = base.replace(obstacles=ObstacleConfig(), scenario="o_random")
-        for W in (512,):
-            plain, obst = bench_jax_batch(base, W, steps), bench_jax_batch(ocfg, W, steps)
-            if plain and obst:
-                out.append((f"JAX engine, {W} x 8, obstacles (o_random, 12 columns)", obst["samples_per_s"],
-                            f"{obst['compile_s']:.1f}",
-                            f"{100 * (plain['samples_per_s'] / obst['samples_per_s'] - 1):.0f} % more step time "
-                            "than without obstacles"))
-        for label, engine in (("QuadSwarmEnv (MuJoCo engine)", "mujoco"),):
-            plain = bench_single(8, "hover", seconds, repeat)
-            env_o = _bench_single_cfg(ocfg, seconds, repeat, engine)
-            out.append((f"{label}, 1 x 8, obstacles", env_o, "",
-                        f"{100 * (plain / env_o - 1):.0f} % more step time than without obstacles"))
+        ocfg = base.replace(obstacles=ObstacleConfig())
+        rcfg = ocfg.replace(scenario="o_random")
+        W = 512
+        plain, obst, orand = (bench_jax_batch(c, W, steps) for c in (base, ocfg, rcfg))
+        if plain and obst and orand:
+            for label, r in (("static_same_goal + obstacles (12 columns)", obst), ("o_random", orand)):
+                out.append((f"JAX engine, {W} x 8, {label}", r["samples_per_s"], f"{r['compile_s']:.1f}",
+                            f"{100 * (plain['samples_per_s'] / r['samples_per_s'] - 1):.0f} % more step time "
+                            "than static_same_goal without obstacles"))
+        plain_cpu = _bench_single_cfg(base, seconds, repeat)
+        for label, c in (("static_same_goal + obstacles (12 columns)", ocfg), ("o_random", rcfg)):
+            r = _bench_single_cfg(c, seconds, repeat)
+            out.append((f"QuadSwarmEnv (MuJoCo engine), 1 x 8, {label}", r, "",
+                        f"{100 * (plain_cpu / r - 1):.0f} % more step time than without obstacles ("
+                        f"{fmt(plain_cpu)})"))
     if "jaxsingle" in rows:
         rate = bench_single_jax(8, seconds, repeat)
         peer = peers.get(1)
