@@ -297,7 +297,7 @@ def test_parity_x64_through_floor_wall_ceiling_and_quad_collisions(physics):
 def test_mujoco_contacts_headon_case_matches_cpu_env(model):
     """collision_model 'mujoco'/'blend' through physics='mjx': the reference head-on case
     (golden_d setup) on the JAX engine stays within 5 mm of the CPU env with the same model."""
-    from tests.test_reference_parity import load
+    from test_reference_parity import load  # tests/ is on sys.path (pytest rootdir-relative import)
 
     ref, meta = load("golden_d_headon_collision_noisefree.npz")
     n = meta["num_quads"]
