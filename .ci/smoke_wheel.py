@@ -53,7 +53,10 @@ def main() -> int:
     from quadswarm_mj.policies import load_policy
 
     where = Path(quadswarm_mj.__file__).resolve()
-    check(not where.is_relative_to(checkout) and "site-packages" in where.parts, f"imported from {where.parent}")
+    # the wheel venv may live inside the checkout (.ci/venv-wheel): what matters is that the package
+    # is the installed copy in site-packages, not the checkout's source tree
+    check(not where.is_relative_to(checkout / "quadswarm_mj") and "site-packages" in where.parts,
+          f"imported from {where.parent}")
 
     env = QuadSwarmEnv(EnvConfig(num_quads=4, scenario="swap_goals"), render_mode="rgb_array")
     obs, info = env.reset(seed=0)
