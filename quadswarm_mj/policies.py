@@ -85,6 +85,22 @@ def _activation(name: str, x: np.ndarray) -> np.ndarray:
     raise ValueError(f"activation must be one of {ACTIVATIONS}, got {name!r}")
 
 
+def _env_kwargs(meta: dict[str, Any]) -> dict[str, Any]:
+    """The EnvConfig overrides recorded in a policy file's metadata (JSON lists back to tuples)."""
+    env = dict(meta.get("env", {}))
+    if "room_size" in env:
+        env["room_size"] = tuple(env["room_size"])
+    return env
+
+
+def _normalized_rows(obs: Any, obs_dim: int, mean: np.ndarray, std: np.ndarray) -> tuple[tuple[int, ...], np.ndarray]:
+    """(leading shape, (rows, obs_dim) normalized float64 observations); ValueError on a wrong last axis."""
+    x = np.asarray(obs, dtype=np.float64)
+    if x.ndim < 1 or x.shape[-1] != obs_dim:
+        raise ValueError(f"observations must have shape (..., {obs_dim}), e.g. (N, {obs_dim}); got {x.shape}")
+    return x.shape[:-1], (x.reshape(-1, obs_dim) - mean) / std
+
+
 def sha256_file(path: str | os.PathLike) -> str:
     """Hex SHA-256 of a file's bytes."""
     h = hashlib.sha256()
@@ -156,19 +172,11 @@ class MLPPolicy:
     @property
     def env_kwargs(self) -> dict[str, Any]:
         """EnvConfig overrides that reproduce the observation layout the policy was trained on."""
-        env = dict(self.meta.get("env", {}))
-        if "room_size" in env:
-            env["room_size"] = tuple(env["room_size"])
-        return env
+        return _env_kwargs(self.meta)
 
     def __call__(self, obs: Any) -> np.ndarray:
         """Deterministic actions: obs (..., obs_dim) -> (..., 4) float32 in [-1, 1] (e.g. (N, obs_dim) -> (N, 4))."""
-        x = np.asarray(obs, dtype=np.float64)
-        if x.ndim < 1 or x.shape[-1] != self.obs_dim:
-            raise ValueError(f"observations must have shape (..., {self.obs_dim}), e.g. (N, {self.obs_dim}); "
-                             f"got {x.shape}")
-        lead = x.shape[:-1]
-        h = (x.reshape(-1, self.obs_dim) - self.obs_mean) / self.obs_std
+        lead, h = _normalized_rows(obs, self.obs_dim, self.obs_mean, self.obs_std)
         last = len(self.kernels) - 1
         for i, (k, b) in enumerate(zip(self.kernels, self.biases)):
             h = h @ k + b
@@ -551,19 +559,11 @@ class EncoderPolicy:
     @property
     def env_kwargs(self) -> dict[str, Any]:
         """EnvConfig overrides that reproduce the observation layout the policy was trained on."""
-        env = dict(self.meta.get("env", {}))
-        if "room_size" in env:
-            env["room_size"] = tuple(env["room_size"])
-        return env
+        return _env_kwargs(self.meta)
 
     def __call__(self, obs: Any) -> np.ndarray:
         """Deterministic actions: obs (..., obs_dim) -> (..., 4) float32 in [-1, 1]."""
-        x = np.asarray(obs, dtype=np.float64)
-        if x.ndim < 1 or x.shape[-1] != self.obs_dim:
-            raise ValueError(f"observations must have shape (..., {self.obs_dim}), e.g. (N, {self.obs_dim}); "
-                             f"got {x.shape}")
-        lead = x.shape[:-1]
-        h = (x.reshape(-1, self.obs_dim) - self.obs_mean) / self.obs_std
+        lead, h = _normalized_rows(obs, self.obs_dim, self.obs_mean, self.obs_std)
         out = encoder_forward(self.arch, self.obs_layout, self.params, h)
         a = np.clip(np.tanh(out[:, : self.action_dim]), -1.0, 1.0).astype(np.float32)
         return a.reshape(lead + (self.action_dim,))
