@@ -1,9 +1,11 @@
 """Episode metrics (SPEC §8), accumulated per quad with pure array updates (any batch dims).
 
 ``info["episode_metrics"]`` at the end of an episode holds, per world (means over quads):
-``success``, ``collisions``, ``floor_hits``, ``wall_hits``, ``ceiling_hits``, ``mean_distance``,
-``goal_reach_rate`` (see :func:`finalize`); with obstacles also ``obstacle_collisions`` and
-``collision_rate`` (:func:`quadswarm_mj.obstacles.metrics_finalize`, :func:`metric_keys`).
+``success``, ``collisions``, ``collision_rate`` (fraction of quads with at least one collision after
+the grace period), ``floor_hits``, ``wall_hits``, ``ceiling_hits``, ``mean_distance``,
+``goal_reach_rate`` (see :func:`finalize`); with obstacles also ``obstacle_collisions``, and
+``collision_rate``/``success`` count obstacle contacts too
+(:func:`quadswarm_mj.obstacles.metrics_finalize`, :func:`metric_keys`).
 """
 
 from __future__ import annotations
@@ -17,10 +19,10 @@ SUCCESS_DISTANCE = 0.5  # m, mean over the last LAST_STEPS steps
 LAST_STEPS = 5
 REACH_DISTANCE = 0.3  # m
 MIN_SEGMENT_S = 3.0  # s, shorter goal segments are not counted in goal_reach_rate
-METRIC_KEYS = ("success", "collisions", "floor_hits", "wall_hits", "ceiling_hits", "mean_distance",
-               "goal_reach_rate")
-#: added with obstacles on (``success`` then also counts obstacle contacts; SPEC_obstacles A.4)
-OBSTACLE_METRIC_KEYS = ("obstacle_collisions", "collision_rate")
+METRIC_KEYS = ("success", "collisions", "collision_rate", "floor_hits", "wall_hits", "ceiling_hits",
+               "mean_distance", "goal_reach_rate")
+#: added with obstacles on (``success`` and ``collision_rate`` then also count obstacle contacts; SPEC_obstacles A.4)
+OBSTACLE_METRIC_KEYS = ("obstacle_collisions",)
 
 
 def metric_keys(cfg: Any) -> tuple[str, ...]:
@@ -88,6 +90,7 @@ def finalize(m: dict[str, Any], t_end: Any) -> dict[str, Any]:
     return {
         "success": xp.mean(success.astype(f), axis=-1),
         "collisions": xp.mean(m["collisions"], axis=-1),
+        "collision_rate": xp.mean((m["collisions"] > 0).astype(f), axis=-1),
         "floor_hits": xp.mean(m["floor_hits"], axis=-1),
         "wall_hits": xp.mean(m["wall_hits"], axis=-1),
         "ceiling_hits": xp.mean(m["ceiling_hits"], axis=-1),

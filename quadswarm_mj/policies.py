@@ -717,6 +717,9 @@ def load_pretrained(name: str, directory: str | os.PathLike | None = None) -> ML
 
 
 # ---------------------------------------------------------------------------- baselines
+#: m from a column's surface within which the baseline controller steers away (with obstacles on)
+OBSTACLE_STEER_RADIUS = 0.6
+
 class ControllerPolicy:
     """The baseline position controller (``quadswarm_mj.controllers.PositionController``) as a policy.
 
@@ -729,9 +732,13 @@ class ControllerPolicy:
     env_kwargs: dict[str, Any] = {}
 
     def __init__(self, cfg: Any = None):
-        from quadswarm_mj.controllers import PositionController
+        from quadswarm_mj.controllers import ControllerGains, PositionController
 
-        self.ctrl = PositionController(cfg)
+        o = getattr(cfg, "obstacles", None)
+        # with obstacles: steer around the columns of ``info["obstacles"]`` (as scripts/render_rollout.py)
+        gains = ControllerGains() if o is None else ControllerGains(obstacle_radius=OBSTACLE_STEER_RADIUS,
+                                                                    column_radius=0.5 * o.size)
+        self.ctrl = PositionController(cfg, gains)
 
     def act(self, obs: Any, info: dict[str, Any] | None = None) -> np.ndarray:
         if info is None or "state" not in info or "goals" not in info:
@@ -745,7 +752,7 @@ class ControllerPolicy:
         gv = info.get("goal_vel")
         gv = None if gv is None else np.asarray(gv).reshape(state["pos"].shape)
         params = info.get("params")
-        a = np.asarray(self.ctrl(state, goals, gv, params=params), dtype=np.float32)
+        a = np.asarray(self.ctrl(state, goals, gv, params=params, obstacles=info.get("obstacles")), dtype=np.float32)
         a = np.clip(a, -1.0, 1.0)
         return a.reshape(np.shape(obs)[:-1] + (4,))  # (4,) for a single quad's flat observation
 

@@ -73,10 +73,25 @@ def test_metrics_success_and_goal_reach():
             new[0, 1] = new[1, 0] = True
         m = metrics_lib.update(m, t, d, new, np.zeros(2, bool), np.zeros(2, bool), np.zeros(2, bool), jump, 1.5)
     out = metrics_lib.finalize(m, 6.0)
-    assert out["success"] == pytest.approx(0.5) and out["collisions"] == 0
+    assert out["success"] == pytest.approx(0.5) and out["collisions"] == 0 and out["collision_rate"] == 0
     # quad 0: one 6 s segment reached; quad 1: [0, 3) reached, [3, 6) not -> 2 of 3
     assert out["goal_reach_rate"] == pytest.approx(2 / 3)
     assert out["mean_distance"] == pytest.approx((0.1 + (0.1 * 299 + 1.0 * 301) / 600) / 2, rel=1e-6)
+
+
+def test_collision_rate_is_the_fraction_of_quads_that_collided_after_the_grace_period():
+    m = metrics_lib.init(np.zeros(4), (), 4)
+    none = np.zeros(4, bool)
+    for k, t in enumerate((1.0, 2.0, 3.0)):
+        new = np.zeros((4, 4), bool)
+        new[0, 1] = new[1, 0] = True  # quads 0 and 1 touch at every step (the first inside the grace period)
+        if k == 2:
+            new[0, 2] = new[2, 0] = True  # quad 2 once, after the grace period; quad 3 never
+        m = metrics_lib.update(m, t, np.full(4, 0.1), new, none, none, none, none, 1.5)
+    out = metrics_lib.finalize(m, 3.0)
+    assert out["collision_rate"] == pytest.approx(3 / 4)
+    assert out["collisions"] == pytest.approx((3 + 2 + 1 + 0) / 4)  # quad 0: 2 with 1, 1 with 2
+    assert out["success"] == pytest.approx(1 / 4)
 
 
 @pytest.mark.parametrize("mode", ["mujoco", "blend"])

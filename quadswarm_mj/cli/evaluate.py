@@ -2,15 +2,23 @@
 
     python scripts/evaluate.py --policy pretrained:single --scenarios static_same_goal,dynamic_same_goal
     python scripts/evaluate.py --policy pretrained:swarm8 --scenarios static_diff_goal,swap_goals --episodes 50
+    python scripts/evaluate.py --policy pretrained:swarm8_obstacles --episodes 100   # the obstacle scenarios
+    python scripts/evaluate.py --policy controller --num-quads 8 --env 'obstacles={"density": 0.2, "size": 0.6}'
     python scripts/evaluate.py --policy runs/single/final.npz          # a training checkpoint
     python scripts/evaluate.py --policy controller --num-quads 8 --scenarios swap_goals
     python scripts/evaluate.py --policy random
 
-Prints, per scenario: success rate (fraction of quads with no quad-quad collision after the
-grace period and mean distance to goal over the last 5 steps < 0.5 m), collisions per quad per
-episode (after the grace period), mean distance to goal (m), goal-reach rate (fraction of goal
-segments of >= 3 s in which the quad came within 0.3 m of its goal), floor hits per quad per
-episode, each with the standard error over episodes. ``--json FILE`` writes the same numbers.
+Default scenarios: the eleven paper scenarios for a swarm policy (the ten named ones and ``mix``),
+the obstacle scenarios (and ``mix`` with columns) for a policy trained among obstacles (or with
+``--env obstacles='{"density": 0.2}'``), static/dynamic same goal for one quad.
+
+Prints, per scenario: success rate (fraction of quads with no collision after the grace period
+and mean distance to goal over the last 5 steps < 0.5 m), collisions per quad per episode
+(quad-quad, after the grace period), collision rate (fraction of quads with at least one
+collision, obstacles included), obstacle collisions per quad per episode (with obstacles),
+goal-reach rate (fraction of goal segments of >= 3 s in which the quad came within 0.3 m of its
+goal), mean distance to goal (m), floor hits per quad per episode, each with the standard error
+over episodes. ``--json FILE`` writes the same numbers (and wall and ceiling hits).
 
 Episodes run with the environment defaults (motor_start "zero", all noise on) unless ``--env``
 overrides them. ``--mode gym`` steps ``QuadSwarmEnv`` one episode at a time; the default
@@ -25,7 +33,18 @@ import json
 import sys
 from typing import Any
 
-DEFAULT_SCENARIOS = {"single": "static_same_goal,dynamic_same_goal", "swarm": "static_diff_goal,swap_goals"}
+#: the eleven paper scenarios (the ten named ones and their ``mix``) and the obstacle scenarios (with ``mix``)
+PAPER_SCENARIOS = ("static_same_goal", "static_diff_goal", "dynamic_same_goal", "dynamic_diff_goal",
+                   "dynamic_formations", "swap_goals", "swarm_vs_swarm", "ep_lissajous3D", "ep_rand_bezier",
+                   "run_away", "mix")
+OBSTACLE_SCENARIOS = ("o_random", "o_static_same_goal", "o_dynamic_same_goal", "o_swap_goals", "o_ep_rand_bezier",
+                      "mix")
+DEFAULT_SCENARIOS = {"single": "static_same_goal,dynamic_same_goal", "swarm": ",".join(PAPER_SCENARIOS),
+                     "obstacles": ",".join(OBSTACLE_SCENARIOS)}
+#: columns of the printed table: metric key, header, width
+COLUMNS = (("success", "success", 13), ("collisions", "coll/quad", 13), ("collision_rate", "coll rate", 13),
+           ("obstacle_collisions", "obst coll", 13), ("goal_reach_rate", "goal reach", 13),
+           ("mean_distance", "mean dist m", 13), ("floor_hits", "floor hits", 13))
 
 
 def _kv(items: list[str] | None) -> dict[str, Any]:
@@ -66,26 +85,30 @@ def main(argv: list[str] | None = None) -> int:
     n = args.num_quads
     if n is None:
         n = getattr(policy, "env_kwargs", {}).get("num_quads", 1)
-    scen = args.scenarios or DEFAULT_SCENARIOS["single" if n == 1 else "swarm"]
+    env_over = _kv(args.env)
+    obstacles = env_over.get("obstacles", getattr(policy, "env_kwargs", {}).get("obstacles"))
+    kind = "single" if n == 1 else ("obstacles" if obstacles is not None else "swarm")
+    scen = args.scenarios or DEFAULT_SCENARIOS[kind]
     results = []
-    header = (f"{'scenario':<20} {'N':>3} {'eps':>4} {'success':>15} {'collisions/quad':>17} {'mean dist (m)':>15} "
-              f"{'goal reach':>15} {'floor hits':>11} {'time':>6}")
-    print(f"policy {args.policy}; {args.episodes} episodes per scenario; mode {args.mode}")
+    header = f"{'scenario':<20} {'N':>3} {'eps':>4} " + " ".join(h.rjust(w) for _, h, w in COLUMNS) + f" {'time':>6}"
+    print(f"policy {args.policy}; {args.episodes} episodes per scenario; mode {args.mode}; mean ± standard error")
     print(header)
     for s in [x.strip() for x in scen.split(",") if x.strip()]:
         try:
-            r = evaluate(policy, s, episodes=args.episodes, num_quads=n, seed=args.seed, env=_kv(args.env),
+            r = evaluate(policy, s, episodes=args.episodes, num_quads=n, seed=args.seed, env=env_over,
                          mode=args.mode, max_worlds=args.max_worlds)
         except ValueError as e:
             raise SystemExit(f"error: {e}") from None
         sm = r.summary()
         results.append(sm)
 
-        def f(k: str, w: int = 15, d: int = 3, sm: dict = sm) -> str:
-            return f"{sm[k]:.{d}f}±{sm[k + '_stderr']:.{d}f}".rjust(w)
+        def f(k: str, w: int, sm: dict = sm) -> str:
+            if k not in sm:
+                return "-".rjust(w)
+            return f"{sm[k]:.3f}±{sm[k + '_stderr']:.3f}".rjust(w)
 
-        print(f"{s:<20} {r.num_quads:>3} {r.episodes:>4} {f('success')} {f('collisions', 17)} {f('mean_distance')} "
-              f"{f('goal_reach_rate')} {sm['floor_hits']:>11.3f} {sm['seconds']:>5.0f}s", flush=True)
+        print(f"{s:<20} {r.num_quads:>3} {r.episodes:>4} " + " ".join(f(k, w) for k, _, w in COLUMNS)
+              + f" {sm['seconds']:>5.0f}s", flush=True)
     if args.json:
         with open(args.json, "w") as fh:
             json.dump({"policy": args.policy, "episodes": args.episodes, "seed": args.seed, "mode": args.mode,

@@ -36,13 +36,12 @@ import quadswarm_mj
 from quadswarm_mj import QuadSwarmEnv
 from quadswarm_mj.config import ObstacleConfig
 from quadswarm_mj.controllers import ControllerGains, PositionController
+from quadswarm_mj.policies import OBSTACLE_STEER_RADIUS
 from quadswarm_mj.render import SwarmRenderer
 
 #: A policy maps (observation, info) of ``QuadSwarmEnv`` to an action of its action space.
 Policy = Callable[[np.ndarray, dict[str, Any]], np.ndarray]
 BUILTIN_POLICIES = ("controller", "hover", "random")
-#: m from a column's surface within which the controller steers away (with obstacles on)
-OBSTACLE_STEER_RADIUS = 0.6
 
 
 def load_external_policy(spec: str) -> Any:

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from quadswarm_mj.config import EnvConfig
-from quadswarm_mj.metrics import METRIC_KEYS
+from quadswarm_mj.metrics import metric_keys
 
 
 @dataclass
@@ -51,7 +51,7 @@ class EvalResult:
     def summary(self) -> dict[str, Any]:
         out: dict[str, Any] = {"scenario": self.scenario, "num_quads": self.num_quads, "episodes": self.episodes,
                                "seconds": round(self.seconds, 1)}
-        for k in METRIC_KEYS:
+        for k in self.per_episode:
             out[k] = self.mean(k)
             out[k + "_stderr"] = self.stderr(k)
         return out
@@ -72,7 +72,8 @@ def make_eval_config(policy: Any, scenario: str, num_quads: int | None = None,
 def _batched(policy: Any, cfg: EnvConfig, episodes: int, seed: int, max_worlds: int) -> dict[str, np.ndarray]:
     from quadswarm_mj.envs.cpu_core import CpuSwarm
 
-    out: dict[str, list] = {k: [] for k in METRIC_KEYS}
+    keys = metric_keys(cfg)
+    out: dict[str, list] = {k: [] for k in keys}
     done_eps, chunk = 0, 0
     while done_eps < episodes:
         B = min(max_worlds, episodes - done_eps)
@@ -83,6 +84,8 @@ def _batched(policy: Any, cfg: EnvConfig, episodes: int, seed: int, max_worlds: 
         for _ in range(cfg.episode_steps):
             info = {"state": core.state_dict(), "goals": core.sstate.goals, "goal_vel": core.sstate.goal_vel,
                     "params": core.params_dict()}
+            if core.omap is not None:
+                info["obstacles"] = core.omap
             a = np.asarray(policy.act(obs, info), dtype=np.float64).reshape(B, cfg.num_quads, 4)
             if not np.all(np.isfinite(a)):
                 raise ValueError("the policy returned non-finite actions")
@@ -91,7 +94,7 @@ def _batched(policy: Any, cfg: EnvConfig, episodes: int, seed: int, max_worlds: 
         if not np.all(res["truncated"]):
             raise RuntimeError("episodes did not end together")  # pragma: no cover - engine invariant
         m = core.episode_metrics()
-        for k in METRIC_KEYS:
+        for k in keys:
             out[k].append(np.asarray(m[k], float))
         done_eps += B
         chunk += 1
@@ -102,7 +105,8 @@ def _gym(policy: Any, cfg: EnvConfig, episodes: int, seed: int) -> dict[str, np.
     from quadswarm_mj.envs.gym_env import QuadSwarmEnv
 
     env = QuadSwarmEnv(cfg)
-    out: dict[str, list] = {k: [] for k in METRIC_KEYS}
+    keys = metric_keys(cfg)
+    out: dict[str, list] = {k: [] for k in keys}
     try:
         for ep in range(episodes):
             obs, info = env.reset(seed=seed * 1_000_003 + ep)
@@ -111,7 +115,7 @@ def _gym(policy: Any, cfg: EnvConfig, episodes: int, seed: int) -> dict[str, np.
                 obs, _, term, trunc, info = env.step(np.clip(a, -1.0, 1.0))
                 if term or trunc:
                     break
-            for k in METRIC_KEYS:
+            for k in keys:
                 out[k].append(float(info["episode_metrics"][k]))
     finally:
         env.close()

@@ -22,7 +22,6 @@ from typing import Any
 
 import numpy as np
 
-from quadswarm_mj.metrics import METRIC_KEYS
 from quadswarm_mj.policies import MANIFEST, load_policy_file, sha256_file
 from quadswarm_mj.training.evaluation import evaluate
 
@@ -48,7 +47,7 @@ def release(name: str, policy_path: str | Path, scenarios: list[str], directory:
     for s in scenarios:
         r = evaluate(pol, s, episodes=episodes, seed=seed)
         e: dict[str, Any] = {"episodes": episodes, "seed": seed, "num_quads": r.num_quads}
-        for k in METRIC_KEYS:
+        for k in r.per_episode:
             v = r.per_episode[k]
             v = v[np.isfinite(v)]
             e[k] = _finite(r.mean(k))

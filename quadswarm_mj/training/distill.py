@@ -1,0 +1,272 @@
+"""Distil a trained policy into a small (deployable) encoder on the JAX engine (DAgger).
+
+A teacher (any policy file: MLP or encoder) and a student encoder (a preset of
+``quadswarm_mj.policies.ARCH_PRESETS``, e.g. ``deepsets_deployable``) see the same observation
+layout; the student keeps the teacher's observation normalizer. Each jitted iteration:
+
+1. rolls out ``num_worlds`` worlds of :class:`~quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv` for
+   ``unroll_length`` control steps (auto-reset), every world flown either by the teacher (with
+   probability ``beta``, annealed from 1 to 0 over ``beta_iterations``) or by the student
+   (DAgger: the student visits its own states, the teacher labels them);
+2. stores (normalized observation, teacher action) of every quad in a ring buffer on the device;
+3. takes ``sgd_steps`` Adam steps on random minibatches of the buffer, minimizing the squared
+   difference of the deterministic actions ``tanh(mean)`` (N, 4) in [-1, 1].
+
+The output is a policy file (``quadswarm_mj.policy/2``) that ``load_policy`` reads, with the
+teacher's ``env_kwargs`` (so ``QuadSwarmEnv(scenario=..., **student.env_kwargs)`` builds the env it
+flies) and ``export_c`` exports. Command line::
+
+    python -m quadswarm_mj.training.distill --teacher runs/swarm8/best.npz --arch deepsets_deployable \\
+        --scenario mix --out runs/swarm8_dep --minutes 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.policies import (
+    ARCH_PRESETS,
+    EncoderPolicy,
+    MLPPolicy,
+    count_params,
+    load_policy,
+    param_shapes,
+    sha256_file,
+)
+
+
+@dataclass(frozen=True)
+class DistillConfig:
+    """DAgger hyper-parameters (counts are per iteration unless stated)."""
+
+    num_worlds: int = 128
+    unroll_length: int = 32
+    buffer_size: int = 1_000_000  # samples (quad observations)
+    sgd_steps: int = 32
+    batch_size: int = 4096
+    learning_rate: float = 3e-3
+    beta_iterations: int = 20  # teacher share 1 -> 0 over these iterations
+
+    def __post_init__(self) -> None:
+        for name in ("num_worlds", "unroll_length", "buffer_size", "sgd_steps", "batch_size"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise ValueError(f"DistillConfig.{name} must be an int >= 1, got {v!r}")
+        if not (isinstance(self.beta_iterations, int) and self.beta_iterations >= 0):
+            raise ValueError(f"DistillConfig.beta_iterations must be an int >= 0, got {self.beta_iterations!r}")
+        if not (np.isfinite(self.learning_rate) and self.learning_rate > 0):
+            raise ValueError(f"DistillConfig.learning_rate must be > 0, got {self.learning_rate!r}")
+
+
+def teacher_fn(policy: MLPPolicy | EncoderPolicy) -> Any:
+    """A jnp function: normalized observations (..., D) -> deterministic actions (..., 4) in [-1, 1]."""
+    if isinstance(policy, MLPPolicy):
+        ks = [jnp.asarray(k, jnp.float32) for k in policy.kernels]
+        bs = [jnp.asarray(b, jnp.float32) for b in policy.biases]
+        act = {"tanh": jnp.tanh, "relu": jax.nn.relu, "swish": jax.nn.swish, "elu": jax.nn.elu}[policy.activation]
+
+        def f(x: jax.Array) -> jax.Array:
+            for i, (k, b) in enumerate(zip(ks, bs)):
+                x = x @ k + b
+                if i < len(ks) - 1:
+                    x = act(x)
+            return jnp.tanh(x[..., : policy.action_dim])
+
+        return f
+    from quadswarm_mj.training.networks import EncoderNetwork, unflatten_params
+
+    module = EncoderNetwork(arch=dict(policy.arch), layout=dict(policy.obs_layout))
+    params = unflatten_params(policy.params)
+    return lambda x: jnp.tanh(module.apply(params, x)[..., : policy.action_dim])
+
+
+class Distiller:
+    """DAgger from ``teacher`` (a policy object or file) into a student encoder ``arch`` on ``scenario``."""
+
+    def __init__(self, teacher: Any, arch: str | dict[str, Any], scenario: str = "mix",
+                 cfg: DistillConfig | None = None, seed: int = 0, env: dict[str, Any] | None = None):
+        import optax
+
+        from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv
+        from quadswarm_mj.training.networks import EncoderNetwork
+        from quadswarm_mj.training.ppo import encoder_arch, env_meta, obs_layout
+
+        self.teacher = load_policy(teacher) if isinstance(teacher, (str, Path)) else teacher
+        self.teacher_spec = str(teacher) if isinstance(teacher, (str, Path)) else getattr(teacher, "name", "policy")
+        if not isinstance(self.teacher, (MLPPolicy, EncoderPolicy)):
+            raise ValueError(f"teacher must be a trained policy file (MLP or encoder), got {type(self.teacher)}")
+        self.cfg = cfg or DistillConfig()
+        self.env_cfg = EnvConfig(**{**self.teacher.env_kwargs, **(env or {}), "scenario": scenario})
+        if self.env_cfg.obs_dim != self.teacher.obs_dim:
+            raise ValueError(f"teacher obs_dim {self.teacher.obs_dim} != env obs_dim {self.env_cfg.obs_dim}")
+        self.layout = obs_layout(self.env_cfg)
+        if isinstance(arch, str):
+            if arch not in ARCH_PRESETS:
+                raise ValueError(f"arch must be one of {sorted(ARCH_PRESETS)}, got {arch!r}")
+            arch = encoder_arch(arch)
+        self.arch = dict(arch)
+        self.num_params = count_params(param_shapes(self.arch, self.layout))
+        self.env_meta = env_meta(self.env_cfg)
+        self.mean = jnp.asarray(self.teacher.obs_mean, jnp.float32)
+        self.std = jnp.asarray(self.teacher.obs_std, jnp.float32)
+        self.module = EncoderNetwork(arch=self.arch, layout=self.layout)
+        self.env = AutoResetWrapper(MjxQuadSwarmEnv(self.env_cfg))
+        self.optimizer = optax.adam(self.cfg.learning_rate)
+        key = jax.random.PRNGKey(seed)
+        key, k_init, k_env = jax.random.split(key, 3)
+        params = self.module.init(k_init, jnp.zeros((1, self.env_cfg.obs_dim)))
+        D, c = self.env_cfg.obs_dim, self.cfg
+        self.carry = {
+            "params": params, "opt": self.optimizer.init(params), "key": key,
+            "env": jax.jit(jax.vmap(self.env.reset))(jax.random.split(k_env, c.num_worlds)),
+            "buf_obs": jnp.zeros((c.buffer_size, D), jnp.float32),
+            "buf_act": jnp.zeros((c.buffer_size, 4), jnp.float32),
+            "filled": jnp.asarray(0, jnp.int32), "head": jnp.asarray(0, jnp.int32),
+        }
+        self.iterations = 0
+        self.samples = 0
+        self._iterate = jax.jit(self._make_iteration(teacher_fn(self.teacher)), donate_argnums=0)
+
+    def _student_act(self, params: Any, x: jax.Array) -> jax.Array:
+        return jnp.tanh(self.module.apply(params, x)[..., :4])
+
+    def _make_iteration(self, teacher: Any) -> Any:
+        import optax
+
+        c, N, D = self.cfg, self.env_cfg.num_quads, self.env_cfg.obs_dim
+        W, T = c.num_worlds, c.unroll_length
+
+        def loss_fn(params: Any, x: jax.Array, y: jax.Array) -> jax.Array:
+            return jnp.mean(jnp.square(self._student_act(params, x) - y))
+
+        def iteration(carry: dict[str, Any], beta: jax.Array) -> tuple[dict[str, Any], dict[str, jax.Array]]:
+            key, k_mix, k_sgd = jax.random.split(carry["key"], 3)
+            teacher_worlds = jax.random.uniform(k_mix, (W, 1, 1)) < beta
+            params = carry["params"]
+
+            def body(st: Any, _: Any) -> tuple[Any, tuple]:
+                x = (st.obs.astype(jnp.float32) - self.mean) / self.std  # (W, N, D)
+                a_t = teacher(x)
+                a = jnp.where(teacher_worlds, a_t, self._student_act(params, x))
+                st2 = self.env.vstep(st, a)
+                em = st2.info["episode_metrics"]
+                done = st2.done.astype(jnp.float32) * (~teacher_worlds[:, 0, 0])
+                return st2, (x, a_t, done, em["collisions"] * done, em["success"] * done)
+
+            env_state, (xs, ys, dn, col, suc) = jax.lax.scan(body, carry["env"], None, length=T)
+            n_new = T * W * N
+            idx = (carry["head"] + jnp.arange(n_new)) % c.buffer_size
+            buf_obs = carry["buf_obs"].at[idx].set(xs.reshape(-1, D))
+            buf_act = carry["buf_act"].at[idx].set(ys.reshape(-1, 4))
+            filled = jnp.minimum(carry["filled"] + n_new, c.buffer_size)
+
+            def sgd(state: tuple, k: jax.Array) -> tuple[tuple, jax.Array]:
+                p, o = state
+                j = jax.random.randint(k, (c.batch_size,), 0, filled)
+                loss, g = jax.value_and_grad(loss_fn)(p, buf_obs[j], buf_act[j])
+                upd, o = self.optimizer.update(g, o, p)
+                return (optax.apply_updates(p, upd), o), loss
+
+            (params, opt), losses = jax.lax.scan(sgd, (params, carry["opt"]), jax.random.split(k_sgd, c.sgd_steps))
+            new = {"params": params, "opt": opt, "key": key, "env": env_state, "buf_obs": buf_obs,
+                   "buf_act": buf_act, "filled": filled, "head": (carry["head"] + n_new) % c.buffer_size}
+            return new, {"loss": losses[-1], "student_episodes": dn.sum(), "student_collisions": col.sum(),
+                         "student_success": suc.sum()}
+
+        return iteration
+
+    def beta(self) -> float:
+        b = self.cfg.beta_iterations
+        return max(0.0, 1.0 - self.iterations / b) if b else 0.0
+
+    def step(self) -> dict[str, float]:
+        """One jitted iteration; returns the host-side log row."""
+        self.carry, out = self._iterate(self.carry, jnp.asarray(self.beta(), jnp.float32))
+        self.iterations += 1
+        self.samples += self.cfg.num_worlds * self.cfg.unroll_length * self.env_cfg.num_quads
+        out = {k: float(v) for k, v in out.items()}
+        eps = out.pop("student_episodes")
+        return {"iteration": self.iterations, "samples": self.samples, "loss": out["loss"],
+                "student_episodes": eps,
+                "student_collisions": out["student_collisions"] / eps if eps else float("nan"),
+                "student_success": out["student_success"] / eps if eps else float("nan")}
+
+    def policy(self) -> EncoderPolicy:
+        from quadswarm_mj.training.networks import to_numpy_policy
+
+        return to_numpy_policy(self.arch, self.layout, self.carry["params"], self.teacher.obs_mean,
+                               self.teacher.obs_std, self.meta())
+
+    def meta(self) -> dict[str, Any]:
+        return {"activation": self.arch.get("activation", "tanh"), "obs_dim": self.env_cfg.obs_dim, "action_dim": 4,
+                "env": self.env_meta,
+                "train": {"method": "dagger_distillation", "teacher": self.teacher_spec,
+                          "scenario": self.env_cfg.scenario, "iterations": self.iterations, "samples": self.samples,
+                          "config": vars(self.cfg) if not hasattr(self.cfg, "__dataclass_fields__")
+                          else {k: getattr(self.cfg, k) for k in self.cfg.__dataclass_fields__}}}
+
+    def save(self, path: str | Path) -> str:
+        """Write the student as a policy file; returns its SHA-256."""
+        from quadswarm_mj.training.networks import export_policy
+
+        return export_policy(path, self.arch, self.layout, self.carry["params"], self.teacher.obs_mean,
+                             self.teacher.obs_std, self.meta())
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--teacher", required=True, help="teacher policy: pretrained:<name> or a policy .npz")
+    p.add_argument("--arch", default="deepsets_deployable", choices=sorted(ARCH_PRESETS))
+    p.add_argument("--scenario", default="mix")
+    p.add_argument("--out", required=True, help="output directory (student.npz, progress.json, checkpoints)")
+    p.add_argument("--minutes", type=float, default=20.0, help="wall-clock budget (default 20)")
+    p.add_argument("--iterations", type=int, help="stop after this many iterations (default: the time budget)")
+    p.add_argument("--checkpoint-minutes", type=float, default=5.0)
+    p.add_argument("--num-worlds", type=int, default=DistillConfig.num_worlds)
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    try:
+        d = Distiller(args.teacher, args.arch, args.scenario, DistillConfig(num_worlds=args.num_worlds),
+                      seed=args.seed)
+    except ValueError as e:
+        raise SystemExit(f"error: {e}") from None
+    out = Path(args.out)
+    (out / "checkpoints").mkdir(parents=True, exist_ok=True)
+    print(f"distilling {args.teacher} into {args.arch} ({d.num_params} actor parameters) on {args.scenario}, "
+          f"N={d.env_cfg.num_quads}; output in {out}", flush=True)
+    t0 = last_ckpt = time.perf_counter()
+    rows = []
+    while True:
+        row = d.step()
+        row["wall_s"] = time.perf_counter() - t0
+        rows.append(row)
+        print(f"it {row['iteration']} | {row['samples'] / 1e6:.1f} M samples | {row['wall_s'] / 60:.1f} min | "
+              f"loss {row['loss']:.5f} | beta {d.beta():.2f} | student coll/quad {row['student_collisions']:.3f} "
+              f"success {row['student_success']:.3f}", flush=True)
+        now = time.perf_counter()
+        done = (args.iterations is not None and d.iterations >= args.iterations) or now - t0 >= 60 * args.minutes
+        if done or now - last_ckpt >= 60 * args.checkpoint_minutes:
+            d.save(out / "checkpoints" / f"it_{d.iterations:06d}.npz")
+            (out / "progress.json").write_text(json.dumps(rows))
+            last_ckpt = now
+        if done:
+            break
+    sha = d.save(out / "student.npz")
+    print(f"wrote {out / 'student.npz'} (sha256 {sha[:12]}..., teacher sha256 "
+          f"{sha256_file(args.teacher)[:12] if Path(args.teacher).exists() else args.teacher})", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,58 @@
+"""DAgger distillation into a small encoder on the JAX engine (quadswarm_mj.training.distill)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("flax")
+pytest.importorskip("optax")
+
+from quadswarm_mj import EnvConfig  # noqa: E402
+from quadswarm_mj.policies import load_policy, save_policy  # noqa: E402
+from quadswarm_mj.training.distill import DistillConfig, Distiller  # noqa: E402
+from quadswarm_mj.training.ppo import env_meta  # noqa: E402
+
+
+def _teacher(tmp_path):
+    """A random (but smooth) MLP teacher for 2 quads: distillation must be able to fit it."""
+    cfg = EnvConfig(num_quads=2, scenario="static_diff_goal")
+    rng = np.random.default_rng(0)
+    d = cfg.obs_dim
+    ks = [rng.normal(0, 1 / np.sqrt(d), (d, 16)), rng.normal(0, 0.25, (16, 8))]
+    bs = [np.zeros(16), np.zeros(8)]
+    meta = {"activation": "tanh", "obs_dim": d, "action_dim": 4, "env": env_meta(cfg)}
+    path = tmp_path / "teacher.npz"
+    save_policy(path, ks, bs, np.zeros(d), np.full(d, 2.0), meta)
+    return path
+
+
+def test_config_errors_name_the_field():
+    with pytest.raises(ValueError, match="DistillConfig.batch_size"):
+        DistillConfig(batch_size=0)
+    with pytest.raises(ValueError, match="DistillConfig.learning_rate"):
+        DistillConfig(learning_rate=float("nan"))
+
+
+@pytest.mark.slow
+def test_student_learns_the_teacher_and_is_a_loadable_deployable_policy(tmp_path):
+    teacher_path = _teacher(tmp_path)
+    teacher = load_policy(str(teacher_path))
+    d = Distiller(str(teacher_path), "deepsets_deployable", "static_diff_goal",
+                  DistillConfig(num_worlds=4, unroll_length=16, buffer_size=4096, sgd_steps=100, batch_size=256,
+                                beta_iterations=2), seed=0)
+    assert d.num_params <= 2000
+    obs = np.asarray(d.carry["env"].obs).reshape(-1, teacher.obs_dim)
+    err0 = np.mean((d.policy()(obs) - teacher(obs)) ** 2)
+    rows = [d.step() for _ in range(6)]
+    assert rows[-1]["samples"] == 6 * 4 * 16 * 2
+    obs = np.asarray(d.carry["env"].obs).reshape(-1, teacher.obs_dim)
+    student = d.policy()
+    err = np.mean((student(obs) - teacher(obs)) ** 2)
+    assert err < 0.3 * err0, (err, err0)
+    path = tmp_path / "student.npz"
+    d.save(path)
+    loaded = load_policy(str(path))
+    assert loaded.env_kwargs == teacher.env_kwargs and loaded.num_params == d.num_params
+    np.testing.assert_allclose(loaded(obs), student(obs), atol=1e-6)
+    assert loaded.meta["train"]["method"] == "dagger_distillation"
