@@ -50,6 +50,18 @@ def test_parallel_api_with_obstacles():
     parallel_api_test(QuadSwarmParallelEnv(cfg_o(3, 0.5)), num_cycles=60)
 
 
+def test_parallel_env_gives_every_agent_the_columns():
+    env = QuadSwarmParallelEnv(cfg_o(3, 0.5))
+    _, infos = env.reset(seed=0, options={"obstacles": COLS})
+    for a in env.agents:
+        np.testing.assert_array_equal(infos[a]["obstacles"], COLS)
+    _, _, _, _, infos = env.step({a: np.zeros(4) for a in env.agents})
+    for a in env.agents:
+        np.testing.assert_array_equal(infos[a]["obstacles"], COLS)
+    infos[env.agents[0]]["obstacles"][0] = 99.0  # copies: one agent's info cannot corrupt another's
+    assert infos[env.agents[1]]["obstacles"][0, 0] == COLS[0, 0]
+
+
 def test_given_columns_features_last_and_reward_sum_cpu():
     cfg = cfg_o(2, 2.0, scenario="static_same_goal")
     env = QuadSwarmEnv(cfg)
@@ -259,3 +271,34 @@ def test_cpu_backends_move_the_columns_for_mujoco_contacts(backend):
         c.step(np.full((3, 1, 4), cfg.quad.hover_action))
         xmax = np.maximum(xmax, c.state_dict()["pos"][:, 0, 0] - cols[:, 0, 0])
     assert np.all(xmax < -(0.3 + cfg.quad.arm) + 0.02), xmax
+
+
+@pytest.mark.slow
+def test_mjx_mujoco_contacts_use_each_worlds_column_radius():
+    """physics='mjx' with MuJoCo contacts and size randomization: the column pool is built with the
+    largest radius (0.25 m), the contact geoms get the world's radius (a given map: the configured
+    0.3 m diameter), so a quad flown at the thin column gets as close as it allows and no closer."""
+    jax = pytest.importorskip("jax")
+    from quadswarm_mj.envs.mjx_env import MjxQuadSwarmEnv
+
+    ocfg = ObstacleConfig(size=0.3, size_random=True, size_values=(0.3, 0.5))
+    cfg = EnvConfig(num_quads=1, collision_model="mujoco", obstacles=ocfg, motor_start="hover",
+                    episode_seconds=2.0, scenario="o_random").without_noise()
+    env = MjxQuadSwarmEnv(cfg, physics="mjx")
+    pool = env.mj_model.geom_size[env.arena.obstacle_geom_ids[0], 0]
+    assert np.allclose(pool, 0.25)
+    init = {"pos": np.array([[-0.8, 0.0, 2.0]]), "vel": np.array([[1.5, 0.0, 0.0]]), "motors": "hover",
+            "obstacles": np.array([[0.0, 0.0]])}
+    s = jax.jit(lambda k: env.reset(k, init))(jax.random.key(0))
+    r = float(s.info["obstacle_radius"])
+    assert r == pytest.approx(0.15)
+    hover = np.full((1, 4), cfg.quad.hover_action, np.float32)
+
+    def run(s):
+        def body(s, _):
+            s = env.step(s, hover)
+            return s, s.info["state"]["pos"][0, 0]
+        return jax.lax.scan(body, s, None, length=100)[1]
+
+    xmax = float(np.max(np.asarray(jax.jit(run)(s))))
+    assert -(r + cfg.quad.arm) - 0.03 < xmax < -(r + cfg.quad.arm) + 0.02, (r, xmax)

@@ -82,7 +82,7 @@ passes thrust, torque and motor constants to the actuation functions.
   ``obstacle_collisions`` and ``collision_rate``. The map is drawn at every reset (or given as
   ``init_state["obstacles"]``) and the column geoms are moved there through ``data.mocap_pos``
   (MuJoCo contacts with ``physics="mjx"`` and "mujoco"/"blend"; under size randomization the
-  contact geoms keep the largest radius on MJX, the paper model uses the drawn one). The obstacle
+  contact geoms get each world's drawn radius through the model, ``geom_size``). The obstacle
   response draws per quad (one column per quad and step).
 
 ``collision_model`` "mujoco" and "blend" run with ``physics="mjx"`` (MJX's contact solver: the quads'
@@ -401,13 +401,19 @@ class MjxQuadSwarmEnv:
     def _params(self, info: dict[str, Any]) -> dict[str, Any]:
         return {**info["params"], "gravity": self.cfg.quad.gravity}
 
-    def _model(self, params: dict[str, Any]) -> mjx.Model:
-        """The MJX model with this world's drawn mass and inertia in the quad rows."""
+    def _model(self, params: dict[str, Any], obstacle_radius: Any = None) -> mjx.Model:
+        """The MJX model with this world's drawn mass and inertia in the quad rows and, with MuJoCo
+        contacts on the columns, this world's column radius (m; drawn per reset with ``size_random``)
+        in the column geoms (the pool is built with the largest radius)."""
         m, sl = self.mjx_model, slice(self._fb, self._fb + self.N)
-        return m.replace(body_mass=m.body_mass.at[sl].set(params["mass"].astype(m.body_mass.dtype)),
-                         body_inertia=m.body_inertia.at[sl].set(params["inertia"].astype(m.body_inertia.dtype)))
+        m = m.replace(body_mass=m.body_mass.at[sl].set(params["mass"].astype(m.body_mass.dtype)),
+                      body_inertia=m.body_inertia.at[sl].set(params["inertia"].astype(m.body_inertia.dtype)))
+        if obstacle_radius is not None and not self._obst_respond:
+            ids = jnp.asarray(self.arena.obstacle_geom_ids[0])
+            m = m.replace(geom_size=m.geom_size.at[ids, 0].set(jnp.asarray(obstacle_radius, m.geom_size.dtype)))
+        return m
 
-    def _integrator(self, params: dict[str, Any]) -> Any:
+    def _integrator(self, params: dict[str, Any], obstacle_radius: Any = None) -> Any:
         """The rigid-body stage: ``integrate(q (N, 7), v (N, 6), wrench (N, 6) world force N and torque
         N m at the CoM, aux) -> (q, v, aux)``, one physics sub-step of ``cfg.sim_dt`` (``aux``: the
         ``mjx.Data`` carried through the sub-steps by "mjx", None for "freebody")."""
@@ -424,7 +430,7 @@ class MjxQuadSwarmEnv:
                 return q2, v2, aux
 
             return integrate_fb
-        model = self._model(params)
+        model = self._model(params, obstacle_radius)
 
         def integrate_mjx(q: Any, v: Any, wrench: Any, data: Any) -> tuple[Any, Any, Any]:
             data = self._write(data, q, v)
@@ -553,7 +559,7 @@ class MjxQuadSwarmEnv:
         cfg, n = self.cfg, self.N
         f = _float()
         params = self._params(info)
-        integrate = self._integrator(params)
+        integrate = self._integrator(params, info.get("obstacle_radius"))
         rotor_pos = jnp.asarray(self._rotor_pos, f)
         mix = jnp.asarray(self._mix, f)
         torque_spin = params["torque_max"] * jnp.asarray(SPIN, f)

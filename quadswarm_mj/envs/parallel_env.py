@@ -66,6 +66,8 @@ class QuadSwarmParallelEnv(ParallelEnv):
                 d["reward_terms"] = {k: float(v[i]) for k, v in info["reward_terms"].items()}
             if "episode_metrics" in info:
                 d["episode_metrics"] = dict(info["episode_metrics"])
+            if "obstacles" in info:  # (M, 2) column centres (x, y) in m, world frame, the same for every agent
+                d["obstacles"] = info["obstacles"].copy()
             out[a] = d
         return out
 
