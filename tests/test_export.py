@@ -18,6 +18,7 @@ from quadswarm_mj.export import ENTRY, export_c, generate_c
 from quadswarm_mj.policies import (
     ARCH_PRESETS,
     EncoderPolicy,
+    list_pretrained,
     load_policy,
     random_encoder_policy,
     save_encoder_policy,
@@ -107,10 +108,15 @@ def _with_stats(pol: EncoderPolicy, obs: np.ndarray) -> EncoderPolicy:
 
 
 @needs_cc
-@pytest.mark.parametrize("name", ["single", "swarm8"])
+@pytest.mark.parametrize("name", list_pretrained())
 def test_shipped_policy_c_matches_numpy_on_episode_observations(tmp_path, name):
+    """Every shipped policy (the manifest's list), on observations of real episodes of the env it
+    was trained for (its env_kwargs: columns included for the obstacle policies)."""
     pol = load_policy(f"pretrained:{name}")
-    scenario = "static_same_goal" if pol.env_kwargs.get("num_quads", 1) == 1 else "swap_goals"
+    if pol.env_kwargs.get("num_quads", 1) == 1:
+        scenario = "static_same_goal"
+    else:
+        scenario = "o_random" if pol.env_kwargs.get("obstacles") is not None else "swap_goals"
     obs = _episode_obs(pol, pol.env_kwargs, scenario)
     assert obs.shape == (N_OBS, pol.obs_dim)
     c_path, h_path = export_c(pol, tmp_path)

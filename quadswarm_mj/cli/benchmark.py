@@ -504,19 +504,18 @@ def _jax_rows(rows: set[str], args: Any, seconds: float, repeat: int, steps: int
 
         ocfg = base.replace(obstacles=ObstacleConfig())
         rcfg = ocfg.replace(scenario="o_random")
-        W = 512
-        plain, obst, orand = (bench_jax_batch(c, W, steps) for c in (base, ocfg, rcfg))
-        if plain and obst and orand:
-            for label, r in (("static_same_goal + obstacles (12 columns)", obst), ("o_random", orand)):
-                out.append((f"JAX engine, {W} x 8, {label}", r["samples_per_s"], f"{r['compile_s']:.1f}",
-                            f"{100 * (plain['samples_per_s'] / r['samples_per_s'] - 1):.0f} % more step time "
-                            "than static_same_goal without obstacles"))
-        plain_cpu = _bench_single_cfg(base, seconds, repeat)
-        for label, c in (("static_same_goal + obstacles (12 columns)", ocfg), ("o_random", rcfg)):
-            r = _bench_single_cfg(c, seconds, repeat)
-            out.append((f"QuadSwarmEnv (MuJoCo engine), 1 x 8, {label}", r, "",
-                        f"{100 * (plain_cpu / r - 1):.0f} % more step time than without obstacles ("
-                        f"{fmt(plain_cpu)})"))
+        W, rounds = 512, max(5, 2 * repeat + 1)
+        for engine in ("jax", "mujoco"):
+            for label, c in (("static_same_goal + obstacles (12 columns)", ocfg), ("o_random", rcfg)):
+                res = obstacle_cost(base, c, engine, W, steps, seconds, rounds)
+                if res is None:
+                    continue
+                print("obstacles", engine, label, res, flush=True)
+                what = f"JAX engine, {W} x 8" if engine == "jax" else "QuadSwarmEnv (MuJoCo engine), 1 x 8"
+                out.append((f"{what}, {label}", res["with"], "",
+                            f"{100 * res['cost']:+.0f} % step time vs the same swarm without obstacles "
+                            f"({fmt(res['without'])}); median of {rounds} alternating rounds, range "
+                            f"{100 * res['cost_min']:+.0f} to {100 * res['cost_max']:+.0f} %"))
     if "jaxsingle" in rows:
         rate = bench_single_jax(8, seconds, repeat)
         peer = peers.get(1)
@@ -542,6 +541,75 @@ def _jax_rows(rows: set[str], args: Any, seconds: float, repeat: int, steps: int
     lines = ["| configuration | samples/s | compile (s) | ratio (same run) |", "|---|---:|---:|---|"]
     lines += [f"| {a} | {fmt(b)} | {c} | {d} |" for a, b, c, d in out]
     return "\n".join(lines)
+
+
+def obstacle_cost(plain: EnvConfig, obst: EnvConfig, engine: str, worlds: int, steps: int, seconds: float,
+                  rounds: int) -> dict[str, float] | None:
+    """Step-time cost of obstacles, measured robustly on a shared machine: both envs are built (and
+    compiled) first, then timed in alternation (plain, obstacles, plain, ...) for ``rounds`` rounds;
+    ``cost`` is the median over rounds of t_obst / t_plain - 1 (``cost_min``/``cost_max`` the range),
+    ``with``/``without`` the median samples/s. ``engine``: "jax" (jitted rollout of ``worlds``
+    worlds, ``steps`` control steps per timing) or "mujoco" (QuadSwarmEnv, 1 world, ~``seconds`` s
+    per timing)."""
+    if engine == "jax":
+        try:
+            import jax
+            import jax.numpy as jnp
+
+            from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv
+        except Exception as e:  # noqa: BLE001
+            print(f"  JAX engine not available ({e!r}); skipped", flush=True)
+            return None
+
+        def runner(cfg: EnvConfig) -> Callable[[], float]:
+            env = AutoResetWrapper(MjxQuadSwarmEnv(cfg))
+            hover = jnp.full((worlds, cfg.num_quads, 4), cfg.quad.hover_action, jnp.float32)
+
+            def rollout(st: Any) -> Any:
+                return jax.lax.scan(lambda x, _: (env.vstep(x, hover), None), st, None, length=steps)[0]
+
+            box = [jax.block_until_ready(jax.jit(jax.vmap(env.reset))(
+                jax.random.split(jax.random.key(0), worlds)))]
+            run = jax.jit(rollout).lower(box[0]).compile()
+            box[0] = jax.block_until_ready(run(box[0]))  # warm up
+
+            def timed_run() -> float:
+                t = time.perf_counter()
+                box[0] = jax.block_until_ready(run(box[0]))
+                return time.perf_counter() - t
+
+            return timed_run
+
+        samples = worlds * plain.num_quads * steps
+    else:
+        n_steps = max(50, int(seconds * 800))  # about `seconds` s at ~800 control steps/s (1 x 8)
+
+        def runner(cfg: EnvConfig) -> Callable[[], float]:
+            env = QuadSwarmEnv(cfg)
+            env.reset(seed=0)
+            a = hover_like(env.action_space.shape)
+            for _ in range(3):
+                env.step(a)
+
+            def timed_run() -> float:
+                t = time.perf_counter()
+                for _ in range(n_steps):
+                    if env.step(a)[3]:
+                        env.reset()
+                return time.perf_counter() - t
+
+            return timed_run
+
+        samples = plain.num_quads * n_steps
+    run_a, run_b = runner(plain), runner(obst)
+    ta, tb = [], []
+    for _ in range(rounds):
+        ta.append(run_a())
+        tb.append(run_b())
+    ratio = np.asarray(tb) / np.asarray(ta)
+    return {"cost": float(np.median(ratio) - 1), "cost_min": float(ratio.min() - 1),
+            "cost_max": float(ratio.max() - 1), "without": samples / float(np.median(ta)),
+            "with": samples / float(np.median(tb))}
 
 
 def _bench_single_cfg(cfg: EnvConfig, seconds: float, repeat: int, engine: str = "mujoco") -> float:
