@@ -1,7 +1,8 @@
-"""The stages of one control step of the JAX engine, and the extension points between them.
+"""The stages of one control step, and the extension points between them.
 
 Order of a control step (:meth:`quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv._physics` and ``step``;
-``CpuSwarm._physics``/``step`` run the same order with event gating):
+``CpuSwarm._physics``/``step`` run the same order with event gating; stage 4 and the reset math
+(:func:`initial_state`) are one function called by both engines):
 
 1. draws: one fused draw of everything the step can use (motor and sensor noise per quad, the
    event models' budgeted slots: :mod:`quadswarm_mj.collisions`, :mod:`quadswarm_mj.downwash`).
@@ -13,7 +14,8 @@ Order of a control step (:meth:`quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv._physi
    landing.
 3. once per control step: walls and ceiling -> quad-quad -> :func:`obstacle_stage` (with
    ``cfg.obstacles``) -> downwash.
-4. scenario (goals) -> reward terms -> episode metrics -> observations.
+4. :func:`task_stage` (both engines, one function): scenario (goals) -> goal jumps -> reward terms
+   (obstacle penalty) -> episode metrics (obstacle metrics); then observations.
 
 The stages are pure (any leading dims, ``jax.numpy`` or NumPy); their draws are in the step's and
 the reset's specs. :func:`obstacle_stage` is the obstacle stage of the JAX engine (the CPU engine
@@ -154,3 +156,62 @@ def initial_state(cfg: Any, scenario: Any, rand_draws: dict[str, Any], scenario_
     else:
         u0 = xp.sqrt(xp.clip(xp.asarray(motors, dtype=dtype).reshape(shape[:-1] + (4,)), 0.0, 1.0))
     return {"params": params, "scenario": sstate, "pos": pos, "vel": vel, "rot": R, "omega": omega, "u0": u0}
+
+
+def task_stage(cfg: Any, scenario: Any, sstate: Any, t: Any, kin: dict[str, Any], effort: Any, f_norm: Any,
+               prev_f_norm: Any, on_floor: Any, anneal: Any, scenario_u: Any, metrics_acc: dict[str, Any],
+               omap: Any = None, obst_metrics: dict[str, Any] | None = None,
+               obst_threshold: Any = None) -> dict[str, Any]:
+    """Stage 4 of a control step, after the physics (both engines call this one function).
+
+    ``t`` (...,) s after the step (worlds' batch shape: (B,) on the CPU engine, () per world on the
+    JAX engine); ``kin``: the physics stage's ``pos``, ``vel`` (m, m/s world, world-local), ``R``
+    (body->world), ``omega`` (rad/s body), ``dist`` (pair distances, m), ``new_contact``,
+    ``hit_floor``, ``hit_wall``, ``hit_ceiling`` and, with obstacles, ``obst_new``; ``effort`` the
+    action the effort term sees (:func:`effort_action`); ``f_norm``/``prev_f_norm`` normalized rotor
+    thrusts (..., N, 4) of this and the last step; ``on_floor`` (..., N) bool; ``anneal`` the
+    collision-penalty factor; ``scenario_u`` the scenario's uniforms. With ``omap`` (columns):
+    obstacle-aware scenario step, the ``obstacle_collision`` term and the obstacle metrics
+    (``obst_metrics`` updated with the scenario's approach distance ``obst_threshold``, m; None:
+    computed from the new scenario state).
+
+    Returns ``sstate``, ``goals``, ``goal_vel``, ``dist_goal`` (..., N) m, ``terms`` (reward terms,
+    per quad), ``metrics_acc`` and ``obst_metrics`` (None without obstacles)."""
+    from quadswarm_mj import metrics as metrics_lib
+    from quadswarm_mj.rewards import reward_terms
+    from quadswarm_mj.spatial import norm_last
+
+    prev_goals = sstate.goals
+    if omap is None:
+        sstate = scenario.step(cfg, sstate, t, kin["pos"], scenario_u)
+    else:
+        from quadswarm_mj.scenarios.obstacle_scenarios import scenario_step
+
+        sstate = scenario_step(scenario, cfg, sstate, t, kin["pos"], scenario_u, omap)
+    goals, goal_vel = sstate.goals, sstate.goal_vel
+    if goals is prev_goals:  # the scenario kept its goals (NumPy): no jump, as goal_jump would say
+        import numpy as np
+
+        jump = np.zeros(goals.shape[:-1], bool)
+    else:
+        jump = metrics_lib.goal_jump(prev_goals, goals, goal_vel, cfg.control_dt)
+    dist_goal = norm_last(goals - kin["pos"])
+    terms = reward_terms(cfg, kin["pos"], kin["vel"], kin["R"], kin["omega"], goals, effort, f_norm, prev_f_norm,
+                         on_floor, kin["hit_floor"], kin["hit_wall"], kin["hit_ceiling"], kin["new_contact"],
+                         kin["dist"], anneal, goal_dist=dist_goal)
+    if omap is not None:
+        from quadswarm_mj.obstacles import obstacle_penalty
+
+        terms["obstacle_collision"] = obstacle_penalty(kin["obst_new"], cfg.obstacles.collision_reward, anneal)
+    t_q = t[..., None]  # per-quad broadcast of the worlds' time
+    metrics_acc = metrics_lib.update(metrics_acc, t_q, dist_goal, kin["new_contact"], kin["hit_floor"],
+                                     kin["hit_wall"], kin["hit_ceiling"], jump, cfg.grace_period_s)
+    if omap is not None:
+        from quadswarm_mj.obstacles import metrics_update
+        from quadswarm_mj.scenarios.obstacle_scenarios import approach_threshold
+
+        thr = obst_threshold if obst_threshold is not None else approach_threshold(scenario, cfg, sstate)
+        obst_metrics = metrics_update(obst_metrics, t_q, kin["obst_new"], metrics_acc["last_dist"],
+                                      metrics_acc["steps"], thr, cfg.grace_period_s)
+    return {"sstate": sstate, "goals": goals, "goal_vel": goal_vel, "dist_goal": dist_goal, "terms": terms,
+            "metrics_acc": metrics_acc, "obst_metrics": obst_metrics if omap is not None else None}

@@ -66,10 +66,10 @@ from quadswarm_mj.downwash import apply_downwash, downwash_draw_spec
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.random_draws import MeanSampler, NumpySampler
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
-from quadswarm_mj.rewards import anneal_factor, reward_terms, total_reward, zero_terms
+from quadswarm_mj.rewards import anneal_factor, total_reward, zero_terms
 from quadswarm_mj.scenarios import ScenarioState, get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
-from quadswarm_mj.spatial import norm_last, quat_to_rotmat, rotmat_to_quat
+from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
 
 BACKENDS = ("mjdata", "batch")
 _ALL = slice(None)
@@ -335,6 +335,7 @@ class CpuSwarm:
         obstacles), the previous step's contacts and the obstacle metric accumulators."""
         o, B, N = self.cfg.obstacles, self.B, self.N
         self.omap: Any = None
+        self._obst_thr: Any = None
         if o is None:
             return
         from quadswarm_mj import obstacles as ob
@@ -655,46 +656,18 @@ class CpuSwarm:
         self.steps = self.steps + 1
         self.total_steps += 1
         t = self.steps * cfg.control_dt  # (B,)
-        prev_goals = self.sstate.goals
         u = self.rng.uniform(size=(self.B, self._n_scn))
-        if self.omap is None:
-            self.sstate = self.scenario.step(cfg, self.sstate, t, k["pos"], u)
-        else:
-            from quadswarm_mj.scenarios.obstacle_scenarios import scenario_step
-
-            self.sstate = scenario_step(self.scenario, cfg, self.sstate, t, k["pos"], u, self.omap)
-        goals, goal_vel = self.sstate.goals, self.sstate.goal_vel
-        if goals is prev_goals:  # the scenario kept its goals: no jump (moved 0 <= 1e-3 + ...)
-            jump = np.zeros(goals.shape[:-1], bool)
-        else:
-            jump = metrics_lib.goal_jump(prev_goals, goals, goal_vel, cfg.control_dt)
-        dist_goal = norm_last(goals - k["pos"])
         effort = pipeline.effort_action(cfg, action, self.cmd_s) if self._modes else action
-        terms = reward_terms(cfg, k["pos"], k["vel"], k["R"], k["omega"], goals, effort, self.f_norm,
-                             self.prev_f_norm, self.on_floor, k["hit_floor"], k["hit_wall"], k["hit_ceiling"],
-                             k["new_contact"], k["dist"], anneal_factor(cfg, self.total_steps), goal_dist=dist_goal)
+        r = pipeline.task_stage(cfg, self.scenario, self.sstate, t, k, effort, self.f_norm, self.prev_f_norm,
+                                self.on_floor, anneal_factor(cfg, self.total_steps), u, self.metrics, self.omap,
+                                self.obst_metrics if self.omap is not None else None, self._obst_thr)
+        self.sstate, terms, self.metrics = r["sstate"], r["terms"], r["metrics_acc"]
         if self.omap is not None:
-            from quadswarm_mj.obstacles import obstacle_penalty
-
-            terms["obstacle_collision"] = obstacle_penalty(k["obst_new"], cfg.obstacles.collision_reward,
-                                                           anneal_factor(cfg, self.total_steps))
+            self.obst_metrics = r["obst_metrics"]
         rewards = total_reward(terms, self._zero_terms)
-        self.metrics = metrics_lib.update(self.metrics, t[:, None], dist_goal, k["new_contact"], k["hit_floor"],
-                                          k["hit_wall"], k["hit_ceiling"], jump, cfg.grace_period_s)
-        if self.omap is not None:
-            self._obstacle_metrics(t, k["obst_new"])
         truncated = self.steps >= cfg.episode_steps
         return {"obs": self.observe(k), "rewards": rewards, "terms": terms, "truncated": truncated,
                 "kin": k, "t": t}
-
-    def _obstacle_metrics(self, t: np.ndarray, new: np.ndarray) -> None:
-        from quadswarm_mj.obstacles import metrics_update
-        from quadswarm_mj.scenarios.obstacle_scenarios import approach_threshold
-
-        thr = self._obst_thr if self._obst_thr is not None else approach_threshold(self.scenario, self.cfg,
-                                                                                   self.sstate)
-        self.obst_metrics = metrics_update(self.obst_metrics, t[:, None], new, self.metrics["last_dist"],
-                                           self.metrics["steps"], thr, self.cfg.grace_period_s)
 
     def observe(self, kin: dict[str, Any] | None = None, worlds: Any = None) -> np.ndarray:
         """Observations (B, N, obs_dim) float64 (sensor noise drawn now), or (len(worlds), N,

@@ -143,7 +143,7 @@ from quadswarm_mj.envs.validation import check_obstacles, check_state
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.random_draws import DrawSpec, JaxSampler, MeanSampler, Normal, Uniform
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
-from quadswarm_mj.rewards import anneal_factor, env_terms, reward_terms, total_reward
+from quadswarm_mj.rewards import anneal_factor, env_terms, total_reward
 from quadswarm_mj.scenarios import get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
 from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
@@ -671,32 +671,17 @@ class MjxQuadSwarmEnv:
         steps = info["step"] + 1
         total_steps = info["total_steps"] + 1
         t = steps.astype(f) * cfg.control_dt
-        prev_goals = info["scenario"].goals
-        if self._obst is None:
-            sstate = self.scenario.step(cfg, info["scenario"], t, k["pos"], rnd["scenario"])
-        else:
-            from quadswarm_mj.scenarios.obstacle_scenarios import scenario_step
-
-            sstate = scenario_step(self.scenario, cfg, info["scenario"], t, k["pos"], rnd["scenario"],
-                                   self._omap(info))
-        goals, goal_vel = sstate.goals, sstate.goal_vel
-        jump = metrics_lib.goal_jump(prev_goals, goals, goal_vel, cfg.control_dt)
-        dist_goal = jnp.sqrt(jnp.sum((goals - k["pos"]) ** 2, axis=-1))
+        omap = None if self._obst is None else self._omap(info)
         effort = pipeline.effort_action(cfg, action, k["ctrl"][0]) if self._modes else action
-        terms = reward_terms(cfg, k["pos"], k["vel"], k["R"], k["omega"], goals, effort, k["f_norm"], prev_f_norm,
-                             k["on_floor"], k["hit_floor"], k["hit_wall"], k["hit_ceiling"], k["new_contact"],
-                             k["dist"], anneal_factor(cfg, total_steps), goal_dist=dist_goal)
+        r = pipeline.task_stage(cfg, self.scenario, info["scenario"], t, k, effort, k["f_norm"], prev_f_norm,
+                                k["on_floor"], anneal_factor(cfg, total_steps), rnd["scenario"], info["metrics_acc"],
+                                omap, info.get("obstacle_metrics"))
+        sstate, goals, goal_vel, acc = r["sstate"], r["goals"], r["goal_vel"], r["metrics_acc"]
         # explicit dtype: a zero-scale term may come back weakly typed, and a state whose leaf types
         # change between reset and step would make jit compile step twice
-        if self._obst is not None:
-            terms["obstacle_collision"] = _obst_lib().obstacle_penalty(
-                k["obst_new"], self._obst.collision_reward, anneal_factor(cfg, total_steps))
-        terms = {name: v.astype(f) for name, v in terms.items()}
+        terms = {name: v.astype(f) for name, v in r["terms"].items()}
         reward = total_reward(terms)
-        acc = metrics_lib.update(info["metrics_acc"], t, dist_goal, k["new_contact"], k["hit_floor"], k["hit_wall"],
-                                 k["hit_ceiling"], jump, cfg.grace_period_s)
-        obs = self._observe(k["pos"], k["vel"], k["R"], k["omega"], goals, rnd, k["dist"],
-                            None if self._obst is None else self._omap(info))
+        obs = self._observe(k["pos"], k["vel"], k["R"], k["omega"], goals, rnd, k["dist"], omap)
         done = steps >= cfg.episode_steps
         new_info = {
             "state": {"pos": k["pos"], "vel": k["vel"], "rot": k["R"], "omega": k["omega"], "thrust": k["f_norm"]},
@@ -711,11 +696,7 @@ class MjxQuadSwarmEnv:
             **({"ctrl_state": k["ctrl"][1]} if self._modes else {}),
         }
         if self._obst is not None:
-            from quadswarm_mj.scenarios.obstacle_scenarios import approach_threshold
-
-            om = _obst_lib().metrics_update(info["obstacle_metrics"], t, k["obst_new"], acc["last_dist"],
-                                            acc["steps"], approach_threshold(self.scenario, cfg, sstate),
-                                            cfg.grace_period_s)
+            om = r["obst_metrics"]
             new_info.update({k2: info[k2] for k2 in ("obstacles", "obstacles_valid", "obstacle_radius")})
             new_info.update({"obstacle_contact": k["obst_contact"], "obstacle_metrics": om,
                              "episode_metrics": self._episode_metrics(acc, om, t)})
