@@ -84,7 +84,31 @@ PRESETS: dict[str, dict[str, Any]] = {
                                     "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": SWARM_ANNEAL,
                                     "ppo": {"num_worlds": 128, "unroll_length": 32,
                                             "arch": "attention_deployable"}},
+    # --- the recipes of the shipped policies (2-core budget): warm starts from pretrained:swarm8_v1 (the MLP
+    # over the 6 nearest neighbours of the earlier release), PPO fine-tuning on the JAX engine with collision
+    # replay and the paper's reward time scaling (no annealing: the start already avoids collisions)
+    "swarm8_finetune": {"scenarios": ["mix", "run_away"], "weights": [9, 1], "num_quads": 8, "env": {},
+                        "rewards": {"pos": 2.0}, "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": 0,
+                        "init_from": "pretrained:swarm8_v1",
+                        "ppo": {"num_worlds": 128, "unroll_length": 32, "learning_rate": 1.5e-4}},
+    # the obstacle mix with K = 6 and the base self observation (the warm start's layout + the 9 obstacle
+    # features, whose input weights start at zero)
+    "swarm8_obstacles_finetune": {"scenarios": ["mix"], "num_quads": 8,
+                                  "env": {**OBSTACLE_ENV, "num_neighbors": 6, "obs_self": "base"}, "rewards": {},
+                                  "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": 0,
+                                  "init_from": "pretrained:swarm8_v1", "ppo": {"num_worlds": 128, "unroll_length": 32}},
 }
+
+
+def resolve_policy_path(spec: str | None) -> str | None:
+    """``pretrained:<name>`` -> the shipped file (SHA-256 checked); other paths unchanged."""
+    if spec is None or not spec.startswith("pretrained:"):
+        return spec
+    from quadswarm_mj.policies import load_pretrained, pretrained_dir, read_manifest
+
+    name = spec.split(":", 1)[1]
+    load_pretrained(name)  # checks the name and the file's SHA-256
+    return str(pretrained_dir() / read_manifest()["policies"][name]["file"])
 
 
 def _parse_value(text: str) -> Any:
@@ -207,6 +231,7 @@ def main(argv: list[str] | None = None) -> int:
     for k in ("policy_hidden", "value_hidden"):
         if getattr(args, k):
             ppo_kw[k] = tuple(int(x) for x in getattr(args, k).split(","))
+    init_from = resolve_policy_path(args.init_from if args.init_from is not None else preset.get("init_from"))
     anneal = args.anneal_agent_steps if args.anneal_agent_steps is not None else preset.get("anneal_agent_steps", 0)
     replay_prob = args.replay_prob if args.replay_prob is not None else preset.get("replay_prob", 0.0)
     try:
@@ -221,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
             from quadswarm_mj.training.jax_ppo import JaxPPOTrainer
             from quadswarm_mj.training.replay import ReplayConfig
 
-            trainer: Any = JaxPPOTrainer(cfgs, ppo, seed=args.seed, init_from=args.init_from,
+            trainer: Any = JaxPPOTrainer(cfgs, ppo, seed=args.seed, init_from=init_from,
                                          replay=ReplayConfig(prob=replay_prob), weights=weights)
         else:
             if replay_prob:
@@ -230,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
                 replay_prob = 0.0
             if weights is not None and len(set(weights)) > 1:
                 raise ValueError(f"scenario weights {weights} need --engine jax (the CPU trainer splits worlds evenly)")
-            trainer = PPOTrainer(cfgs, ppo, seed=args.seed, init_from=args.init_from)
+            trainer = PPOTrainer(cfgs, ppo, seed=args.seed, init_from=init_from)
         if resume_file is not None:
             trainer.resume(resume_file)
     except (TypeError, ValueError) as e:
@@ -241,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
     run = {"argv": argv, "engine": engine, "scenarios": scenarios, "weights": weights, "num_quads": n,
            "env": {k: (list(v) if isinstance(v, tuple) else v) for k, v in env.items()}, "rewards": rewards,
            "ppo": {k: (list(v) if isinstance(v, tuple) else v) for k, v in ppo.__dict__.items()},
-           "replay_prob": replay_prob, "seed": args.seed, "init_from": args.init_from, "agents": agents,
+           "replay_prob": replay_prob, "seed": args.seed, "init_from": init_from, "agents": agents,
            "obs_dim": trainer.obs_dim, "resumed_from": args.resume,
            "resumed_at_env_steps": int(trainer.env_steps) if args.resume else None}
     if not (args.resume and Path(args.resume).resolve() == out.resolve()):
