@@ -242,10 +242,12 @@ def obs_layout(cfg: EnvConfig) -> dict[str, int]:
 
 
 def env_meta(cfg: EnvConfig) -> dict[str, Any]:
-    """The EnvConfig fields a policy file records (``policy.env_kwargs``): observation layout, and the
-    obstacle configuration when obstacles are on."""
+    """The EnvConfig fields a policy file records (``policy.env_kwargs``): observation layout, downwash
+    when it was on, and the obstacle configuration when obstacles are on."""
     env = {k: getattr(cfg, k) for k in OBS_ENV_FIELDS}
     env["room_size"] = list(env["room_size"])
+    if cfg.downwash:  # physics the policy was trained with beyond the defaults (the obstacle runs)
+        env["downwash"] = True
     if cfg.obstacles is not None:
         env["obstacles"] = {k: (list(v) if isinstance(v, tuple) else v)
                             for k, v in dataclasses.asdict(cfg.obstacles).items()}
