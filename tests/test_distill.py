@@ -56,3 +56,24 @@ def test_student_learns_the_teacher_and_is_a_loadable_deployable_policy(tmp_path
     assert loaded.env_kwargs == teacher.env_kwargs and loaded.num_params == d.num_params
     np.testing.assert_allclose(loaded(obs), student(obs), atol=1e-6)
     assert loaded.meta["train"]["method"] == "dagger_distillation"
+
+
+@pytest.mark.slow
+def test_controller_teacher_with_obstacles_labels_the_true_state_and_estimates_a_normalizer():
+    """The privileged teacher flies the env itself (beta = 1: the student is never used) and its
+    labels are the controller's actions on the true state; the student's normalizer comes from the
+    teacher-flown warm-up (finite, positive std for all 63 inputs, obstacle features included)."""
+    from quadswarm_mj.config import ObstacleConfig
+
+    env = {"num_quads": 3, "obstacles": ObstacleConfig(), "downwash": True}
+    d = Distiller("controller", "deepsets_deployable", "o_random",
+                  DistillConfig(num_worlds=2, unroll_length=8, buffer_size=512, sgd_steps=2, batch_size=32,
+                                beta_iterations=1000), seed=0, env=env)
+    assert d.teacher is None and d.obs_std.shape == (d.env_cfg.obs_dim,) and np.all(d.obs_std >= 1e-3)
+    assert np.all(np.isfinite(d.obs_mean))
+    d.step()
+    labels = np.asarray(d.carry["buf_act"][: 2 * 8 * 3])
+    assert np.all(np.abs(labels) <= 1.0) and np.abs(labels).max() > 0.05
+    student = d.policy()
+    assert student.env_kwargs["downwash"] is True and student.env_kwargs["obstacles"]["density"] == 0.2
+    assert student.meta["train"]["teacher"] == "controller"

@@ -1,8 +1,12 @@
-"""Distil a trained policy into a small (deployable) encoder on the JAX engine (DAgger).
+"""Distil a teacher into an observation-based encoder policy on the JAX engine (DAgger).
 
-A teacher (any policy file: MLP or encoder) and a student encoder (a preset of
-``quadswarm_mj.policies.ARCH_PRESETS``, e.g. ``deepsets_deployable``) see the same observation
-layout; the student keeps the teacher's observation normalizer. Each jitted iteration:
+Teachers: a trained policy file (MLP or encoder; the student sees the same observation layout and
+keeps the teacher's observation normalizer), or ``"controller"``: the baseline position controller
+(:class:`~quadswarm_mj.controllers.PositionController`) with neighbour avoidance and, with
+obstacles, column steering, a *privileged* teacher that reads the true state, goals and column map
+from the env state (the student sees only its noisy observation; its normalizer is estimated from
+a teacher-flown warm-up). Students: an encoder preset of ``quadswarm_mj.policies.ARCH_PRESETS``
+(e.g. ``deepsets_deployable``, or ``deepsets_large`` with a width). Each jitted iteration:
 
 1. rolls out ``num_worlds`` worlds of :class:`~quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv` for
    ``unroll_length`` control steps (auto-reset), every world flown either by the teacher (with
@@ -18,6 +22,8 @@ flies) and ``export_c`` exports. Command line::
 
     python -m quadswarm_mj.training.distill --teacher runs/swarm8/best.npz --arch deepsets_deployable \\
         --scenario mix --out runs/swarm8_dep --minutes 20
+    python -m quadswarm_mj.training.distill --teacher controller --arch deepsets_large --width 64 \\
+        --scenario mix --env 'obstacles={"density": 0.2, "size": 0.6}' --env downwash=true --out runs/o --minutes 20
 """
 
 from __future__ import annotations
@@ -69,8 +75,36 @@ class DistillConfig:
             raise ValueError(f"DistillConfig.learning_rate must be > 0, got {self.learning_rate!r}")
 
 
+#: the privileged controller teacher's gains: neighbours within 0.6 m repel, columns within 0.6 m of
+#: their surface repel (the baseline controller's obstacle setting)
+CONTROLLER_AVOID_RADIUS = 0.6
+
+
+def controller_teacher(cfg: EnvConfig) -> Any:
+    """The privileged teacher: ``f(x, state) -> actions (W, N, 4)`` of the position controller on the
+    true state, goals, goal velocities, dynamics parameters and (with obstacles) column map of the
+    batched env ``state``; ``x`` (the student's observations) is ignored."""
+    from quadswarm_mj.controllers import ControllerGains, PositionController
+    from quadswarm_mj.obstacles import ObstacleMap
+    from quadswarm_mj.policies import OBSTACLE_STEER_RADIUS
+
+    o = cfg.obstacles
+    gains = ControllerGains(avoid_radius=CONTROLLER_AVOID_RADIUS) if o is None else ControllerGains(
+        avoid_radius=CONTROLLER_AVOID_RADIUS, obstacle_radius=OBSTACLE_STEER_RADIUS, column_radius=0.5 * o.size)
+    ctrl = PositionController(cfg, gains)
+
+    def f(x: jax.Array, st: Any) -> jax.Array:
+        info = st.info
+        omap = None if o is None else ObstacleMap(info["obstacles"], info["obstacles_valid"], info["obstacle_radius"])
+        a = ctrl(info["state"], info["goals"], info["goal_vel"], info["params"], obstacles=omap)
+        return jnp.clip(a, -1.0, 1.0).astype(jnp.float32)
+
+    return f
+
+
 def teacher_fn(policy: MLPPolicy | EncoderPolicy) -> Any:
-    """A jnp function: normalized observations (..., D) -> deterministic actions (..., 4) in [-1, 1]."""
+    """A jnp function ``f(x, state)``: normalized observations (..., D) -> deterministic actions (..., 4)
+    in [-1, 1] (``state`` unused)."""
     if isinstance(policy, MLPPolicy):
         ks = [jnp.asarray(k, jnp.float32) for k in policy.kernels]
         bs = [jnp.asarray(b, jnp.float32) for b in policy.biases]
@@ -83,43 +117,47 @@ def teacher_fn(policy: MLPPolicy | EncoderPolicy) -> Any:
                     x = act(x)
             return jnp.tanh(x[..., : policy.action_dim])
 
-        return f
+        return lambda x, st: f(x)
     from quadswarm_mj.training.networks import EncoderNetwork, unflatten_params
 
     module = EncoderNetwork(arch=dict(policy.arch), layout=dict(policy.obs_layout))
     params = unflatten_params(policy.params)
-    return lambda x: jnp.tanh(module.apply(params, x)[..., : policy.action_dim])
+    return lambda x, st: jnp.tanh(module.apply(params, x)[..., : policy.action_dim])
 
 
 class Distiller:
     """DAgger from ``teacher`` (a policy object or file) into a student encoder ``arch`` on ``scenario``."""
 
     def __init__(self, teacher: Any, arch: str | dict[str, Any], scenario: str = "mix",
-                 cfg: DistillConfig | None = None, seed: int = 0, env: dict[str, Any] | None = None):
+                 cfg: DistillConfig | None = None, seed: int = 0, env: dict[str, Any] | None = None,
+                 width: int | None = None):
         import optax
 
         from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv
         from quadswarm_mj.training.networks import EncoderNetwork
         from quadswarm_mj.training.ppo import encoder_arch, env_meta, obs_layout
 
-        self.teacher = load_policy(teacher) if isinstance(teacher, (str, Path)) else teacher
-        self.teacher_spec = str(teacher) if isinstance(teacher, (str, Path)) else getattr(teacher, "name", "policy")
-        if not isinstance(self.teacher, (MLPPolicy, EncoderPolicy)):
-            raise ValueError(f"teacher must be a trained policy file (MLP or encoder), got {type(self.teacher)}")
         self.cfg = cfg or DistillConfig()
-        self.env_cfg = EnvConfig(**{**self.teacher.env_kwargs, **(env or {}), "scenario": scenario})
-        if self.env_cfg.obs_dim != self.teacher.obs_dim:
-            raise ValueError(f"teacher obs_dim {self.teacher.obs_dim} != env obs_dim {self.env_cfg.obs_dim}")
+        self.teacher_spec = str(teacher) if isinstance(teacher, (str, Path)) else getattr(teacher, "name", "policy")
+        if isinstance(teacher, str) and teacher == "controller":
+            self.teacher = None
+            self.env_cfg = EnvConfig(**{"num_quads": 8, **(env or {}), "scenario": scenario})
+        else:
+            self.teacher = load_policy(teacher) if isinstance(teacher, (str, Path)) else teacher
+            if not isinstance(self.teacher, (MLPPolicy, EncoderPolicy)):
+                raise ValueError(f"teacher must be 'controller' or a trained policy file (MLP or encoder), "
+                                 f"got {type(self.teacher)}")
+            self.env_cfg = EnvConfig(**{**self.teacher.env_kwargs, **(env or {}), "scenario": scenario})
+            if self.env_cfg.obs_dim != self.teacher.obs_dim:
+                raise ValueError(f"teacher obs_dim {self.teacher.obs_dim} != env obs_dim {self.env_cfg.obs_dim}")
         self.layout = obs_layout(self.env_cfg)
         if isinstance(arch, str):
             if arch not in ARCH_PRESETS:
                 raise ValueError(f"arch must be one of {sorted(ARCH_PRESETS)}, got {arch!r}")
-            arch = encoder_arch(arch)
+            arch = encoder_arch(arch, width)
         self.arch = dict(arch)
         self.num_params = count_params(param_shapes(self.arch, self.layout))
         self.env_meta = env_meta(self.env_cfg)
-        self.mean = jnp.asarray(self.teacher.obs_mean, jnp.float32)
-        self.std = jnp.asarray(self.teacher.obs_std, jnp.float32)
         self.module = EncoderNetwork(arch=self.arch, layout=self.layout)
         self.env = AutoResetWrapper(MjxQuadSwarmEnv(self.env_cfg))
         self.optimizer = optax.adam(self.cfg.learning_rate)
@@ -127,16 +165,33 @@ class Distiller:
         key, k_init, k_env = jax.random.split(key, 3)
         params = self.module.init(k_init, jnp.zeros((1, self.env_cfg.obs_dim)))
         D, c = self.env_cfg.obs_dim, self.cfg
+        env0 = jax.jit(jax.vmap(self.env.reset))(jax.random.split(k_env, c.num_worlds))
+        teach = controller_teacher(self.env_cfg) if self.teacher is None else teacher_fn(self.teacher)
+        if self.teacher is None:  # the student's normalizer: statistics of a teacher-flown warm-up
+            self.obs_mean, self.obs_std = self._warmup_stats(env0, teach)
+        else:
+            self.obs_mean = np.asarray(self.teacher.obs_mean, np.float32)
+            self.obs_std = np.asarray(self.teacher.obs_std, np.float32)
+        self.mean, self.std = jnp.asarray(self.obs_mean), jnp.asarray(self.obs_std)
         self.carry = {
-            "params": params, "opt": self.optimizer.init(params), "key": key,
-            "env": jax.jit(jax.vmap(self.env.reset))(jax.random.split(k_env, c.num_worlds)),
+            "params": params, "opt": self.optimizer.init(params), "key": key, "env": env0,
             "buf_obs": jnp.zeros((c.buffer_size, D), jnp.float32),
             "buf_act": jnp.zeros((c.buffer_size, 4), jnp.float32),
             "filled": jnp.asarray(0, jnp.int32), "head": jnp.asarray(0, jnp.int32),
         }
         self.iterations = 0
         self.samples = 0
-        self._iterate = jax.jit(self._make_iteration(teacher_fn(self.teacher)), donate_argnums=0)
+        self._iterate = jax.jit(self._make_iteration(teach), donate_argnums=0)
+
+    def _warmup_stats(self, env0: Any, teach: Any, steps: int = 200) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and std (floored at 1e-3) of the raw observations of ``steps`` teacher-flown control steps."""
+        def body(st: Any, _: Any) -> tuple[Any, jax.Array]:
+            st2 = self.env.vstep(st, teach(None, st))
+            return st2, st2.obs.astype(jnp.float32)
+
+        _, obs = jax.jit(lambda s: jax.lax.scan(body, s, None, length=steps))(env0)
+        o = np.asarray(obs, np.float64).reshape(-1, self.env_cfg.obs_dim)
+        return o.mean(0).astype(np.float32), np.maximum(o.std(0), 1e-3).astype(np.float32)
 
     def _student_act(self, params: Any, x: jax.Array) -> jax.Array:
         return jnp.tanh(self.module.apply(params, x)[..., :4])
@@ -157,7 +212,7 @@ class Distiller:
 
             def body(st: Any, _: Any) -> tuple[Any, tuple]:
                 x = (st.obs.astype(jnp.float32) - self.mean) / self.std  # (W, N, D)
-                a_t = teacher(x)
+                a_t = teacher(x, st)
                 a = jnp.where(teacher_worlds, a_t, self._student_act(params, x))
                 st2 = self.env.vstep(st, a)
                 em = st2.info["episode_metrics"]
@@ -205,13 +260,14 @@ class Distiller:
     def policy(self) -> EncoderPolicy:
         from quadswarm_mj.training.networks import to_numpy_policy
 
-        return to_numpy_policy(self.arch, self.layout, self.carry["params"], self.teacher.obs_mean,
-                               self.teacher.obs_std, self.meta())
+        return to_numpy_policy(self.arch, self.layout, self.carry["params"], self.obs_mean, self.obs_std,
+                               self.meta())
 
     def meta(self) -> dict[str, Any]:
         return {"activation": self.arch.get("activation", "tanh"), "obs_dim": self.env_cfg.obs_dim, "action_dim": 4,
                 "env": self.env_meta,
                 "train": {"method": "dagger_distillation", "teacher": self.teacher_spec,
+                          **({"teacher_avoid_radius": CONTROLLER_AVOID_RADIUS} if self.teacher is None else {}),
                           "scenario": self.env_cfg.scenario, "iterations": self.iterations, "samples": self.samples,
                           "config": vars(self.cfg) if not hasattr(self.cfg, "__dataclass_fields__")
                           else {k: getattr(self.cfg, k) for k in self.cfg.__dataclass_fields__}}}
@@ -220,14 +276,17 @@ class Distiller:
         """Write the student as a policy file; returns its SHA-256."""
         from quadswarm_mj.training.networks import export_policy
 
-        return export_policy(path, self.arch, self.layout, self.carry["params"], self.teacher.obs_mean,
-                             self.teacher.obs_std, self.meta())
+        return export_policy(path, self.arch, self.layout, self.carry["params"], self.obs_mean, self.obs_std,
+                             self.meta())
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--teacher", required=True, help="teacher policy: pretrained:<name> or a policy .npz")
+    p.add_argument("--teacher", required=True,
+                   help="'controller' (privileged baseline controller) or a policy: pretrained:<name>, a policy .npz")
     p.add_argument("--arch", default="deepsets_deployable", choices=sorted(ARCH_PRESETS))
+    p.add_argument("--width", type=int, help="set every hidden width of the encoder preset (heads 2x)")
+    p.add_argument("--env", action="append", metavar="FIELD=VALUE", help="EnvConfig field (JSON value)")
     p.add_argument("--scenario", default="mix")
     p.add_argument("--out", required=True, help="output directory (student.npz, progress.json, checkpoints)")
     p.add_argument("--minutes", type=float, default=20.0, help="wall-clock budget (default 20)")
@@ -236,9 +295,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--num-worlds", type=int, default=DistillConfig.num_worlds)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
+    env: dict[str, Any] = {}
+    for item in args.env or []:
+        k, _, v = item.partition("=")
+        try:
+            env[k.strip()] = json.loads(v)
+        except json.JSONDecodeError:
+            env[k.strip()] = v
     try:
         d = Distiller(args.teacher, args.arch, args.scenario, DistillConfig(num_worlds=args.num_worlds),
-                      seed=args.seed)
+                      seed=args.seed, env=env, width=args.width)
     except ValueError as e:
         raise SystemExit(f"error: {e}") from None
     out = Path(args.out)
@@ -263,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
         if done:
             break
     sha = d.save(out / "student.npz")
-    print(f"wrote {out / 'student.npz'} (sha256 {sha[:12]}..., teacher sha256 "
+    print(f"wrote {out / 'student.npz'} (sha256 {sha[:12]}...; teacher "
           f"{sha256_file(args.teacher)[:12] if Path(args.teacher).exists() else args.teacher})", flush=True)
     return 0
 
