@@ -296,6 +296,33 @@ def test_pretrained_swarm8_reproduces_recorded_metrics():
     _check_recorded("swarm8", ["static_diff_goal", "swap_goals"])
 
 
+def test_pretrained_swarm8_deployable_reproduces_recorded_metrics():
+    _check_recorded("swarm8_deployable", ["static_diff_goal"])
+
+
+def test_pretrained_obstacle_policies_reproduce_recorded_metrics():
+    _check_recorded("swarm8_obstacles", ["o_random"])
+    _check_recorded("swarm8_obstacles_deployable", ["o_random"])
+
+
+def test_shipped_swarm_policies_are_what_the_manifest_says():
+    """The current swarm policies: encoders over K = 6 neighbours (+ the 9 column features among
+    obstacles), deployable ones within 2,000 actor parameters, env_kwargs that rebuild the training env."""
+    from quadswarm_mj.policies import EncoderPolicy
+
+    for name in ("swarm8", "swarm8_deployable", "swarm8_obstacles", "swarm8_obstacles_deployable"):
+        pol = load_policy(f"pretrained:{name}")
+        assert isinstance(pol, EncoderPolicy) and pol.env_kwargs["num_quads"] == 8
+        cfg = EnvConfig(**pol.env_kwargs)
+        assert cfg.obs_dim == pol.obs_dim and cfg.neighbors == 6
+        if "obstacles" in name:
+            assert cfg.obstacles.density == 0.2 and cfg.obstacles.size == 0.6 and cfg.downwash
+            assert pol.obs_layout["obstacle_dim"] == 9
+        else:
+            assert cfg.obstacles is None
+        assert (pol.num_params <= 2000) == name.endswith("deployable")
+
+
 # ---------------------------------------------------------------------------- encoder policies (deep sets, attention)
 LAYOUT_OBST = {"self_dim": 19, "num_neighbors": 2, "neighbor_dim": 6, "obstacle_dim": 9}
 LAYOUT_SWARM = {"self_dim": 18, "num_neighbors": 3, "neighbor_dim": 6, "obstacle_dim": 0}
@@ -462,13 +489,13 @@ def test_deployable_attention_parameter_count():
         assert count_params(param_shapes(a, LAYOUT_OBST), deployed=False) == pol.num_params + 17 * 4
     assert random_encoder_policy(ARCH_PRESETS["attention_deployable"], LAYOUT_OBST).num_params <= 2000
     assert random_encoder_policy(ARCH_PRESETS["deepsets_deployable"], LAYOUT_OBST).num_params <= 2000
-    mlp = load_policy("pretrained:swarm8")
+    mlp = load_policy("pretrained:swarm8_v1")
     assert mlp.num_params == sum(k.size + b.size for k, b in zip(mlp.kernels, mlp.biases)) - 4 * 65
 
 
 def test_shipped_policies_act_as_their_arrays_say():
     """The shipped MLP files still load as MLPs and act as a forward pass over their raw arrays."""
-    for name in ("single", "swarm8"):
+    for name in ("single", "swarm8_v1"):
         pol = load_policy(f"pretrained:{name}")
         assert isinstance(pol, MLPPolicy) and pol.meta["format"] == FORMAT
         entry = read_manifest()["policies"][name]

@@ -130,7 +130,7 @@ class Distiller:
 
     def __init__(self, teacher: Any, arch: str | dict[str, Any], scenario: str = "mix",
                  cfg: DistillConfig | None = None, seed: int = 0, env: dict[str, Any] | None = None,
-                 width: int | None = None):
+                 width: int | None = None, init_from: str | None = None):
         import optax
 
         from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv
@@ -172,6 +172,18 @@ class Distiller:
         else:
             self.obs_mean = np.asarray(self.teacher.obs_mean, np.float32)
             self.obs_std = np.asarray(self.teacher.obs_std, np.float32)
+        if init_from is not None:  # continue from a student file of the same architecture (its normalizer too)
+            from quadswarm_mj.training.networks import unflatten_params
+
+            start = load_policy(init_from)
+            want = param_shapes(self.arch, self.layout)
+            if not isinstance(start, EncoderPolicy) or {k: tuple(v.shape) for k, v in start.params.items()} != {
+                    k: tuple(v) for k, v in want.items()} or dict(start.obs_layout) != dict(self.layout):
+                raise ValueError(f"init_from {init_from!r}: not an encoder file with architecture {self.arch} "
+                                 f"and layout {self.layout}")
+            params = unflatten_params(start.params)
+            self.obs_mean = np.asarray(start.obs_mean, np.float32)
+            self.obs_std = np.asarray(start.obs_std, np.float32)
         self.mean, self.std = jnp.asarray(self.obs_mean), jnp.asarray(self.obs_std)
         self.carry = {
             "params": params, "opt": self.optimizer.init(params), "key": key, "env": env0,
@@ -181,6 +193,7 @@ class Distiller:
         }
         self.iterations = 0
         self.samples = 0
+        self._init_from = None if init_from is None else str(init_from)
         self._iterate = jax.jit(self._make_iteration(teach), donate_argnums=0)
 
     def _warmup_stats(self, env0: Any, teach: Any, steps: int = 200) -> tuple[np.ndarray, np.ndarray]:
@@ -269,6 +282,7 @@ class Distiller:
                 "train": {"method": "dagger_distillation", "teacher": self.teacher_spec,
                           **({"teacher_avoid_radius": CONTROLLER_AVOID_RADIUS} if self.teacher is None else {}),
                           "scenario": self.env_cfg.scenario, "iterations": self.iterations, "samples": self.samples,
+                          "init_from": self._init_from,
                           "config": vars(self.cfg) if not hasattr(self.cfg, "__dataclass_fields__")
                           else {k: getattr(self.cfg, k) for k in self.cfg.__dataclass_fields__}}}
 
@@ -294,6 +308,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--checkpoint-minutes", type=float, default=5.0)
     p.add_argument("--num-worlds", type=int, default=DistillConfig.num_worlds)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--init-from", help="continue from this student .npz (same --arch/--width and env)")
+    p.add_argument("--beta-iterations", type=int, default=DistillConfig.beta_iterations,
+                   help="teacher share 1 -> 0 over these iterations (0: the student flies from the start)")
     args = p.parse_args(argv)
     env: dict[str, Any] = {}
     for item in args.env or []:
@@ -303,8 +320,9 @@ def main(argv: list[str] | None = None) -> int:
         except json.JSONDecodeError:
             env[k.strip()] = v
     try:
-        d = Distiller(args.teacher, args.arch, args.scenario, DistillConfig(num_worlds=args.num_worlds),
-                      seed=args.seed, env=env, width=args.width)
+        d = Distiller(args.teacher, args.arch, args.scenario,
+                      DistillConfig(num_worlds=args.num_worlds, beta_iterations=args.beta_iterations),
+                      seed=args.seed, env=env, width=args.width, init_from=args.init_from)
     except ValueError as e:
         raise SystemExit(f"error: {e}") from None
     out = Path(args.out)
