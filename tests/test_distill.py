@@ -56,6 +56,14 @@ def test_student_learns_the_teacher_and_is_a_loadable_deployable_policy(tmp_path
     assert loaded.env_kwargs == teacher.env_kwargs and loaded.num_params == d.num_params
     np.testing.assert_allclose(loaded(obs), student(obs), atol=1e-6)
     assert loaded.meta["train"]["method"] == "dagger_distillation"
+    # continuing from the file starts from exactly its policy
+    d2 = Distiller(str(teacher_path), "deepsets_deployable", "static_diff_goal",
+                   DistillConfig(num_worlds=4, unroll_length=16, buffer_size=4096, sgd_steps=100, batch_size=256,
+                                 beta_iterations=0), seed=1, init_from=str(path))
+    np.testing.assert_allclose(d2.policy()(obs), loaded(obs), atol=1e-6)
+    with pytest.raises(ValueError, match="init_from"):
+        Distiller(str(teacher_path), "deepsets_large", "static_diff_goal", DistillConfig(num_worlds=2), width=8,
+                  init_from=str(path))
 
 
 @pytest.mark.slow
