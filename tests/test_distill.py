@@ -85,3 +85,26 @@ def test_controller_teacher_with_obstacles_labels_the_true_state_and_estimates_a
     student = d.policy()
     assert student.env_kwargs["downwash"] is True and student.env_kwargs["obstacles"]["density"] == 0.2
     assert student.meta["train"]["teacher"] == "controller"
+
+
+@pytest.mark.slow
+def test_cli_run_resumes_with_optimizer_normalizer_and_counters(tmp_path):
+    import json
+
+    from quadswarm_mj.training import distill
+
+    teacher = str(_teacher(tmp_path))
+    out = tmp_path / "run"
+    base = ["--teacher", teacher, "--arch", "deepsets_deployable", "--scenario", "static_diff_goal", "--out", str(out),
+            "--num-worlds", "2", "--checkpoint-minutes", "0"]
+    assert distill.main(base + ["--iterations", "2"]) == 0
+    first = load_policy(str(out / "student.npz"))
+    assert distill.main(base + ["--iterations", "3", "--resume"]) == 0
+    rows = json.loads((out / "progress.json").read_text())
+    assert [r["iteration"] for r in rows] == [1, 2, 3]
+    assert rows[-1]["wall_s"] >= rows[1]["wall_s"]
+    second = load_policy(str(out / "student.npz"))
+    assert second.meta["train"]["iterations"] == 3
+    np.testing.assert_array_equal(second.obs_mean, first.obs_mean)
+    with pytest.raises(SystemExit, match="no "):
+        distill.main(["--teacher", teacher, "--out", str(tmp_path / "empty"), "--resume"])

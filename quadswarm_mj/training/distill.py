@@ -22,6 +22,7 @@ flies) and ``export_c`` exports. Command line::
 
     python -m quadswarm_mj.training.distill --teacher runs/swarm8/best.npz --arch deepsets_deployable \\
         --scenario mix --out runs/swarm8_dep --minutes 20
+    python -m quadswarm_mj.training.distill ... --out runs/swarm8_dep --minutes 20 --resume   # continue it
     python -m quadswarm_mj.training.distill --teacher controller --arch deepsets_large --width 64 \\
         --scenario mix --env 'obstacles={"density": 0.2, "size": 0.6}' --env downwash=true --out runs/o --minutes 20
 """
@@ -294,6 +295,46 @@ class Distiller:
                              self.meta())
 
 
+    # ------------------------------------------------------------------ resumable learner state
+    def save_state(self, path: str | Path, rows: list[dict[str, Any]] | None = None) -> None:
+        """The learner state (student parameters, Adam state, normalizer, RNG key, counters and the log
+        rows) as a pickle-free ``.npz``, written atomically. The DAgger buffer is not saved: a resumed run
+        refills it from its own rollouts."""
+        leaves = jax.tree_util.tree_leaves({"params": self.carry["params"], "opt": self.carry["opt"]})
+        arrays = {f"leaf_{i:04d}": np.asarray(v) for i, v in enumerate(leaves)}
+        arrays["key"] = np.asarray(self.carry["key"])
+        arrays["obs_mean"], arrays["obs_std"] = np.asarray(self.obs_mean), np.asarray(self.obs_std)
+        arrays["scalars"] = np.array(json.dumps({"iterations": self.iterations, "samples": self.samples,
+                                                 "rows": rows or []}))
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        np.savez(tmp, **arrays)
+        tmp.replace(path)
+
+    def resume(self, path: str | Path) -> list[dict[str, Any]]:
+        """Restore :meth:`save_state`'s file (same teacher, arch and env); returns the saved log rows."""
+        with np.load(path, allow_pickle=False) as z:
+            tree = {"params": self.carry["params"], "opt": self.carry["opt"]}
+            leaves, treedef = jax.tree_util.tree_flatten(tree)
+            new = [z[f"leaf_{i:04d}"] for i in range(len(leaves))]
+            if [np.shape(a) for a in new] != [np.shape(a) for a in leaves]:
+                raise ValueError(f"{path}: the saved student/optimizer do not match this architecture")
+            tree = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(a) for a in new])
+            sc = json.loads(str(z["scalars"]))
+            self.obs_mean, self.obs_std = z["obs_mean"].astype(np.float32), z["obs_std"].astype(np.float32)
+            key = jnp.asarray(z["key"])
+        self.carry.update(params=tree["params"], opt=tree["opt"], key=key)
+        self.mean, self.std = jnp.asarray(self.obs_mean), jnp.asarray(self.obs_std)
+        self.iterations, self.samples = int(sc["iterations"]), int(sc["samples"])
+        # the normalizer is baked into the jitted iteration: rebuild it
+        teach = controller_teacher(self.env_cfg) if self.teacher is None else teacher_fn(self.teacher)
+        self._iterate = jax.jit(self._make_iteration(teach), donate_argnums=0)
+        return list(sc["rows"])
+
+
+STATE_FILE = "train_state.npz"
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--teacher", required=True,
@@ -311,6 +352,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--init-from", help="continue from this student .npz (same --arch/--width and env)")
     p.add_argument("--beta-iterations", type=int, default=DistillConfig.beta_iterations,
                    help="teacher share 1 -> 0 over these iterations (0: the student flies from the start)")
+    p.add_argument("--resume", action="store_true", help=f"continue the run in --out from checkpoints/{STATE_FILE} "
+                   "(student, Adam state, normalizer, counters; the same options as the first run)")
     args = p.parse_args(argv)
     env: dict[str, Any] = {}
     for item in args.env or []:
@@ -327,13 +370,20 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"error: {e}") from None
     out = Path(args.out)
     (out / "checkpoints").mkdir(parents=True, exist_ok=True)
+    rows: list[dict[str, Any]] = []
+    if args.resume:
+        state = out / "checkpoints" / STATE_FILE
+        if not state.is_file():
+            raise SystemExit(f"error: --resume: no {state}")
+        rows = d.resume(state)
     print(f"distilling {args.teacher} into {args.arch} ({d.num_params} actor parameters) on {args.scenario}, "
-          f"N={d.env_cfg.num_quads}; output in {out}", flush=True)
+          f"N={d.env_cfg.num_quads}; output in {out}" + (f" (resumed at iteration {d.iterations})"
+                                                          if args.resume else ""), flush=True)
     t0 = last_ckpt = time.perf_counter()
-    rows = []
+    wall0 = rows[-1]["wall_s"] if rows else 0.0
     while True:
         row = d.step()
-        row["wall_s"] = time.perf_counter() - t0
+        row["wall_s"] = wall0 + time.perf_counter() - t0
         rows.append(row)
         print(f"it {row['iteration']} | {row['samples'] / 1e6:.1f} M samples | {row['wall_s'] / 60:.1f} min | "
               f"loss {row['loss']:.5f} | beta {d.beta():.2f} | student coll/quad {row['student_collisions']:.3f} "
@@ -342,6 +392,7 @@ def main(argv: list[str] | None = None) -> int:
         done = (args.iterations is not None and d.iterations >= args.iterations) or now - t0 >= 60 * args.minutes
         if done or now - last_ckpt >= 60 * args.checkpoint_minutes:
             d.save(out / "checkpoints" / f"it_{d.iterations:06d}.npz")
+            d.save_state(out / "checkpoints" / STATE_FILE, rows)
             (out / "progress.json").write_text(json.dumps(rows))
             last_ckpt = now
         if done:
