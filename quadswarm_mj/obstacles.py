@@ -265,6 +265,12 @@ def new_contacts(contact: Any, prev_contact: Any) -> Any:
 # ------------------------------------------------------------------------------- response
 
 
+#: the JAX engine's draw budget for the obstacle response: draws for at most this many NEW column contacts
+#: per world and control step (more simultaneous new contacts reuse the slots' draws, as wall bounces and
+#: landings do; each contact's draws keep their distribution). The CPU engine draws per contact.
+OBSTACLE_BUDGET = 2
+
+
 def response_draw_spec(num_quads: int, decay: tuple[float, float] = OBSTACLE_DECAY,
                        kick_omega: tuple[float, float] = OBSTACLE_KICK) -> DrawSpec:
     """Draws of the obstacle response per quad (budget: at most one column per quad per step):

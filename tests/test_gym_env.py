@@ -96,8 +96,8 @@ def test_truncation_at_1500_steps_with_episode_metrics():
             assert not trunc
     assert trunc
     m = info["episode_metrics"]
-    assert set(m) == {"success", "collisions", "floor_hits", "wall_hits", "ceiling_hits", "mean_distance",
-                      "goal_reach_rate"}
+    assert set(m) == {"success", "collisions", "collision_rate", "floor_hits", "wall_hits", "ceiling_hits",
+                      "mean_distance", "goal_reach_rate"}
     assert all(np.isfinite(v) for v in m.values())
     with pytest.raises(RuntimeError, match="reset"):
         env.step(a)

@@ -302,3 +302,33 @@ def test_mjx_mujoco_contacts_use_each_worlds_column_radius():
 
     xmax = float(np.max(np.asarray(jax.jit(run)(s))))
     assert -(r + cfg.quad.arm) - 0.03 < xmax < -(r + cfg.quad.arm) + 0.02, (r, xmax)
+
+
+@pytest.mark.slow
+def test_jax_engine_responds_to_more_simultaneous_column_hits_than_its_draw_budget():
+    """The JAX engine draws the obstacle response for OBSTACLE_BUDGET new contacts per step; more
+    simultaneous new contacts reuse those draws, so every quad that hits a column still bounces
+    outward (noise on)."""
+    jax = pytest.importorskip("jax")
+    from quadswarm_mj.envs.mjx_env import MjxQuadSwarmEnv
+
+    n = ob.OBSTACLE_BUDGET + 2
+    cols = np.array([[-3.0 + 2.0 * i, 0.0] for i in range(n)])
+    cfg = EnvConfig(num_quads=n, scenario="static_same_goal", obstacles=ObstacleConfig(), motor_start="hover",
+                    episode_seconds=1.0)
+    env = MjxQuadSwarmEnv(cfg)
+    # every quad 0.36 m from its column's axis, flying at it at 1 m/s: all touch within the first step
+    pos = np.concatenate([cols + np.array([-0.36, 0.0]), np.full((n, 1), 2.0)], -1)
+    init = {"pos": pos, "vel": np.tile([1.0, 0.0, 0.0], (n, 1)), "motors": "hover", "obstacles": cols}
+    s = jax.jit(lambda k: env.reset(k, init))(jax.random.key(3))
+    step = jax.jit(env.step)
+    hover = np.full((n, 4), cfg.quad.hover_action, np.float32)
+    hit = np.zeros(n, bool)
+    for _ in range(3):
+        s = step(s, hover)
+        hit |= np.asarray(s.info["obstacle_contact"])
+        if hit.all():
+            break
+    assert hit.all()
+    vx = np.asarray(s.info["state"]["vel"])[:, 0]
+    assert np.all(vx < 0.0), vx  # bounced back (radially outward, away from +x)

@@ -83,7 +83,7 @@ passes thrust, torque and motor constants to the actuation functions.
   ``init_state["obstacles"]``) and the column geoms are moved there through ``data.mocap_pos``
   (MuJoCo contacts with ``physics="mjx"`` and "mujoco"/"blend"; under size randomization the
   contact geoms get each world's drawn radius through the model, ``geom_size``). The obstacle
-  response draws per quad (one column per quad and step).
+  response draws for at most ``obstacles.OBSTACLE_BUDGET`` new column contacts per step.
 
 ``collision_model`` "mujoco" and "blend" run with ``physics="mjx"`` (MJX's contact solver: the quads'
 hitbox spheres against each other and the room's floor plane and wall/ceiling boxes; "blend" keeps
@@ -328,8 +328,8 @@ class MjxQuadSwarmEnv:
             **_prefixed("wall", wall_draw_spec(WALL_BUDGET, cfg.collision_decay, c.kick_omega)),
             **_prefixed("quad", quad_collision_slot_spec(c.tries, QUAD_PAIR_BUDGET, c.shared_noise_std,
                                                          c.own_noise_std, n, cfg.collision_decay, c.kick_omega)),
-            # obstacle response: per-quad draws (at most one column per quad and step)
-            **(_prefixed("obst", _obst_lib().response_draw_spec(n))
+            # obstacle response: slots for at most OBSTACLE_BUDGET new column contacts per step
+            **(_prefixed("obst", _obst_lib().response_draw_spec(_obst_lib().OBSTACLE_BUDGET))
                if self._obst is not None and self._obst_respond else {}),
         }
         down_spec = _prefixed("down", downwash_slot_spec(DOWNWASH_BUDGET)) if cfg.downwash else {}
@@ -629,8 +629,12 @@ class MjxQuadSwarmEnv:
             qc = {"contact": contact, "new_contact": contact & ~info["contact"]}
         obst: dict[str, Any] = {}
         if self._obst is not None:  # SPEC_obstacles A.3, after quad-quad
-            r = pipeline.obstacle_stage(pos, vel, omega, info["obstacle_contact"], self._omap(info), cfg.quad.arm,
-                                        _sub(rnd, "obst") if self._obst_respond else None, self._obst_respond)
+            omap, draws = self._omap(info), None
+            if self._obst_respond:  # the budgeted slots, spread over this step's new contacts
+                new = _obst_lib().detect(pos, *omap, cfg.quad.arm)[0] & ~info["obstacle_contact"]
+                draws = expand_per_quad(new, _sub(rnd, "obst"))
+            r = pipeline.obstacle_stage(pos, vel, omega, info["obstacle_contact"], omap, cfg.quad.arm, draws,
+                                        self._obst_respond)
             vel, omega = r["vel"], r["omega"]
             obst = {"obst_new": r["new_contact"], "obst_contact": r["contact"]}
         _, dist = pairwise_contacts(pos, cfg.hitbox)
