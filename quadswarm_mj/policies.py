@@ -720,6 +720,18 @@ def load_pretrained(name: str, directory: str | os.PathLike | None = None) -> ML
 #: m from a column's surface within which the baseline controller steers away (with obstacles on)
 OBSTACLE_STEER_RADIUS = 0.6
 
+
+def baseline_gains(cfg: Any = None, avoid_radius: float = 0.0) -> Any:
+    """The baseline controller's ``ControllerGains`` for ``cfg``: neighbours within ``avoid_radius`` m
+    repel (0: off); with obstacles on it steers around the columns (``OBSTACLE_STEER_RADIUS`` m from the
+    surface, the configured column radius)."""
+    from quadswarm_mj.controllers import ControllerGains
+
+    o = getattr(cfg, "obstacles", None)
+    if o is None:
+        return ControllerGains(avoid_radius=avoid_radius)
+    return ControllerGains(avoid_radius=avoid_radius, obstacle_radius=OBSTACLE_STEER_RADIUS, column_radius=0.5 * o.size)
+
 class ControllerPolicy:
     """The baseline position controller (``quadswarm_mj.controllers.PositionController``) as a policy.
 
@@ -732,13 +744,10 @@ class ControllerPolicy:
     env_kwargs: dict[str, Any] = {}
 
     def __init__(self, cfg: Any = None):
-        from quadswarm_mj.controllers import ControllerGains, PositionController
+        from quadswarm_mj.controllers import PositionController
 
-        o = getattr(cfg, "obstacles", None)
         # with obstacles: steer around the columns of ``info["obstacles"]`` (as scripts/render_rollout.py)
-        gains = ControllerGains() if o is None else ControllerGains(obstacle_radius=OBSTACLE_STEER_RADIUS,
-                                                                    column_radius=0.5 * o.size)
-        self.ctrl = PositionController(cfg, gains)
+        self.ctrl = PositionController(cfg, baseline_gains(cfg))
 
     def act(self, obs: Any, info: dict[str, Any] | None = None) -> np.ndarray:
         if info is None or "state" not in info or "goals" not in info:

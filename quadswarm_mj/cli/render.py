@@ -35,8 +35,8 @@ import numpy as np
 import quadswarm_mj
 from quadswarm_mj import QuadSwarmEnv
 from quadswarm_mj.config import ObstacleConfig
-from quadswarm_mj.controllers import ControllerGains, PositionController
-from quadswarm_mj.policies import OBSTACLE_STEER_RADIUS
+from quadswarm_mj.controllers import PositionController
+from quadswarm_mj.policies import baseline_gains
 from quadswarm_mj.render import SwarmRenderer
 
 #: A policy maps (observation, info) of ``QuadSwarmEnv`` to an action of its action space.
@@ -63,10 +63,7 @@ def make_policy(name: str, env: QuadSwarmEnv, seed: int | None, external: Any = 
     if external is not None:
         return lambda obs, info: np.asarray(external.act(obs, info), dtype=np.float64).reshape(shape)
     if name == "controller":
-        o = env.cfg.obstacles
-        gains = ControllerGains() if o is None else ControllerGains(obstacle_radius=OBSTACLE_STEER_RADIUS,
-                                                                    column_radius=0.5 * o.size)
-        ctrl = PositionController(env.cfg, gains)
+        ctrl = PositionController(env.cfg, baseline_gains(env.cfg))
 
         def controller(obs: np.ndarray, info: dict[str, Any]) -> np.ndarray:
             return ctrl(info["state"], info["goals"], info["goal_vel"], info["params"],

@@ -85,14 +85,12 @@ def controller_teacher(cfg: EnvConfig) -> Any:
     """The privileged teacher: ``f(x, state) -> actions (W, N, 4)`` of the position controller on the
     true state, goals, goal velocities, dynamics parameters and (with obstacles) column map of the
     batched env ``state``; ``x`` (the student's observations) is ignored."""
-    from quadswarm_mj.controllers import ControllerGains, PositionController
+    from quadswarm_mj.controllers import PositionController
     from quadswarm_mj.obstacles import ObstacleMap
-    from quadswarm_mj.policies import OBSTACLE_STEER_RADIUS
+    from quadswarm_mj.policies import baseline_gains
 
     o = cfg.obstacles
-    gains = ControllerGains(avoid_radius=CONTROLLER_AVOID_RADIUS) if o is None else ControllerGains(
-        avoid_radius=CONTROLLER_AVOID_RADIUS, obstacle_radius=OBSTACLE_STEER_RADIUS, column_radius=0.5 * o.size)
-    ctrl = PositionController(cfg, gains)
+    ctrl = PositionController(cfg, baseline_gains(cfg, CONTROLLER_AVOID_RADIUS))
 
     def f(x: jax.Array, st: Any) -> jax.Array:
         info = st.info

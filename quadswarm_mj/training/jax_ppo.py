@@ -57,6 +57,7 @@ from quadswarm_mj.training.ppo import (
     ppo_meta,
     save_policy_file,
     save_train_state,
+    start_run,
     write_logs,
 )
 from quadswarm_mj.training.replay import ReplayConfig, init_replay, record, restart, tree_where
@@ -285,20 +286,8 @@ class JaxPPOTrainer:
         """Train until this run has done ``total_steps`` agent-steps or ``seconds`` of wall time (the
         compile counts against ``seconds``). Writes ``progress.csv``/``progress.json``, ``curves.png``,
         ``checkpoints/`` (policy files and ``train_state.npz``) and ``final.npz`` into ``out_dir``."""
-        if total_steps is None and seconds is None:
-            raise ValueError("give a budget: total_steps and/or seconds")
-        out = Path(out_dir) if out_dir is not None else None
-        if out is not None:
-            (out / "checkpoints").mkdir(parents=True, exist_ok=True)
+        out, rows, self._wall0, bar = start_run(out_dir, history, total_steps, seconds, progress)
         per_iter = self.num_agents * self.ppo.unroll_length
-        rows: list[dict[str, Any]] = list(history or [])  # a resumed run's earlier rows
-        self._wall0 = float(rows[-1]["wall_s"]) if rows else 0.0
-        bar = None
-        if progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=total_steps if total_steps is not None else int(seconds), unit="step" if total_steps
-                       is not None else "s", dynamic_ncols=True, smoothing=0.05)
         t0 = time.perf_counter()
         last_ckpt = t0
         self.key, k_env = jax.random.split(self.key)

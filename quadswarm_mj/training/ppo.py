@@ -389,6 +389,35 @@ def save_policy_file(path: str | Path, ppo: PPOConfig, arch: dict[str, Any] | No
     return enc_networks.export_policy(path, arch, layout, state.params.policy, mean, std, meta, extra)
 
 
+def _value_layers(arrays: dict[str, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The critic's (kernel, bias) layers stored in a policy file (``value/layer_i/...``; [] if none)."""
+    out, i = [], 0
+    while f"value/layer_{i}/kernel" in arrays:
+        out.append((arrays[f"value/layer_{i}/kernel"], arrays[f"value/layer_{i}/bias"]))
+        i += 1
+    return out
+
+
+def start_run(out_dir: str | Path | None, history: list[dict[str, Any]] | None, total_steps: int | None,
+              seconds: float | None, progress: bool) -> tuple[Path | None, list[dict[str, Any]], float, Any]:
+    """Common start of both trainers' ``train``: the output directory (``checkpoints/`` created), the
+    earlier log rows of a resumed run, their wall time (s) and the tqdm bar (None without progress)."""
+    if total_steps is None and seconds is None:
+        raise ValueError("give a budget: total_steps and/or seconds")
+    out = Path(out_dir) if out_dir is not None else None
+    if out is not None:
+        (out / "checkpoints").mkdir(parents=True, exist_ok=True)
+    rows: list[dict[str, Any]] = list(history or [])
+    wall0 = float(rows[-1]["wall_s"]) if rows else 0.0
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total_steps if total_steps is not None else int(seconds), unit="step" if total_steps
+                   is not None else "s", dynamic_ncols=True, smoothing=0.05)
+    return out, rows, wall0, bar
+
+
 def ppo_meta(ppo: PPOConfig) -> dict[str, Any]:
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(ppo).items()}
 
@@ -513,11 +542,8 @@ class PPOTrainer:
 
         pol_layers = pad([(k, b) for k, b in zip(pol.kernels, pol.biases)], params.policy)
         value = params.value
-        if "value/layer_0/kernel" in arrays:
-            vl, i = [], 0
-            while f"value/layer_{i}/kernel" in arrays:
-                vl.append((arrays[f"value/layer_{i}/kernel"], arrays[f"value/layer_{i}/bias"]))
-                i += 1
+        vl = _value_layers(arrays)
+        if vl:
             value = _to_tree(pad(vl, params.value))
         params = ppo_losses.PPONetworkParams(policy=_to_tree(pol_layers), value=value)
         mean = np.zeros(d, np.float32)
@@ -541,11 +567,8 @@ class PPOTrainer:
                              f"run's {self.arch} / {self.layout}")
         policy = enc_networks.unflatten_params(pol.params)
         value = params.value
-        if "value/layer_0/kernel" in arrays:
-            vl, i = [], 0
-            while f"value/layer_{i}/kernel" in arrays:
-                vl.append((arrays[f"value/layer_{i}/kernel"], arrays[f"value/layer_{i}/bias"]))
-                i += 1
+        vl = _value_layers(arrays)
+        if vl:
             if [k.shape for k, _ in vl] == [k.shape for k, _ in _dense_layers(params.value)]:
                 value = _to_tree(vl)
         count = float(arrays["norm_count"]) if "norm_count" in arrays else 1e6
@@ -622,20 +645,8 @@ class PPOTrainer:
         Writes ``progress.csv``/``progress.json``, ``curves.png`` and ``checkpoints/`` into
         ``out_dir`` when given. Returns the log rows.
         """
-        if total_steps is None and seconds is None:
-            raise ValueError("give a budget: total_steps and/or seconds")
-        out = Path(out_dir) if out_dir is not None else None
-        if out is not None:
-            (out / "checkpoints").mkdir(parents=True, exist_ok=True)
+        out, rows, self._wall0, bar = start_run(out_dir, history, total_steps, seconds, progress)
         per_iter = self.batch.num_agents * self.ppo.unroll_length
-        rows: list[dict[str, Any]] = list(history or [])  # a resumed run's earlier rows
-        self._wall0 = float(rows[-1]["wall_s"]) if rows else 0.0
-        bar = None
-        if progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=total_steps if total_steps is not None else int(seconds), unit="step" if total_steps
-                       is not None else "s", dynamic_ncols=True, smoothing=0.05)
         t0 = time.perf_counter()
         last_ckpt = t0
         obs = self.batch.reset()
