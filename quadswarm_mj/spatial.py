@@ -64,7 +64,7 @@ def quat_to_rotmat(q: Any) -> Any:
     """(..., 4) unit quaternion (w, x, y, z) -> (..., 3, 3) body-to-world rotation."""
     xp = array_namespace(q)
     lead = q.shape[:-1]
-    if q.size >= BIG:
+    if q.size >= BIG or xp is not np:  # under XLA the gather is a slow strided kernel: textbook
         return _quat_to_rotmat_textbook(xp, q)
     P = (q[..., :, None] * q[..., None, :]).reshape(lead + (16,))
     t = (xp.take(P, _Q_IAB, axis=-1) * xp.asarray(_Q_SCALE, dtype=q.dtype)).reshape(lead + (2, 9)).sum(axis=-2)

@@ -198,6 +198,76 @@ def _sub(draws: dict[str, Any], prefix: str) -> dict[str, Any]:
     return {k[len(p):]: v for k, v in draws.items() if k.startswith(p)}
 
 
+_ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
+
+
+def threefry_2x32_unrolled(key_data: jax.Array, count: jax.Array) -> jax.Array:
+    """``jax.extend.random.threefry_2x32(key_data, count)`` (same words) as straight-line code.
+
+    ``key_data`` (2,) uint32, ``count`` (2 M,) uint32 hashed as the pairs (count[:M], count[M:]).
+    On CPU, JAX lowers threefry to a rolled loop of 5 iterations (small compiles), which XLA runs as
+    ~40 small kernels; unrolled it is one elementwise kernel that XLA fuses with its consumer."""
+    k0, k1 = key_data[0], key_data[1]
+    ks = (k0, k1, k0 ^ k1 ^ jnp.uint32(0x1BD11BDA))
+    half = count.shape[0] // 2
+    x0, x1 = count[:half] + ks[0], count[half:] + ks[1]
+    for group in range(5):
+        for r in _ROTATIONS[group % 2]:
+            x0 = x0 + x1
+            x1 = (x1 << jnp.uint32(r)) | (x1 >> jnp.uint32(32 - r))
+            x1 = x1 ^ x0
+        x0 = x0 + ks[(group + 1) % 3]
+        x1 = x1 + ks[(group + 2) % 3] + jnp.uint32(group + 1)
+    return jnp.concatenate([x0, x1])
+
+
+#: Counter offset of the step's words (the pairs (2^31 + i, 2^31 + M + i)): never the small counters
+#: of ``jax.random.split`` / ``fold_in`` of the same key, so the streams stay disjoint.
+_COUNTER_BASE = np.uint32(2**31)
+
+
+def step_words(key: jax.Array, total: int) -> tuple[jax.Array, jax.Array]:
+    """(next key, ``total`` uint32 words) from a threefry key with ONE hash: the next key's data are
+    words 0-1, the draws the rest (counter mode; replaces ``split`` + ``split`` + ``bits``)."""
+    n = total + 2
+    n += n % 2
+    words = threefry_2x32_unrolled(jax.random.key_data(key), jnp.arange(n, dtype=jnp.uint32) + _COUNTER_BASE)
+    return jax.random.wrap_key_data(words[:2], impl=jax.random.key_impl(key)), words[2:2 + total]
+
+
+def _unit_numbers(words: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(U[0, 1), N(0, 1)) from uint32 words, exactly as ``jax.random.uniform`` (23 mantissa bits) and
+    ``jax.random.normal`` (sqrt(2) erfinv of a uniform on [nextafter(-1, 0), 1)) make them."""
+    u01 = jax.lax.bitcast_convert_type((words >> 9) | jnp.uint32(0x3F800000), jnp.float32) - 1.0
+    lo_n = np.nextafter(np.float32(-1.0), np.float32(0.0))
+    return u01, np.sqrt(2.0).astype(np.float32) * jax.lax.erf_inv(jnp.maximum(lo_n, lo_n + (1.0 - lo_n) * u01))
+
+
+def _materialized_numbers(words: jax.Array, normals: bool) -> tuple[jax.Array, jax.Array | None]:
+    """:func:`_unit_numbers` of flat ``words``, computed once into buffers.
+
+    XLA:CPU otherwise fuses the erf_inv polynomial (log, two branches of 9 coefficients) into every
+    consumer of every slice and recomputes it there (the observation, the collision scatters),
+    which cost more than all the draws themselves (``jax.lax.optimization_barrier`` does not stop
+    it on CPU). The numbers are computed in a loop of two chunks (a loop body cannot be fused into
+    its consumers; trip counts of 1 are inlined by XLA), which makes them ordinary buffers."""
+    if not normals:
+        return _unit_numbers(words)[0], None
+    total = words.shape[0]
+    half = (total + 1) // 2
+    padded = jnp.concatenate([words, jnp.zeros((2 * half - total,), words.dtype)]) if 2 * half != total else words
+    first, second = padded[:half], padded[half:]
+
+    def chunk(i: jax.Array, acc: tuple[jax.Array, ...]) -> tuple[jax.Array, ...]:
+        u, n = _unit_numbers(jnp.where(i == 0, first, second))
+        return (jnp.where(i == 0, u, acc[0]), jnp.where(i == 0, n, acc[1]),
+                jnp.where(i == 1, u, acc[2]), jnp.where(i == 1, n, acc[3]))
+
+    zeros = jnp.zeros((half,), jnp.float32)
+    ua, na, ub, nb = jax.lax.fori_loop(0, 2, chunk, (zeros, zeros, zeros, zeros))
+    return jnp.concatenate([ua, ub])[:total], jnp.concatenate([na, nb])[:total]
+
+
 class FusedJaxSampler(JaxSampler):
     """A :class:`~quadswarm_mj.random_draws.JaxSampler` that draws a whole spec from ONE
     ``jax.random.bits`` call (sliced per entry) instead of one call per entry: far less to compile
@@ -208,31 +278,42 @@ class FusedJaxSampler(JaxSampler):
     (23 mantissa bits; normal = sqrt(2) erfinv(U(-1, 1))): the same distributions. Used under
     ``jit`` only (float32 and threefry keys; otherwise one uniform and one normal call)."""
 
+    @staticmethod
+    def fused(key: jax.Array, dtype: Any) -> bool:
+        """Whether the fused path applies (float32 numbers from a threefry key)."""
+        threefry = jax.random.key_impl(key) == jax.random.key_impl(jax.random.key(0, impl="threefry2x32"))
+        return jnp.dtype(dtype) == jnp.float32 and threefry
+
+    @staticmethod
+    def num_words(spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> int:
+        return sum(int(np.prod(tuple(batch_shape) + tuple(d.shape))) for d in spec.values())
+
     def draw(self, spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
-        items = [(name, d, tuple(batch_shape) + tuple(d.shape)) for name, d in spec.items()]
-        sizes = [int(np.prod(shape)) for _, _, shape in items]
-        threefry = jax.random.key_impl(self.key) == jax.random.key_impl(jax.random.key(0, impl="threefry2x32"))
-        if jnp.dtype(self.dtype) != jnp.float32 or not items or not threefry:
+        if not spec or not self.fused(self.key, self.dtype):
             return self._draw_two_calls(spec, batch_shape)
         from jax.extend.random import threefry_2x32
 
         self.key, k = jax.random.split(self.key)
-        total = sum(sizes)
+        total = self.num_words(spec, batch_shape)
         # threefry_2x32 hashes the counter array's two halves as (x0, x1) pairs: 2 words per block
         words = threefry_2x32(jax.random.key_data(k), jnp.arange(total + total % 2, dtype=jnp.uint32))[:total]
-        # U[0, 1) with 23 random mantissa bits, as jax.random.uniform
-        u01 = jax.lax.bitcast_convert_type((words >> 9) | jnp.uint32(0x3F800000), jnp.float32) - 1.0
+        return self.from_words(spec, words, batch_shape)
+
+    @staticmethod
+    def from_words(spec: DrawSpec, words: jax.Array, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
+        """The draws of ``spec`` from ``num_words(spec)`` uint32 ``words`` (float32)."""
+        items = [(name, d, tuple(batch_shape) + tuple(d.shape)) for name, d in spec.items()]
+        sizes = [int(np.prod(shape)) for _, _, shape in items]
+        u01, std_normal = _materialized_numbers(words, any(isinstance(d, Normal) for d in spec.values()))
         out: dict[str, Any] = {}
         start = 0
-        lo_n = np.nextafter(np.float32(-1.0), np.float32(0.0))
         for (name, d, shape), size in zip(items, sizes):
-            x = u01[start:start + size].reshape(shape)
-            start += size
             if isinstance(d, Uniform):
+                x = u01[start:start + size].reshape(shape)
                 out[name] = jnp.maximum(d.low, d.low + (d.high - d.low) * x)
             else:  # jax.random.normal: uniform on [nextafter(-1, 0), 1), then sqrt(2) erfinv
-                v = jnp.maximum(lo_n, lo_n + (1.0 - lo_n) * x)
-                out[name] = d.mean + d.std * (np.sqrt(2.0).astype(np.float32) * jax.lax.erf_inv(v))
+                out[name] = d.mean + d.std * std_normal[start:start + size].reshape(shape)
+            start += size
         return out
 
     def _draw_two_calls(self, spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
@@ -668,8 +749,14 @@ class MjxQuadSwarmEnv:
             raise ValueError(f"action has the wrong shape: expected shape {(n, 4)} per world, "
                              f"got shape {tuple(jnp.shape(action))}")
         action = jnp.asarray(action, f)
-        k_draw, k_next = jax.random.split(info["rng"])
-        rnd = self._draw(self._step_spec, k_draw, self._step_mean_spec)
+        if self._step_spec and FusedJaxSampler.fused(info["rng"], f):  # one unrolled hash for key and draws
+            k_next, words = step_words(info["rng"], FusedJaxSampler.num_words(self._step_spec))
+            rnd = FusedJaxSampler.from_words(self._step_spec, words)
+            if self._step_mean_spec:
+                rnd.update(MeanSampler(dtype=f, xp=jnp).draw(self._step_mean_spec))
+        else:
+            k_draw, k_next = jax.random.split(info["rng"])
+            rnd = self._draw(self._step_spec, k_draw, self._step_mean_spec)
         prev_f_norm = info["state"]["thrust"]
         data, k = self._physics(state.data, info, action, rnd)
         steps = info["step"] + 1
