@@ -232,6 +232,8 @@ def step_words(key: jax.Array, total: int) -> tuple[jax.Array, jax.Array]:
     n = total + 2
     n += n % 2
     words = threefry_2x32_unrolled(jax.random.key_data(key), jnp.arange(n, dtype=jnp.uint32) + _COUNTER_BASE)
+    if not jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):  # a raw (legacy uint32) key stays raw
+        return words[:2], words[2:2 + total]
     return jax.random.wrap_key_data(words[:2], impl=jax.random.key_impl(key)), words[2:2 + total]
 
 
@@ -828,17 +830,26 @@ class AutoResetWrapper:
 
     def vstep(self, state: State, action: jax.Array) -> State:
         """A batch of worlds: (State with leading axis W, (W, N, 4)) -> State."""
-        s = jax.vmap(self.env.step)(state, action)
+        return self.renew_finished(jax.vmap(self.env.step)(state, action))
+
+    def renew_finished(self, s: State) -> State:
+        """A batch of stepped worlds (leading axis W) with the finished ones replaced by fresh
+        episodes (:meth:`_renew`), computed only when some world finished (``lax.cond``)."""
         if self.env.physics == "mjx":
             return jax.lax.cond(jnp.any(s.done), jax.vmap(self._renew), lambda x: x, s)
-        # freebody: only qpos, qvel, time of mjx.Data change; the (large) Data stays out of the cond
-        small = (s.done, s.obs, s.info, s.data.qpos, s.data.qvel, s.data.time)
-        _, obs, info, qpos, qvel, t = jax.lax.cond(jnp.any(s.done), jax.vmap(self._renew_small), lambda x: x, small)
-        return s.replace(obs=obs, info=info, data=s.data.replace(qpos=qpos, qvel=qvel, time=t))
+        # freebody: only qpos, qvel, time (and the column pool's mocap_pos) of mjx.Data change; the
+        # (large: mass matrix and factor) rest of Data stays out of the cond, whose identity branch
+        # would otherwise copy it every step
+        d = s.data
+        small = (s.done, s.obs, s.info, d.qpos, d.qvel, d.time, d.mocap_pos)
+        _, obs, info, qpos, qvel, t, mocap = jax.lax.cond(jnp.any(s.done), jax.vmap(self._renew_small),
+                                                          lambda x: x, small)
+        return s.replace(obs=obs, info=info, data=d.replace(qpos=qpos, qvel=qvel, time=t, mocap_pos=mocap))
 
     def _renew_small(self, small: tuple) -> tuple:
-        """:meth:`_renew` of (done, obs, info, qpos, qvel, time) (freebody physics: the rest of Data is constant)."""
-        done, obs, info, qpos, qvel, t = small
+        """:meth:`_renew` of (done, obs, info, qpos, qvel, time, mocap_pos) (freebody physics: the
+        rest of Data is constant)."""
+        done, obs, info, qpos, qvel, t, mocap = small
         fresh = self.env.reset(jax.random.fold_in(info["rng"], 1))
         fresh_info = {**fresh.info, "total_steps": info["total_steps"],
                       "episode_metrics": info["episode_metrics"], "truncation": info["truncation"]}
@@ -846,8 +857,9 @@ class AutoResetWrapper:
         def pick(a: Any, b: Any) -> Any:
             return _select(done, a, b)
 
-        return (done, pick(fresh.obs, obs), jax.tree.map(pick, fresh_info, info), pick(fresh.data.qpos, qpos),
-                pick(fresh.data.qvel, qvel), pick(fresh.data.time, t))
+        fd = fresh.data
+        return (done, pick(fresh.obs, obs), jax.tree.map(pick, fresh_info, info), pick(fd.qpos, qpos),
+                pick(fd.qvel, qvel), pick(fd.time, t), pick(fd.mocap_pos, mocap))
 
     def _renew(self, s: State) -> State:
         """Replace a finished world's state by a fresh episode (identity where not done)."""
@@ -865,7 +877,8 @@ class AutoResetWrapper:
             data = jax.tree.map(pick, fresh.data, s.data)
         else:  # the other fields of Data are the constants of the model's initial data
             data = s.data.replace(qpos=pick(fresh.data.qpos, s.data.qpos), qvel=pick(fresh.data.qvel, s.data.qvel),
-                                  time=pick(fresh.data.time, s.data.time))
+                                  time=pick(fresh.data.time, s.data.time),
+                                  mocap_pos=pick(fresh.data.mocap_pos, s.data.mocap_pos))
         return s.replace(data=data, obs=pick(fresh.obs, s.obs), info=info)
 
 

@@ -1,0 +1,66 @@
+"""The JAX engine's random words: the unrolled threefry hash and the materialized numbers are
+exact rewrites of JAX's own (same words, same floats)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.extend.random import threefry_2x32
+
+from quadswarm_mj.envs.mjx_env import (
+    FusedJaxSampler,
+    _materialized_numbers,
+    _unit_numbers,
+    step_words,
+    threefry_2x32_unrolled,
+)
+from quadswarm_mj.random_draws import Normal, Uniform
+
+
+@pytest.mark.parametrize("seed", [0, 1, 12345])
+def test_unrolled_threefry_equals_jax(seed):
+    key = jax.random.key_data(jax.random.key(seed))
+    count = jnp.asarray(np.random.default_rng(seed).integers(0, 2**32, size=206, dtype=np.uint32))
+    np.testing.assert_array_equal(np.asarray(jax.jit(threefry_2x32_unrolled)(key, count)),
+                                  np.asarray(threefry_2x32(key, count)))
+
+
+@pytest.mark.parametrize("total", [1, 7, 204])
+def test_materialized_numbers_are_the_unit_numbers(total):
+    words = jax.random.bits(jax.random.key(3), (total,), jnp.uint32)
+    u, n = jax.jit(_materialized_numbers, static_argnums=1)(words, True)
+    u_ref, n_ref = _unit_numbers(words)
+    np.testing.assert_array_equal(np.asarray(u), np.asarray(u_ref))
+    np.testing.assert_array_equal(np.asarray(n), np.asarray(n_ref))
+    # the transform is jax.random's: same floats as jax.random.uniform / normal make from these bits
+    assert np.all((np.asarray(u) >= 0) & (np.asarray(u) < 1))
+
+
+def test_from_words_shapes_and_moments():
+    spec = {"a": Uniform(-2.0, 3.0, (4,)), "b": Normal(1.0, 0.5, (2, 3))}
+    words = jax.random.bits(jax.random.key(0), (FusedJaxSampler.num_words(spec, (5000,)),), jnp.uint32)
+    d = jax.jit(lambda w: FusedJaxSampler.from_words(spec, w, (5000,)))(words)
+    a, b = np.asarray(d["a"]), np.asarray(d["b"])
+    assert a.shape == (5000, 4) and b.shape == (5000, 2, 3)
+    assert a.min() >= -2.0 and a.max() < 3.0 and abs(a.mean() - 0.5) < 0.05
+    assert abs(b.mean() - 1.0) < 0.01 and abs(b.std() - 0.5) < 0.01
+
+
+def test_step_words_stream_is_disjoint_from_split_and_fold_in():
+    key = jax.random.key(7)
+    nxt, words = step_words(key, 10)
+    assert words.shape == (10,) and words.dtype == jnp.uint32
+    nd = np.asarray(jax.random.key_data(nxt))
+    others = [jax.random.fold_in(key, 1), *jax.random.split(key), *jax.random.split(key, 3)]
+    for k in others:
+        assert not np.array_equal(nd, np.asarray(jax.random.key_data(k)))
+    # deterministic
+    nxt2, words2 = step_words(key, 10)
+    np.testing.assert_array_equal(np.asarray(words), np.asarray(words2))
+
+
+def test_step_words_keeps_the_key_type():
+    typed, raw = jax.random.key(1), jax.random.PRNGKey(1)  # typed key, legacy uint32[2] key
+    assert jax.dtypes.issubdtype(step_words(typed, 4)[0].dtype, jax.dtypes.prng_key)
+    nxt = step_words(raw, 4)[0]
+    assert nxt.dtype == jnp.uint32 and nxt.shape == (2,)
