@@ -187,7 +187,10 @@ def crazyflow_rates(worlds: int, n: int, steps: int, seconds: float, repeat: int
     """crazyflow's ``Sim`` (first-principles dynamics, per-rotor ``rotor_vel`` control) at the same
     protocol: 200 Hz physics, one control step = 2 physics steps, samples = drone-steps at 100 Hz.
     ``scan``: a jitted ``lax.scan`` of (control, 2 physics steps), as ``benchmark_mjx``; ``loop``: one
-    Python call pair (``rotor_vel_control``, ``step(2)``) per control step, as a Gymnasium env."""
+    Python call pair (``rotor_vel_control``, ``step(2)``) per control step, never waiting for the
+    results (JAX's async dispatch pipelines the calls); ``loop_read``: the same loop reading the drones'
+    state (pos, vel, quat, ang_vel) to NumPy after every step, as a Gymnasium env must return its
+    observation."""
     try:
         import contextlib
         import io
@@ -234,9 +237,20 @@ def crazyflow_rates(worlds: int, n: int, steps: int, seconds: float, repeat: int
         jax.block_until_ready(sim.data)
         return time.perf_counter() - t
 
+    def loop_read(k: int) -> float:  # as a Gymnasium env must: the state on the host after every step
+        t = time.perf_counter()
+        for _ in range(k):
+            sim.rotor_vel_control(rpm)
+            sim.step(2)
+            st = sim.data.states
+            np.asarray(st.pos), np.asarray(st.vel), np.asarray(st.quat), np.asarray(st.ang_vel)
+        return time.perf_counter() - t
+
     loop(3)
     looped = worlds * n * timed(loop, seconds, repeat)
-    return {"scan": scan, "loop": looped, "compile_s": compile_s}
+    loop_read(3)
+    read = worlds * n * timed(loop_read, seconds, repeat)
+    return {"scan": scan, "loop": looped, "loop_read": read, "compile_s": compile_s}
 
 
 # -------------------------------------------------------------------------------------- ceiling
@@ -519,11 +533,12 @@ def _jax_rows(rows: set[str], args: Any, seconds: float, repeat: int, steps: int
     if "jaxsingle" in rows:
         rate = bench_single_jax(8, seconds, repeat)
         peer = peers.get(1)
-        note = f"{rate / peer['loop']:.2f}x crazyflow loop (1 x 8)" if peer else ""
+        note = (f"{rate / peer['loop']:.2f}x crazyflow loop, {rate / peer['loop_read']:.2f}x crazyflow loop reading "
+                f"the state (1 x 8)") if peer else ""
         ref = bench_single(8, "hover", seconds, repeat)
         out.append(("QuadSwarmEnv(engine='jax'), 1 x 8, one step() per control step", rate, "", note))
-        out.append(("QuadSwarmEnv(engine='mujoco'), 1 x 8 (same run)", ref, "",
-                    f"{ref / peer['loop']:.2f}x crazyflow loop" if peer else ""))
+        ref_note = f"{ref / peer['loop']:.2f}x crazyflow loop, {ref / peer['loop_read']:.2f}x reading" if peer else ""
+        out.append(("QuadSwarmEnv(engine='mujoco'), 1 x 8 (same run)", ref, "", ref_note))
     if "jaxvector" in rows:
         for B in (int(x) for x in args.jax_vector_b.split(",")):
             jx = bench_vector(B, 8, "hover", seconds, repeat, engine="jax")
@@ -536,6 +551,8 @@ def _jax_rows(rows: set[str], args: Any, seconds: float, repeat: int, steps: int
         if peer:
             out.append((f"crazyflow 0.4 Sim, {W} x 8, jitted scan", peer["scan"], f"{peer['compile_s']:.1f}", "peer"))
             out.append((f"crazyflow 0.4 Sim, {W} x 8, Python loop", peer["loop"], "", "peer"))
+            out.append((f"crazyflow 0.4 Sim, {W} x 8, Python loop reading the state every step", peer["loop_read"], "",
+                        "peer"))
     if not out:
         return ""
     lines = ["| configuration | samples/s | compile (s) | ratio (same run) |", "|---|---:|---:|---|"]
@@ -549,8 +566,9 @@ def obstacle_cost(plain: EnvConfig, obst: EnvConfig, engine: str, worlds: int, s
     compiled) first, then timed in alternation (plain, obstacles, plain, ...) for ``rounds`` rounds;
     ``cost`` is the median over rounds of t_obst / t_plain - 1 (``cost_min``/``cost_max`` the range),
     ``with``/``without`` the median samples/s. ``engine``: "jax" (jitted rollout of ``worlds``
-    worlds, ``steps`` control steps per timing) or "mujoco" (QuadSwarmEnv, 1 world, ~``seconds`` s
-    per timing)."""
+    worlds, ``steps`` control steps per timing; wall time) or "mujoco" (QuadSwarmEnv, 1 world,
+    ~``seconds`` s per timing; the process's CPU time, which other jobs on a shared machine do not
+    inflate, as they inflate a ~100 us Python step's wall time)."""
     if engine == "jax":
         try:
             import jax
@@ -591,12 +609,12 @@ def obstacle_cost(plain: EnvConfig, obst: EnvConfig, engine: str, worlds: int, s
             for _ in range(3):
                 env.step(a)
 
-            def timed_run() -> float:
-                t = time.perf_counter()
+            def timed_run() -> float:  # CPU time of this (single-threaded) process: blind to other load
+                t = time.process_time()
                 for _ in range(n_steps):
                     if env.step(a)[3]:
                         env.reset()
-                return time.perf_counter() - t
+                return time.process_time() - t
 
             return timed_run
 
