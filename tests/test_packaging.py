@@ -20,7 +20,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
 COMMANDS = {"quadswarm-render": "quadswarm_mj.cli.render", "quadswarm-train": "quadswarm_mj.cli.train",
-            "quadswarm-evaluate": "quadswarm_mj.cli.evaluate", "quadswarm-benchmark": "quadswarm_mj.cli.benchmark"}
+            "quadswarm-evaluate": "quadswarm_mj.cli.evaluate", "quadswarm-benchmark": "quadswarm_mj.cli.benchmark",
+            "quadswarm-profile-jax": "quadswarm_mj.cli.profile_jax"}
 
 
 def _data_files() -> list[str]:
@@ -70,7 +71,7 @@ def test_cli_main_answers_help(command, module, capsys):
     assert "usage:" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("script", ["render_rollout", "train", "evaluate", "benchmark"])
+@pytest.mark.parametrize("script", ["render_rollout", "train", "evaluate", "benchmark", "profile_jax_step"])
 def test_scripts_are_thin_wrappers(script):
     text = (ROOT / "scripts" / f"{script}.py").read_text()
     assert len(text.splitlines()) < 20 and "from quadswarm_mj.cli." in text
