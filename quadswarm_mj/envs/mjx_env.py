@@ -304,9 +304,31 @@ class FusedJaxSampler(JaxSampler):
     @staticmethod
     def from_words(spec: DrawSpec, words: jax.Array, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
         """The draws of ``spec`` from ``num_words(spec)`` uint32 ``words`` (float32)."""
+        u01, std_normal = _materialized_numbers(words, any(isinstance(d, Normal) for d in spec.values()))
+        return FusedJaxSampler._scaled(spec, u01, std_normal, batch_shape)
+
+    @staticmethod
+    def normal_mask(spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> np.ndarray:
+        """(num_words,) bool: the positions of the spec's normal draws."""
+        return np.concatenate([np.full(int(np.prod(tuple(batch_shape) + tuple(d.shape))), isinstance(d, Normal))
+                               for d in spec.values()])
+
+    @staticmethod
+    def unit_numbers(spec: DrawSpec, words: jax.Array) -> jax.Array:
+        """(num_words,) float32: U[0, 1) at the spec's uniform positions, N(0, 1) at its normal ones."""
+        u01, std_normal = _unit_numbers(words)
+        return jnp.where(FusedJaxSampler.normal_mask(spec), std_normal, u01)
+
+    @staticmethod
+    def from_numbers(spec: DrawSpec, numbers: jax.Array) -> dict[str, Any]:
+        """The draws of ``spec`` from its :meth:`unit_numbers`."""
+        return FusedJaxSampler._scaled(spec, numbers, numbers)
+
+    @staticmethod
+    def _scaled(spec: DrawSpec, u01: jax.Array, std_normal: jax.Array | None,
+                batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
         items = [(name, d, tuple(batch_shape) + tuple(d.shape)) for name, d in spec.items()]
         sizes = [int(np.prod(shape)) for _, _, shape in items]
-        u01, std_normal = _materialized_numbers(words, any(isinstance(d, Normal) for d in spec.values()))
         out: dict[str, Any] = {}
         start = 0
         for (name, d, shape), size in zip(items, sizes):
@@ -424,6 +446,10 @@ class MjxQuadSwarmEnv:
             **(_prefixed("sensor", self._spec_sensor) if self._sensor_on else {}),
         }
         self._step_mean_spec = {**({} if stoch_coll else coll_spec), **({} if stoch_down else down_spec)}
+        # The next step's random numbers are made at the end of a step (and by reset) and carried in
+        # info["step_numbers"]: computed once into the state instead of inside the step, where XLA fuses
+        # the normals' erf_inv into every consumer (or needs a loop to materialize them).
+        self._carry_numbers = bool(self._step_spec) and FusedJaxSampler.fused(jax.random.key(0), _float())
 
     # ------------------------------------------------------------------ properties
     @property
@@ -463,6 +489,14 @@ class MjxQuadSwarmEnv:
         if mean_spec:
             out.update(MeanSampler(dtype=_float(), xp=jnp).draw(mean_spec))
         return out
+
+    def _next_numbers(self, key: jax.Array) -> dict[str, jax.Array]:
+        """``{"rng": next key, "step_numbers": the next step's unit numbers}`` from ``key`` (one unrolled
+        threefry hash, :func:`step_words`); empty where the numbers are not carried."""
+        if not self._carry_numbers:
+            return {}
+        k_next, words = step_words(key, FusedJaxSampler.num_words(self._step_spec))
+        return {"rng": k_next, "step_numbers": FusedJaxSampler.unit_numbers(self._step_spec, words)}
 
     def _read(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
         """The quads' free joints: qpos (N, 7) (pos m world, quat wxyz body->world), qvel (N, 6)
@@ -623,6 +657,7 @@ class MjxQuadSwarmEnv:
             "episode_metrics": metrics_lib.finalize(acc, jnp.zeros((), f)),
             "step": jnp.zeros((), jnp.int32), "time": jnp.zeros((), f), "total_steps": jnp.zeros((), jnp.int32),
             "truncation": jnp.zeros((), f), "rng": k_next,
+            **self._next_numbers(k_next),
             **({"ctrl_state": jnp.zeros((n, 6), f)} if self._modes else {}),  # control-mode integrators
         }
         if omap is not None:
@@ -751,9 +786,9 @@ class MjxQuadSwarmEnv:
             raise ValueError(f"action has the wrong shape: expected shape {(n, 4)} per world, "
                              f"got shape {tuple(jnp.shape(action))}")
         action = jnp.asarray(action, f)
-        if self._step_spec and FusedJaxSampler.fused(info["rng"], f):  # one unrolled hash for key and draws
-            k_next, words = step_words(info["rng"], FusedJaxSampler.num_words(self._step_spec))
-            rnd = FusedJaxSampler.from_words(self._step_spec, words)
+        k_next = info["rng"]
+        if "step_numbers" in info:  # made by the previous step (or reset); the next ones at the end
+            rnd = FusedJaxSampler.from_numbers(self._step_spec, info["step_numbers"])
             if self._step_mean_spec:
                 rnd.update(MeanSampler(dtype=f, xp=jnp).draw(self._step_mean_spec))
         else:
@@ -788,6 +823,8 @@ class MjxQuadSwarmEnv:
             "truncation": done.astype(f), "rng": k_next,
             **({"ctrl_state": k["ctrl"][1]} if self._modes else {}),
         }
+        if "step_numbers" in info:
+            new_info.update(self._next_numbers(k_next))
         if self._obst is not None:
             om = r["obst_metrics"]
             new_info.update({k2: info[k2] for k2 in ("obstacles", "obstacles_valid", "obstacle_radius")})
