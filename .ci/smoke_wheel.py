@@ -23,7 +23,7 @@ from pathlib import Path
 WHEEL_FILES = ("quadswarm_mj/assets/crazyflie2.xml", "quadswarm_mj/assets/arenas/room.xml",
                "quadswarm_mj/pretrained/manifest.json", "quadswarm_mj/pretrained/single.npz",
                "quadswarm_mj/pretrained/swarm8.npz", "quadswarm_mj/cli/render.py")
-COMMANDS = ("quadswarm-render", "quadswarm-train", "quadswarm-evaluate", "quadswarm-benchmark")
+COMMANDS = ("quadswarm-render", "quadswarm-train", "quadswarm-evaluate", "quadswarm-benchmark", "quadswarm-profile-jax")
 
 
 def check(cond: bool, what: str) -> None:

@@ -182,11 +182,12 @@ def _obs_neighbor_bounds(self_dim: int, k: int, bound: tuple[float, ...],
 
 def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any,
               noise: dict[str, Any] | None, low: Any, high: Any, scale: Any | None = None,
-              dist: Any | None = None, obstacles: Any | None = None) -> Any:
+              dist: Any | None = None, obstacles: Any | None = None, obstacle_feats: Any | None = None) -> Any:
     """Full observation (..., N, obs_dim): noisy own state + neighbours (+ the 9 obstacle features
     of the true ``pos`` when ``obstacles`` = (centres, valid, radius) of the map is given), clipped
     into [low, high] and divided by ``scale`` when normalization is on. ``dist``: optional
-    (..., N, N) distances between the true ``pos`` (see :func:`neighbor_obs`).
+    (..., N, N) distances between the true ``pos`` (see :func:`neighbor_obs`); ``obstacle_feats``:
+    optional (..., N, 9) features of these ``pos`` already computed (the CPU engine's obstacle stage).
 
     The neighbour clip of :func:`neighbor_obs` is folded into the final clip: clipping into one
     interval and then into another equals clipping into their intersection."""
@@ -208,6 +209,6 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
     if obstacles is not None:
         from quadswarm_mj.obstacles import obstacle_features
 
-        parts.append(obstacle_features(pos, *obstacles))
+        parts.append(obstacle_feats if obstacle_feats is not None else obstacle_features(pos, *obstacles))
     obs = xp.minimum(xp.maximum(xp.concatenate(parts, axis=-1), low), high)  # = clip into the bounds
     return obs if scale is None else obs / scale

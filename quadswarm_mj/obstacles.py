@@ -195,6 +195,37 @@ def _sample_offsets(res: float) -> np.ndarray:
     return out
 
 
+def obstacle_grid(pos: Any, centres: Any, valid: Any) -> Any:
+    """(..., N, 3, 3, M) squared xy distances (m^2) from the 3 x 3 sample points ``p + (dx, dy)`` of
+    each quad (A.2; dx, dy in (-0.1, 0, 0.1) m, x-major) to the valid column axes (inf for unused
+    slots). The centre point [..., 1, 1, :] is the quad itself: :func:`hits_from_grid` gives the
+    contact test from it, :func:`features_from_grid` the 9 features (one grid for both)."""
+    xp = array_namespace(pos, centres)
+    # separable: squared x and y distances per offset (..., N, 3, M), summed to (..., N, 3, 3, M)
+    off = xp.asarray(np.array([-SDF_RESOLUTION, 0.0, SDF_RESOLUTION]), dtype=pos.dtype)[:, None]
+    dx = (pos[..., :, None, None, 0] + off) - centres[..., None, None, :, 0]
+    dy = (pos[..., :, None, None, 1] + off) - centres[..., None, None, :, 1]
+    dx2 = xp.where(valid[..., None, None, :], dx * dx, xp.inf)  # invalid slots: never the nearest
+    return dx2[..., :, :, None, :] + (dy * dy)[..., :, None, :, :]
+
+
+def features_from_grid(d2: Any, radius: Any) -> Any:
+    """The 9 features (..., N, 9) from :func:`obstacle_grid` (see :func:`obstacle_features`)."""
+    xp = array_namespace(d2)
+    # the same values as the 9 points' distances (sqrt is monotonic: sqrt of the min = min of the sqrt)
+    dmin = xp.sqrt(xp.min(d2, axis=-1)).reshape(d2.shape[:-3] + (NUM_FEATURES,))  # x-major: 3 i + j
+    dmin = xp.where(xp.isinf(dmin), NO_OBSTACLE_DIST, dmin)
+    r = xp.asarray(radius, dtype=d2.dtype)
+    return dmin - r[..., None, None]
+
+
+def hits_from_grid(d2: Any, radius: Any, arm: float) -> Any:
+    """:func:`contact_hits` from :func:`obstacle_grid` (the same comparison on the same values)."""
+    xp = array_namespace(d2)
+    lim = arm + xp.asarray(radius, dtype=d2.dtype)
+    return d2[..., 1, 1, :] <= (lim * lim)[..., None, None]
+
+
 def obstacle_features(pos: Any, centres: Any, valid: Any, radius: Any) -> Any:
     """The 9 distance features (..., N, 9) of each quad (A.2): at the 3 x 3 xy points
     ``p + (dx, dy)``, dx, dy in (-0.1, 0, 0.1) m, x-major (index 3 i + j, i over dx, j over dy; the
@@ -203,18 +234,7 @@ def obstacle_features(pos: Any, centres: Any, valid: Any, radius: Any) -> Any:
     positions (m, world frame; no sensor noise); ``centres`` (..., M, 2), ``valid`` (..., M),
     ``radius`` (...,). No clipping. Goes LAST in each quad's observation.
     """
-    xp = array_namespace(pos, centres)
-    # separable grid: squared x and y distances per offset (..., N, 3, M), summed to (..., N, 3, 3, M);
-    # the same values as the 9 points' distances (sqrt is monotonic: sqrt of the min = min of the sqrt)
-    off = xp.asarray(np.array([-SDF_RESOLUTION, 0.0, SDF_RESOLUTION]), dtype=pos.dtype)[:, None]
-    dx = (pos[..., :, None, None, 0] + off) - centres[..., None, None, :, 0]
-    dy = (pos[..., :, None, None, 1] + off) - centres[..., None, None, :, 1]
-    dx2 = xp.where(valid[..., None, None, :], dx * dx, xp.inf)  # invalid slots: never the nearest
-    d2 = dx2[..., :, :, None, :] + (dy * dy)[..., :, None, :, :]  # (..., N, 3 x, 3 y, M)
-    dmin = xp.sqrt(xp.min(d2, axis=-1)).reshape(pos.shape[:-1] + (NUM_FEATURES,))  # x-major: 3 i + j
-    dmin = xp.where(xp.isinf(dmin), NO_OBSTACLE_DIST, dmin)
-    r = xp.asarray(radius, dtype=pos.dtype)
-    return dmin - r[..., None, None]
+    return features_from_grid(obstacle_grid(pos, centres, valid), radius)
 
 
 def feature_bounds(cfg: EnvConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -500,3 +500,25 @@ def test_reset_map_given_or_random():
     np.testing.assert_allclose(ob.reset_map(o, d).centres, ob.generate_map(o, d)[0].centres)
     given = ob.reset_map(o, d, np.array([[0.0, 0.0], [3.0, 3.0]]))
     np.testing.assert_allclose(ob.active_centres(given), [[0.0, 0.0], [3.0, 3.0]])
+
+
+def test_one_grid_gives_the_contact_test_and_the_features_exactly():
+    from quadswarm_mj.obstacles import (
+        contact_hits,
+        features_from_grid,
+        hits_from_grid,
+        obstacle_features,
+        obstacle_grid,
+    )
+
+    rng = np.random.default_rng(5)
+    pos = rng.uniform(-2, 2, (4, 8, 3))
+    centres = rng.uniform(-2, 2, (4, 13, 2))
+    valid = rng.random((4, 13)) < 0.6
+    valid[1] = False  # a world without columns
+    radius = rng.uniform(0.1, 0.4, 4)
+    pos[0, 0, :2] = centres[0, 0] + 0.05  # a quad inside a column
+    grid = obstacle_grid(pos, centres, valid)
+    np.testing.assert_array_equal(hits_from_grid(grid, radius, 0.046), contact_hits(pos, centres, valid, radius, 0.046))
+    np.testing.assert_array_equal(features_from_grid(grid, radius), obstacle_features(pos, centres, valid, radius))
+    assert hits_from_grid(grid, radius, 0.046)[0, 0].any() and not hits_from_grid(grid, radius, 0.046)[1].any()

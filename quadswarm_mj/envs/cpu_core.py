@@ -370,10 +370,18 @@ class CpuSwarm:
         """Obstacle contacts of this step (pipeline.obstacle_stage, event-gated: the paper model's
         response runs, and draws, only for worlds with a new contact); writes vel/omega in place.
         Returns (new contacts (B, N), whether vel/omega changed)."""
-        from quadswarm_mj.obstacles import contact_hits, first_hit, obstacle_response
+        from quadswarm_mj.obstacles import (
+            features_from_grid,
+            first_hit,
+            hits_from_grid,
+            obstacle_grid,
+            obstacle_response,
+        )
 
         om = self.omap
-        hit = contact_hits(pos, om.centres, om.valid, om.radius, self.cfg.quad.arm)
+        grid = obstacle_grid(pos, om.centres, om.valid)  # one grid: this contact test and the observation's features
+        hit = hits_from_grid(grid, om.radius, self.cfg.quad.arm)
+        self._obst_feats = features_from_grid(grid, om.radius)  # of the step's final positions (kin["pos"])
         contact = hit.any(-1)
         new = contact & ~self.obst_contact
         self.obst_contact = contact
@@ -602,7 +610,8 @@ class CpuSwarm:
             self.qvel[..., 3:] = omega
             self.phys.touch()
         return {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": new_contact,
-                "hit_floor": hit_floor, "hit_wall": hit_wall, "hit_ceiling": hit_ceiling, "obst_new": obst_new}
+                "hit_floor": hit_floor, "hit_wall": hit_wall, "hit_ceiling": hit_ceiling, "obst_new": obst_new,
+                "obst_feats": self._obst_feats if obst_new is not None else None}
 
     def _actuate(self, action: np.ndarray, cmd: np.ndarray | None, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One sub-step of :func:`pipeline.make_substep_actuation` (control mode, thrust map,
@@ -687,8 +696,9 @@ class CpuSwarm:
         obst = None
         if self.omap is not None:
             obst = tuple(self.omap) if worlds is None or kin is not None else tuple(a[worlds] for a in self.omap)
+        feats = kin.get("obst_feats") if kin is not None else None
         return build_obs(self.cfg, pos, vel, R, omega, goals, noise, self.obs_low, self.obs_high,
-                         self.obs_scale, dist=dist, obstacles=obst)
+                         self.obs_scale, dist=dist, obstacles=obst, obstacle_feats=feats)
 
     def state_into(self, out: dict[str, np.ndarray]) -> None:
         """Write :meth:`state_dict`'s arrays into ``out`` (preallocated (B, N, ...) arrays)."""
