@@ -50,8 +50,9 @@ def norm_last(x: Any) -> Any:
 # with P the outer product of (w, x, y, z) with itself flattened (index 4 a + b): entry by entry the
 # textbook formula (R_00 = 1 - 2 (yy + zz), R_01 = 2 (xy - wz), ...). coef = +-2 and sign = +-1 scale
 # exactly, so coef * P[ia] + coef * sign * P[ib], summed, rounds as the textbook expression (only the
-# sign of an exact zero may differ); 5 array operations instead of 30. Large arrays use the textbook
-# expression itself (gathers along a short last axis are slow there); a test checks both agree.
+# sign of an exact zero may differ); 5 array operations instead of 30. Large arrays and JAX arrays use
+# the textbook expression itself (gathers along a short last axis are slow there and under XLA); a
+# test checks both agree.
 _Q_IAB = np.array([10, 6, 7, 6, 5, 11, 7, 11, 5,  # yy xy xz | xy xx yz | xz yz xx
                    15, 3, 2, 3, 15, 1, 2, 1, 10])  # zz wz wy | wz zz wx | wy wx yy
 _Q_SIGN = np.array([1.0, -1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0])

@@ -133,3 +133,14 @@ def test_release_writes_to_the_given_directory(tmp_path):
     assert not (pretrained_dir() / "mine.npz").exists()
     with pytest.raises(ValueError, match="directory must be given"):
         release("mine", pretrained_dir() / "single.npz", ["static_same_goal"], None)
+
+
+@pytest.mark.slow
+def test_profile_jax_lists_the_step_kernels(capsys):
+    from quadswarm_mj.cli import profile_jax
+
+    assert profile_jax.main(["--worlds", "2", "--quads", "2", "--steps", "3", "--top", "5"]) == 0
+    out = capsys.readouterr().out
+    assert "per control step under the profiler" in out and "us/step" in out
+    rows = [ln for ln in out.splitlines() if "%" in ln and ln.split()[0].replace(".", "").isdigit()]
+    assert 1 <= len(rows) <= 5

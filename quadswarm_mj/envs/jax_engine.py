@@ -7,10 +7,10 @@ spaces, ``info`` keys, seeding and auto-reset contracts. Only the MJX env's publ
 ``MjxQuadSwarmEnv(cfg)``, ``reset(key, init_state)``, ``step(state, action)``, the ``State`` fields
 and the ``info`` keys of its docstring.
 
-Speed: a step is ONE jitted call with the state donated. For one world the state pytree (``mjx.Data``
-has many leaves) is kept between calls as a few flat buffers, one per dtype (PRNG keys as their key
-data), so a call passes a handful of arrays instead of ~150 leaves (B worlds pass the pytree: there
-the per-leaf cost is amortized and the concatenation would cost a copy); everything the host needs
+Speed: a step is ONE jitted call with the state donated. The state (with the free-body physics only
+the changing fields of ``mjx.Data``: qpos, qvel, time, mocap_pos; the rest is rebuilt from constants
+inside the jit) is kept between calls as a few flat buffers, one per dtype (PRNG keys as their key
+data), so a call passes a handful of arrays instead of ~150 leaves; everything the host needs
 (observations, rewards, reward terms, state, goals, parameters, episode metrics, flags) is packed
 inside the jit into one flat float array per world and split on the host with NumPy views. Compiled
 programs are cached per (config, number of worlds), so envs of the same config share compiles.
@@ -104,24 +104,6 @@ class StatePacker:
         return jax.tree.unflatten(self.treedef, leaves)
 
 
-class PytreePacker:
-    """The state pytree itself as the carried buffers (for many worlds the per-leaf dispatch cost is
-    negligible and skipping the concatenation saves a copy); leaves cast to the reset's dtypes so
-    the jitted step sees one signature."""
-
-    def __init__(self, struct: Any):
-        self.struct = struct
-
-    def pack(self, state: Any) -> Any:
-        def cast(x: jax.Array, sd: Any) -> jax.Array:
-            return x if jax.dtypes.issubdtype(sd.dtype, jax.dtypes.prng_key) else x.astype(sd.dtype)
-
-        return jax.tree.map(cast, state, self.struct)
-
-    def unpack(self, bufs: Any) -> Any:
-        return bufs
-
-
 # ------------------------------------------------------------------------------- output packing
 def _outputs(s: State, new_collisions: jax.Array, extra: dict[str, jax.Array]) -> dict[str, jax.Array]:
     """Everything the host reads after a reset or step of one world (unbatched)."""
@@ -179,12 +161,6 @@ class OutputLayout:
             out[k] = piece.reshape(lead + shape) if lead else piece.reshape(shape)
         return out
 
-    def split(self, flat: np.ndarray, lead: tuple[int, ...] = ()) -> dict[str, np.ndarray]:
-        """NumPy views (*lead, *shape) of a packed (*lead, size) array."""
-        if not lead:
-            return {k: flat[sl].reshape(shape) for k, sl, shape in self.items}
-        return {k: flat[..., sl].reshape(lead + shape) for k, sl, shape in self.items}
-
 
 def _init_variant(state: dict[str, Any] | None) -> tuple[tuple[str, ...], str | None]:
     """Static part of a reset: the array keys given and the motors string (or None)."""
@@ -210,7 +186,7 @@ def _select(pred: jax.Array, a: Any, b: Any) -> Any:
 class _Program:
     """Jitted reset/step of B worlds (``batch=None``: one unbatched world) of one config."""
 
-    def __init__(self, cfg: EnvConfig, batch: int | None, pack_state: bool | None = None):
+    def __init__(self, cfg: EnvConfig, batch: int | None):
         self.cfg, self.batch = cfg, batch
         self.env = MjxQuadSwarmEnv(cfg)
         self.auto = AutoResetWrapper(self.env)
@@ -230,8 +206,7 @@ class _Program:
         # the (small) state as flat buffers, one per dtype: a call passes a handful of arrays instead of
         # ~150 leaves (measured ~4x faster for one world; for 1024 worlds the pytree's flattening cost
         # ~2 ms per call)
-        pack_state = True if pack_state is None else pack_state
-        self.packer: Any = StatePacker(struct, self.lead) if pack_state else PytreePacker(struct)
+        self.packer = StatePacker(struct, self.lead)
         self.layout = OutputLayout(jax.eval_shape(lambda s: self._outs(s, s, s.obs), one))
         self._step = jax.jit(self._step_impl, donate_argnums=0)
         self._resets: dict[Any, Any] = {}
@@ -317,8 +292,8 @@ class _Program:
 
 
 @functools.lru_cache(maxsize=8)
-def _program(cfg: EnvConfig, batch: int | None, pack_state: bool | None = None) -> _Program:
-    return _Program(cfg, batch, pack_state)
+def _program(cfg: EnvConfig, batch: int | None) -> _Program:
+    return _Program(cfg, batch)
 
 
 def _init_arrays(state: dict[str, Any] | None, dtype: Any) -> dict[str, np.ndarray]:

@@ -19,7 +19,8 @@ The model is the package's single definition: actuation, the paper's floor/wall/
 quad-quad collisions, downwash, scenarios, observations, rewards and episode metrics are the very
 functions :mod:`quadswarm_mj.envs.cpu_core` calls, here on ``jax.numpy`` with random draws from
 :class:`FusedJaxSampler` (a :class:`~quadswarm_mj.random_draws.JaxSampler` that makes all draws of
-one reset or one step with one uniform and one normal call) or a ``MeanSampler`` where a
+one reset or one step from one threefry hash; a step's numbers are made at the end of the previous
+step, or by reset, into ``info["step_numbers"]``, see :func:`step_words`) or a ``MeanSampler`` where a
 ``cfg.noise.stochastic_*`` flag is off. The stage order and its extension points (control modes,
 aerodynamics, obstacles) are described in :mod:`quadswarm_mj.pipeline`; the reset math is
 :func:`quadswarm_mj.pipeline.initial_state`, shared with the CPU engine. Rigid-body integration is
@@ -883,13 +884,19 @@ class AutoResetWrapper:
                                                           lambda x: x, small)
         return s.replace(obs=obs, info=info, data=d.replace(qpos=qpos, qvel=qvel, time=t, mocap_pos=mocap))
 
+    def _fresh_episode(self, info: dict[str, Any]) -> tuple[State, dict[str, Any]]:
+        """The fresh episode of one world and its info with the carried-over keys (the rules above).
+        A finished world continues from the fresh episode's key; the others keep their key (the
+        discarded reset drew from a key derived from it), so vstep's no-reset branch is the same."""
+        fresh = self.env.reset(jax.random.fold_in(info["rng"], 1))
+        return fresh, {**fresh.info, "total_steps": info["total_steps"],
+                       "episode_metrics": info["episode_metrics"], "truncation": info["truncation"]}
+
     def _renew_small(self, small: tuple) -> tuple:
         """:meth:`_renew` of (done, obs, info, qpos, qvel, time, mocap_pos) (freebody physics: the
         rest of Data is constant)."""
         done, obs, info, qpos, qvel, t, mocap = small
-        fresh = self.env.reset(jax.random.fold_in(info["rng"], 1))
-        fresh_info = {**fresh.info, "total_steps": info["total_steps"],
-                      "episode_metrics": info["episode_metrics"], "truncation": info["truncation"]}
+        fresh, fresh_info = self._fresh_episode(info)
 
         def pick(a: Any, b: Any) -> Any:
             return _select(done, a, b)
@@ -900,22 +907,18 @@ class AutoResetWrapper:
 
     def _renew(self, s: State) -> State:
         """Replace a finished world's state by a fresh episode (identity where not done)."""
-        # A finished world continues from the fresh episode's key; the others keep their key (the
-        # discarded reset drew from a key derived from it), so vstep's no-reset branch is the same.
-        fresh = self.env.reset(jax.random.fold_in(s.info["rng"], 1))
-        fresh_info = {**fresh.info, "total_steps": s.info["total_steps"],
-                      "episode_metrics": s.info["episode_metrics"], "truncation": s.info["truncation"]}
+        if self.env.physics != "mjx":  # freebody: the rest of Data is the model's constant initial data
+            d = s.data
+            _, obs, info, qpos, qvel, t, mocap = self._renew_small((s.done, s.obs, s.info, d.qpos, d.qvel, d.time,
+                                                                    d.mocap_pos))
+            return s.replace(obs=obs, info=info, data=d.replace(qpos=qpos, qvel=qvel, time=t, mocap_pos=mocap))
+        fresh, fresh_info = self._fresh_episode(s.info)
 
         def pick(a: Any, b: Any) -> Any:
             return _select(s.done, a, b)
 
         info = jax.tree.map(pick, fresh_info, s.info)
-        if self.env.physics == "mjx":
-            data = jax.tree.map(pick, fresh.data, s.data)
-        else:  # the other fields of Data are the constants of the model's initial data
-            data = s.data.replace(qpos=pick(fresh.data.qpos, s.data.qpos), qvel=pick(fresh.data.qvel, s.data.qvel),
-                                  time=pick(fresh.data.time, s.data.time),
-                                  mocap_pos=pick(fresh.data.mocap_pos, s.data.mocap_pos))
+        data = jax.tree.map(pick, fresh.data, s.data)
         return s.replace(data=data, obs=pick(fresh.obs, s.obs), info=info)
 
 
