@@ -24,6 +24,7 @@ from quadswarm_mj.config import (  # noqa: E402
     RandomizationConfig,
     RewardScales,
 )
+from quadswarm_mj.devices import use_cpu_cores  # noqa: E402
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv  # noqa: E402
 from quadswarm_mj.envs.parallel_env import QuadSwarmParallelEnv  # noqa: E402
 from quadswarm_mj.envs.vector_env import QuadSwarmVectorEnv  # noqa: E402
@@ -42,6 +43,7 @@ __all__ = [
     "RewardScales",
     "get_scenario",
     "list_scenarios",
+    "use_cpu_cores",
 ]
 __version__ = "0.1.0"
 

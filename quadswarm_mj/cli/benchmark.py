@@ -183,14 +183,17 @@ def bench_single_jax(n: int, seconds: float, repeat: int, cfg: EnvConfig | None 
     return _bench_single_cfg(cfg or EnvConfig(num_quads=n), seconds, repeat, "jax")
 
 
-def crazyflow_rates(worlds: int, n: int, steps: int, seconds: float, repeat: int) -> dict[str, float] | None:
+def crazyflow_rates(worlds: int, n: int, steps: int, seconds: float, repeat: int,
+                    devices: int = 1) -> dict[str, float] | None:
     """crazyflow's ``Sim`` (first-principles dynamics, per-rotor ``rotor_vel`` control) at the same
     protocol: 200 Hz physics, one control step = 2 physics steps, samples = drone-steps at 100 Hz.
     ``scan``: a jitted ``lax.scan`` of (control, 2 physics steps), as ``benchmark_mjx``; ``loop``: one
     Python call pair (``rotor_vel_control``, ``step(2)``) per control step, never waiting for the
     results (JAX's async dispatch pipelines the calls); ``loop_read``: the same loop reading the drones'
     state (pos, vel, quat, ang_vel) to NumPy after every step, as a Gymnasium env must return its
-    observation."""
+    observation. With ``devices`` > 1 (and dividing ``worlds``) also ``scan_sharded``: the same scan
+    with the worlds sharded over that many JAX devices (crazyflow's arrays have the worlds axis first;
+    jit partitions its step along it), the peer of the JAX engine's sharded rows."""
     try:
         import contextlib
         import io
@@ -228,6 +231,29 @@ def crazyflow_rates(worlds: int, n: int, steps: int, seconds: float, repeat: int
         data = jax.block_until_ready(run_c(data))
         times.append(time.perf_counter() - t)
     scan = worlds * n * steps / float(np.min(times))
+    sharded = None
+    if devices > 1 and worlds % devices == 0:
+        from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+        mesh = Mesh(np.asarray(jax.devices()[:devices]), ("worlds",))
+
+        def put(x: Any) -> Any:
+            if not hasattr(x, "shape"):
+                return x
+            spec = PartitionSpec("worlds") if x.ndim >= 1 and x.shape[0] == worlds else PartitionSpec()
+            return jax.device_put(x, NamedSharding(mesh, spec))
+
+        d_sh, rpm_sh = jax.tree.map(put, data), put(rpm)
+        run_sh = jax.jit(lambda d, r: jax.lax.scan(
+            lambda c, _: (step_fn(cf_functional.rotor_vel_control(c, r), n_steps=2), None), d, None,
+            length=steps)[0]).lower(d_sh, rpm_sh).compile()
+        d_sh = jax.block_until_ready(run_sh(d_sh, rpm_sh))
+        times = []
+        for _ in range(max(repeat, 3)):
+            t = time.perf_counter()
+            d_sh = jax.block_until_ready(run_sh(d_sh, rpm_sh))
+            times.append(time.perf_counter() - t)
+        sharded = worlds * n * steps / float(np.min(times))
 
     def loop(k: int) -> float:
         t = time.perf_counter()
@@ -250,7 +276,10 @@ def crazyflow_rates(worlds: int, n: int, steps: int, seconds: float, repeat: int
     looped = worlds * n * timed(loop, seconds, repeat)
     loop_read(3)
     read = worlds * n * timed(loop_read, seconds, repeat)
-    return {"scan": scan, "loop": looped, "loop_read": read, "compile_s": compile_s}
+    out = {"scan": scan, "loop": looped, "loop_read": read, "compile_s": compile_s}
+    if sharded is not None:
+        out["scan_sharded"] = sharded
+    return out
 
 
 # -------------------------------------------------------------------------------------- ceiling
@@ -471,28 +500,49 @@ def fmt(x: float | None) -> str:
     return f"{x:.0f}"
 
 
+def _num_devices() -> int:
+    """JAX's devices in this process (1 if JAX is missing)."""
+    try:
+        import jax
+
+        return len(jax.devices())
+    except Exception:  # noqa: BLE001
+        return 1
+
+
 def _jax_rows(rows: set[str], args: Any, seconds: float, repeat: int, steps: int) -> str:
     """The JAX engine's rows (batched rollouts, the single env, the vector env), crazyflow's and the
     ratios between them, all measured in this run; a markdown table ('' if none asked)."""
     out: list[tuple[str, float | None, str, str]] = []  # label, samples/s, compile, ratio note
     peers: dict[int, dict[str, float] | None] = {}
+    ndev = _num_devices()
     if "peers" in rows:
         for W in (int(x) for x in args.peer_worlds.split(",")):
-            peers[W] = crazyflow_rates(W, 8, steps, seconds, repeat)
+            peers[W] = crazyflow_rates(W, 8, steps, seconds, repeat, devices=ndev)
             print("crazyflow", W, peers[W], flush=True)
             if peers[W] is None:
                 break
     base = EnvConfig(num_quads=8)
     if "jax" in rows:
         for W in (int(x) for x in args.jax_worlds.split(",")):
-            for variant, cfg in (("paper defaults", base), ("without_noise()", base.without_noise())):
-                res = bench_jax_batch(cfg, W, steps)
+            # all devices (sharded worlds); and one device at the peer sizes (as JAX runs by default)
+            runs = [(ndev, "paper defaults", base), (ndev, "without_noise()", base.without_noise())]
+            if ndev > 1 and W > 1 and W % ndev == 0 and W in peers:
+                runs.append((1, "paper defaults", base))
+            for dev, variant, cfg in runs:
+                res = bench_jax_batch(cfg, W, steps, devices=dev)
                 if res is None:
                     break
-                print("jax", W, variant, res, flush=True)
+                print("jax", W, variant, dev, res, flush=True)
                 peer = peers.get(W)
-                note = f"{res['samples_per_s'] / peer['scan']:.2f}x crazyflow scan" if peer else ""
-                out.append((f"JAX engine, jitted rollout, {W} x 8, {variant}", res["samples_per_s"],
+                used = int(res.get("devices", 1))
+                where = "1 device" if used == 1 else f"sharded over {used} CPU devices"
+                note = ""
+                if peer:
+                    key = "scan_sharded" if used > 1 and "scan_sharded" in peer else "scan"
+                    note = (f"{res['samples_per_s'] / peer[key]:.2f}x crazyflow scan "
+                            f"({'sharded the same way' if key == 'scan_sharded' else '1 device'})")
+                out.append((f"JAX engine, jitted rollout, {W} x 8, {variant}, {where}", res["samples_per_s"],
                             f"{res['compile_s']:.1f}", note))
     if args.ablations and "jax" in rows:
         W = 512
@@ -550,6 +600,9 @@ def _jax_rows(rows: set[str], args: Any, seconds: float, repeat: int, steps: int
     for W, peer in peers.items():
         if peer:
             out.append((f"crazyflow 0.4 Sim, {W} x 8, jitted scan", peer["scan"], f"{peer['compile_s']:.1f}", "peer"))
+            if "scan_sharded" in peer:
+                out.append((f"crazyflow 0.4 Sim, {W} x 8, jitted scan, sharded over {ndev} CPU devices",
+                            peer["scan_sharded"], "", "peer"))
             out.append((f"crazyflow 0.4 Sim, {W} x 8, Python loop", peer["loop"], "", "peer"))
             out.append((f"crazyflow 0.4 Sim, {W} x 8, Python loop reading the state every step", peer["loop_read"], "",
                         "peer"))
@@ -672,9 +725,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--profile", action="store_true", help="add a cProfile breakdown of the single and vector env")
     p.add_argument("--compare", type=int, default=0, metavar="B",
                    help="add the design measurements (physics back ends, threads vs processes) at B worlds")
+    p.add_argument("--cpu-devices", default="cores", metavar="N",
+                   help="JAX CPU devices: 'cores' (default: one per core, quadswarm_mj.use_cpu_cores(); the JAX "
+                        "engine shards its worlds over them and also reports 1-device rows) or an int (1: JAX's "
+                        "default single device)")
     p.add_argument("--out", default="BENCHMARKS.md", help="report file (default ./BENCHMARKS.md)")
     p.add_argument("--no-write", action="store_true", help="print only")
     args = p.parse_args(argv)
+    if args.cpu_devices != "cores" and not args.cpu_devices.isdigit():
+        p.error(f"--cpu-devices must be 'cores' or an int >= 1, got {args.cpu_devices!r}")
+    if not args.skip_mjx:
+        try:
+            from quadswarm_mj.devices import use_cpu_cores
+
+            use_cpu_cores(None if args.cpu_devices == "cores" else int(args.cpu_devices), strict=False)
+        except ImportError:  # JAX missing: the JAX rows are skipped with a note
+            pass
     seconds = args.seconds or (0.5 if args.quick else 2.0)
     repeat = args.repeat or (1 if args.quick else 3)
     workloads = tuple((args.workloads or ("hover" if args.quick else ",".join(WORKLOADS))).split(","))

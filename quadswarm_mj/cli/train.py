@@ -138,6 +138,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--engine", choices=("mujoco", "jax"),
                    help="rollout engine: mujoco (batched CPU MuJoCo, default) or jax (MjxQuadSwarmEnv: rollouts and "
                         "updates in one jitted loop; the swarm8* presets' default)")
+    p.add_argument("--cpu-devices", default="cores", metavar="N",
+                   help="--engine jax: JAX CPU devices the iteration runs data parallel on: 'cores' (default: one per "
+                        "core, quadswarm_mj.use_cpu_cores()) or an int (1: JAX's single default device). Results "
+                        "depend on the device count (each device draws its own streams)")
     p.add_argument("--scenario", action="append", help="training scenario(s); repeat or comma-separate")
     p.add_argument("--num-quads", type=int, help="quads per world (N)")
     p.add_argument("--reward", action="append", metavar="TERM=SCALE", help="reward scale (RewardScales field)")
@@ -215,6 +219,12 @@ def main(argv: list[str] | None = None) -> int:
 
     preset = PRESETS[args.preset]
     engine = args.engine or preset.get("engine", "mujoco")
+    if engine == "jax":  # before any JAX operation: the device count is fixed when JAX starts
+        from quadswarm_mj.devices import use_cpu_cores
+
+        if args.cpu_devices != "cores" and not args.cpu_devices.isdigit():
+            raise SystemExit(f"error: --cpu-devices must be 'cores' or an int >= 1, got {args.cpu_devices!r}")
+        use_cpu_cores(None if args.cpu_devices == "cores" else int(args.cpu_devices), strict=False)
     scenarios = [s.strip() for item in (args.scenario or preset["scenarios"]) for s in item.split(",") if s.strip()]
     weights = preset.get("weights") if args.scenario is None else None
     n = args.num_quads if args.num_quads is not None else preset["num_quads"]

@@ -31,7 +31,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.devices import reuse_freed_memory
 from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv, State
+from quadswarm_mj.envs.sharding import WorldSharding
 from quadswarm_mj.metrics import METRIC_KEYS, OBSTACLE_METRIC_KEYS, metric_keys
 from quadswarm_mj.rewards import OBSTACLE_TERMS, TERMS, env_terms
 
@@ -92,14 +94,15 @@ class StatePacker:
         parts: dict[str, list[jax.Array]] = {g: [] for g in self.groups}
         for leaf, (g, _, _, _, dt, is_key) in zip(leaves, self.entries):
             x = jax.random.key_data(leaf) if is_key else leaf
-            parts[g].append(jnp.reshape(x, self.lead + (-1,)).astype(dt))
+            parts[g].append(jnp.reshape(x, x.shape[:len(self.lead)] + (-1,)).astype(dt))  # local lead under shard_map
         return tuple(jnp.concatenate(parts[g], axis=-1) for g in self.groups)
 
     def unpack(self, bufs: tuple[jax.Array, ...]) -> Any:
         by_group = dict(zip(self.groups, bufs))
         leaves = []
         for g, start, size, shape, _, is_key in self.entries:
-            x = by_group[g][..., start:start + size].reshape(self.lead + shape)
+            buf = by_group[g]
+            x = buf[..., start:start + size].reshape(buf.shape[:-1] + shape)
             leaves.append(_wrap_keys(x) if is_key else x)
         return jax.tree.unflatten(self.treedef, leaves)
 
@@ -128,7 +131,7 @@ class OutputLayout:
     """Names, shapes and offsets of the packed per-world output (one float array)."""
 
     #: outputs the host reads as float32 (observations), packed first: the rest is converted to float64
-    FLOAT32 = ("obs", "final_obs")
+    FLOAT32 = ("obs",)
 
     def __init__(self, struct: dict[str, Any]):
         self.names = tuple(k for k in self.FLOAT32 if k in struct) + tuple(k for k in struct if k not in self.FLOAT32)
@@ -151,8 +154,11 @@ class OutputLayout:
     def split64(self, flat32: np.ndarray, lead: tuple[int, ...] = ()) -> dict[str, np.ndarray]:
         """Float64 views (*lead, *shape) of the non-observation outputs of a packed float32 array
         (only that part is converted)."""
+        return self.views64(flat32[..., self.f64_start:].astype(np.float64), lead)
+
+    def views64(self, rest: np.ndarray, lead: tuple[int, ...] = ()) -> dict[str, np.ndarray]:
+        """The views of :meth:`split64` from the float64 non-observation part ``rest`` (*lead, size - f64_start)."""
         start = self.f64_start
-        rest = flat32[..., start:].astype(np.float64)
         out = {}
         for k, sl, shape in self.items:
             if k in self.FLOAT32:
@@ -208,8 +214,20 @@ class _Program:
         # ~2 ms per call)
         self.packer = StatePacker(struct, self.lead)
         self.layout = OutputLayout(jax.eval_shape(lambda s: self._outs(s, s, s.obs), one))
-        self._step = jax.jit(self._step_impl, donate_argnums=0)
+        # B worlds: sharded over every CPU/accelerator device whose count divides B (each device steps
+        # its own worlds, no communication; quadswarm_mj.use_cpu_cores() gives JAX one device per core)
+        self.worlds = None if batch is None else WorldSharding(batch)
+        self._step = self._jit(self._step_impl, donate=True)
         self._resets: dict[Any, Any] = {}
+
+    def _jit(self, impl: Any, donate: bool) -> Any:
+        """``jax.jit(impl)`` (first argument donated if ``donate``); with B worlds on several devices
+        run per device on its slice of worlds (every argument and result has the leading worlds axis)."""
+        kw = {"donate_argnums": 0} if donate else {}
+        ws = self.worlds
+        if ws is None or ws.num_devices == 1:
+            return jax.jit(impl, **kw)
+        return jax.jit(ws.map_batched(impl), in_shardings=ws.sharding, out_shardings=ws.sharding, **kw)
 
     def _shrink(self, s: State) -> State:
         """The carried form of a state (free-body physics: only the changing fields of Data)."""
@@ -223,8 +241,9 @@ class _Program:
         if not self._small_data:
             return s
         d0 = self.env._data0
-        if self.lead:
-            d0 = jax.tree.map(lambda x: jnp.broadcast_to(x, self.lead + x.shape), d0)
+        if self.lead:  # the local number of worlds (a device's slice under shard_map)
+            lead = s.data["qpos"].shape[:len(self.lead)]
+            d0 = jax.tree.map(lambda x: jnp.broadcast_to(x, lead + x.shape), d0)
         return s.replace(data=d0.replace(**s.data))
 
     def _pack(self, s: State) -> Any:
@@ -235,7 +254,7 @@ class _Program:
 
     def _outs(self, s: State, prev: State, final_obs: jax.Array) -> dict[str, jax.Array]:
         new = jnp.any(s.info["contact"] & ~prev.info["contact"], axis=-1)
-        extra = {"qpos": s.data.qpos} if self.batch is None else {"final_obs": final_obs}
+        extra = {"qpos": s.data.qpos} if self.batch is None else {}
         return _outputs(s, new, extra)
 
     def _pack_out(self, s: State, prev: State, final_obs: jax.Array) -> jax.Array:
@@ -265,7 +284,7 @@ class _Program:
                 def impl(key_data: jax.Array, arrays: dict[str, jax.Array]) -> tuple:
                     s = jax.vmap(one_reset)(key_data, arrays)
                     return self._pack(s), self._pack_out(s, s, s.obs)
-                self._resets[key] = jax.jit(impl)
+                self._resets[key] = self._jit(impl, donate=False)
             else:
                 def impl(bufs: tuple, key_data: jax.Array, arrays: dict[str, jax.Array], mask: jax.Array) -> tuple:
                     old = self._unpack(bufs)
@@ -273,7 +292,7 @@ class _Program:
                     fresh = fresh.replace(info={**fresh.info, "total_steps": old.info["total_steps"]})
                     s = _select(mask, fresh, old)
                     return self._pack(s), self._pack_out(s, s, s.obs)
-                self._resets[key] = jax.jit(impl, donate_argnums=0)
+                self._resets[key] = self._jit(impl, donate=True)
         return self._resets[key]
 
     # ---------------------------------------------------------------- step
@@ -283,9 +302,9 @@ class _Program:
             s = self.env.step(prev, action)
             return self._pack(s), self._pack_out(s, prev, s.obs)
         s = jax.vmap(self.env.step)(prev, action)
-        final_obs = s.obs
+        final_obs = s.obs  # returned apart: the host reads it only after a step that ended an episode
         s = self.auto.renew_finished(s)  # the rules of AutoResetWrapper (fresh episodes where done)
-        return self._pack(s), self._pack_out(s, prev, final_obs)
+        return self._pack(s), self._pack_out(s, prev, final_obs), final_obs
 
     def step(self, bufs: tuple, action: np.ndarray) -> tuple:
         return self._step(bufs, action)
@@ -300,6 +319,14 @@ def _init_arrays(state: dict[str, Any] | None, dtype: Any) -> dict[str, np.ndarr
     if state is None:
         return {}
     return {k: np.asarray(v, dtype) for k, v in state.items() if v is not None and not isinstance(v, str)}
+
+
+def _host_rows(x: jax.Array) -> list[np.ndarray]:
+    """The host views of a batched array's device shards, in world order (read-only; CPU: no copy)."""
+    shards = x.addressable_shards
+    if len(shards) == 1:
+        return [np.asarray(x)]
+    return [np.asarray(sh.data) for sh in sorted(shards, key=lambda sh: sh.index[0].start or 0)]
 
 
 # ------------------------------------------------------------------------------- single world
@@ -395,6 +422,7 @@ class JaxVectorBackend:
         self.cfg, self.B = cfg, int(num_envs)
         self.info_keys, self.copy = tuple(info_keys), bool(copy)
         self.prog = _program(cfg, self.B)
+        reuse_freed_memory()  # no page faults on the step's megabytes of fresh outputs (see there)
         self._keys: KeyStream | None = None
         self._bufs: tuple | None = None
         self._v: dict[str, np.ndarray] | None = None
@@ -403,13 +431,14 @@ class JaxVectorBackend:
         self._keys = KeyStream(seed)
 
     def _split(self, out: jax.Array) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        o = np.array(out)  # (B, size) float32, one transfer
+        # (B, size) float32 on one or more devices: read each device's rows in place (no gather copy),
+        # copy the observations out as float32 and convert the rest to float64 in one pass each
+        parts = _host_rows(out)
         lay = self.prog.layout
-        v = lay.split64(o, (self.B,))
-        obs = o[:, lay.slices["obs"]].reshape((self.B,) + lay.shapes["obs"])
-        fin = o[:, lay.slices["final_obs"]].reshape((self.B,) + lay.shapes["final_obs"])
+        obs = np.concatenate([p[:, lay.slices["obs"]] for p in parts]).reshape((self.B,) + lay.shapes["obs"])
+        v = lay.views64(np.concatenate([p[:, lay.f64_start:] for p in parts], dtype=np.float64), (self.B,))
         self._v = v
-        return obs, {**v, "obs32": obs, "final_obs32": fin}
+        return obs, {**v, "obs32": obs}
 
     def _info(self, v: dict[str, np.ndarray], step: bool) -> dict[str, Any]:
         keys, out = self.info_keys, {}
@@ -449,7 +478,7 @@ class JaxVectorBackend:
         return v["obs32"], self._info(v, step=False)
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        self._bufs, out = self.prog.step(self._bufs, actions.astype(self.prog.float))
+        self._bufs, out, final_obs = self.prog.step(self._bufs, actions.astype(self.prog.float))
         v = self._split(out)[1]
         info = self._info(v, step=True)
         done = v["done"] > 0.5
@@ -457,7 +486,7 @@ class JaxVectorBackend:
             info["episode_metrics"] = {k: np.where(done, v["metrics"][:, i], np.nan)
                                        for i, k in enumerate(metric_keys(self.cfg))}
             info["_episode_metrics"] = done.copy()
-            info["final_obs"] = v["final_obs32"]
+            info["final_obs"] = np.array(final_obs)  # (B, N, obs_dim) float32, transferred only now
             info["_final_obs"] = done.copy()
         return v["obs32"], v["rewards"].mean(axis=-1), np.zeros(self.B, dtype=np.bool_), done, info
 

@@ -934,7 +934,7 @@ def _select(pred: jax.Array, a: Any, b: Any) -> Any:
 
 
 def benchmark_mjx(cfg: EnvConfig, num_worlds: int, num_steps: int, seed: int = 0,
-                  physics: str | None = None) -> dict[str, float]:
+                  physics: str | None = None, devices: int | None = None) -> dict[str, float]:
     """Time ``num_steps`` control steps of ``num_worlds`` worlds (auto-reset, hover actions).
 
     Worlds are sharded over all JAX devices when their number divides ``num_worlds``. The rollout
@@ -942,14 +942,17 @@ def benchmark_mjx(cfg: EnvConfig, num_worlds: int, num_steps: int, seed: int = 0
     rollout), ``samples_per_s`` counts quad-steps (worlds x quads x steps) per second of the
     compiled rollout (median of 3 runs). Returns also ``steps_per_s`` (world-steps per second),
     ``num_worlds``, ``num_quads``, ``num_steps``, ``devices``. ``physics``: see
-    :class:`MjxQuadSwarmEnv` (None: its default).
+    :class:`MjxQuadSwarmEnv` (None: its default). ``devices``: use at most that many of
+    ``jax.devices()`` (None: all; :func:`quadswarm_mj.use_cpu_cores` gives one CPU device per core).
     """
-    from quadswarm_mj.envs.sharding import WorldSharding
+    from quadswarm_mj.envs.sharding import WorldSharding, world_devices
 
     if num_worlds < 1 or num_steps < 1:
         raise ValueError(f"num_worlds and num_steps must be >= 1, got {num_worlds}, {num_steps}")
+    if devices is not None and (not isinstance(devices, int) or devices < 1):
+        raise ValueError(f"devices must be an int >= 1 or None, got {devices!r}")
     env = AutoResetWrapper(MjxQuadSwarmEnv(cfg, physics=physics))
-    shard = WorldSharding(num_worlds)
+    shard = WorldSharding(num_worlds, world_devices(num_worlds, jax.devices()[:devices]))
     hover = jnp.full((num_worlds, cfg.num_quads, 4), cfg.quad.hover_action, _float())
 
     def rollout(state: State) -> State:

@@ -39,6 +39,7 @@ from brax.training import types as brax_types
 from brax.training.acme import running_statistics
 
 from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.devices import reuse_freed_memory
 from quadswarm_mj.metrics import METRIC_KEYS
 from quadswarm_mj.training.ppo import (
     TRAIN_STATE_FILE,
@@ -61,6 +62,8 @@ from quadswarm_mj.training.ppo import (
     write_logs,
 )
 from quadswarm_mj.training.replay import ReplayConfig, init_replay, record, restart, tree_where
+
+AXIS = "worlds"  # the device axis of the data-parallel iteration
 
 
 def anneal_steps_for(agent_steps: float, num_worlds: int, num_quads: int) -> int:
@@ -91,7 +94,8 @@ class JaxPPOTrainer:
     """
 
     def __init__(self, cfgs: list[EnvConfig], ppo: PPOConfig, seed: int = 0, init_from: str | None = None,
-                 replay: ReplayConfig | None = None, weights: list[float] | None = None):
+                 replay: ReplayConfig | None = None, weights: list[float] | None = None,
+                 devices: int | None = None):
         from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv
 
         if not cfgs:
@@ -127,9 +131,12 @@ class JaxPPOTrainer:
             params, normalizer = self._load_init(init_from, params, normalizer)
         self.state = TrainState(params=params, opt_state=self.optimizer.init(params), normalizer=normalizer)
         self._policy_step = make_policy_step(self.networks)
-        self._update = make_update_fn(self.networks, self.optimizer, ppo)
+        self.num_devices = self._data_parallel_devices(devices)
+        reuse_freed_memory()  # the iteration's large buffers are reused, not page-faulted in again
+        self._update = make_update_fn(self.networks, self.optimizer, ppo,
+                                      axis_name=AXIS if self.num_devices > 1 else None)
         self._reset = [jax.jit(jax.vmap(e.reset)) for e in self.envs]
-        self._iteration = jax.jit(self._make_iteration(), donate_argnums=(0,))
+        self._iteration = self._jit_iteration()
         self._env_key = kenv
         self.env_steps = 0
         self.iteration = 0
@@ -161,13 +168,67 @@ class JaxPPOTrainer:
             if self.replay is not None:
                 wd["replay"] = init_replay(st, self.replay)
             out.append(wd)
+        if self.num_devices > 1:  # every leaf has the leading worlds axis: each device gets its slice
+            ws, rep = self._world_sharding()  # (empty arrays come back replicated: place them so, no recompile)
+            out = jax.tree.map(lambda x: jax.device_put(x, ws if x.size else rep), out)
         return tuple(out)
 
     # ------------------------------------------------------------------ the jitted iteration
+    def _data_parallel_devices(self, devices: int | None) -> int:
+        """The devices the iteration runs on (data parallel): ``devices`` (None: as many of
+        ``jax.devices()`` as divide every scenario's worlds and the minibatches; 1 with replay,
+        whose buffer is shared by all worlds)."""
+        avail = len(jax.devices())
+        if devices is not None:
+            if not isinstance(devices, int) or not 1 <= devices <= avail:
+                raise ValueError(f"devices must be an int in [1, {avail}] (jax.devices()), got {devices!r}")
+        if self.replay is not None:
+            if devices not in (None, 1):
+                raise ValueError("collision replay runs on one device: use devices=1 (or None)")
+            return 1
+
+        def fits(d: int) -> bool:
+            return all(w % d == 0 for w in self.worlds) and (self.num_agents // d) % self.ppo.num_minibatches == 0
+
+        if devices is not None:
+            if not fits(devices):
+                raise ValueError(f"devices={devices} must divide every scenario's worlds {self.worlds} and leave "
+                                 f"a multiple of num_minibatches={self.ppo.num_minibatches} agents per device")
+            return devices
+        return max(d for d in range(1, avail + 1) if fits(d))
+
+    def _world_sharding(self) -> tuple[Any, Any]:
+        """(worlds-axis sharding, replicated sharding) on the iteration's devices."""
+        from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+        mesh = Mesh(np.asarray(jax.devices()[:self.num_devices]), (AXIS,))
+        return NamedSharding(mesh, PartitionSpec(AXIS)), NamedSharding(mesh, PartitionSpec())
+
+    def _jit_iteration(self) -> Callable:
+        """The jitted iteration; on D > 1 devices each runs the rollout of its slice of every scenario's
+        worlds and the data-parallel update (:func:`make_update_fn` with ``axis_name``); the train state
+        stays replicated, the returned sums are totals over the devices."""
+        it = self._make_iteration()
+        if self.num_devices == 1:
+            return jax.jit(it, donate_argnums=(0,))
+        from jax.sharding import PartitionSpec
+
+        rep, wsp = PartitionSpec(), PartitionSpec(AXIS)
+        carry_spec = (rep, wsp, rep)
+        mapped = jax.shard_map(it, mesh=self._world_sharding()[0].mesh, in_specs=(carry_spec, rep),
+                               out_specs=(carry_spec, rep, rep), check_vma=False)
+        return jax.jit(mapped, donate_argnums=(0,))
+
     def _make_iteration(self) -> Callable:
         T, N, D = self.ppo.unroll_length, self.N, self.obs_dim
-        envs, worlds, rcfg, cfgs = self.envs, self.worlds, self.replay, self.cfgs
+        envs, rcfg, cfgs = self.envs, self.replay, self.cfgs
+        nd = self.num_devices
+        worlds = [w // nd for w in self.worlds]  # per device
+        axis = AXIS if nd > 1 else None
         policy_step, update = self._policy_step, self._update
+
+        def local(key: jax.Array) -> jax.Array:  # a device's own stream (rollout noise, resets, shuffles)
+            return key if axis is None else jax.random.fold_in(key, jax.lax.axis_index(axis))
 
         def cut_first(env: Any, s: Any, cut: jax.Array, key: jax.Array, w: int) -> Any:
             fresh = jax.vmap(env.reset)(jax.random.split(key, w))
@@ -232,10 +293,14 @@ class JaxPPOTrainer:
         def iteration(carry: Any, lr_scale: jax.Array) -> tuple[Any, dict[str, Any], Any]:
             ts, wds, key = carry
             key, k_upd, k_roll = jax.random.split(key, 3)
-            (wds, _), (data, sums) = jax.lax.scan(lambda c, x: env_step(ts, c, x), (wds, k_roll), None, length=T)
-            ts, m = update(ts, data, k_upd, lr_scale)
+            (wds, _), (data, sums) = jax.lax.scan(lambda c, x: env_step(ts, c, x), (wds, local(k_roll)), None,
+                                                  length=T)
+            ts, m = update(ts, data, local(k_upd), lr_scale)
             m["reward_per_step"] = jnp.mean(data.reward)
             sums = jax.tree.map(lambda x: jnp.sum(x, axis=0), sums)
+            if axis is not None:  # totals and means over the devices
+                m["reward_per_step"] = jax.lax.pmean(m["reward_per_step"], axis)
+                sums = jax.lax.psum(sums, axis)
             if rcfg is not None:
                 for k, wd in enumerate(wds):
                     rs = wd["replay"]
@@ -292,6 +357,9 @@ class JaxPPOTrainer:
         last_ckpt = t0
         self.key, k_env = jax.random.split(self.key)
         carry = (self.state, self.init_worlds(k_env), self.key)
+        if self.num_devices > 1:  # placed as the iteration returns them: no second compile
+            rep = self._world_sharding()[1]
+            carry = (jax.device_put(self.state, rep), carry[1], jax.device_put(self.key, rep))
         steps0 = self._steps0 = self.env_steps
         t_first = None
         while True:
@@ -452,7 +520,11 @@ if __name__ == "__main__":  # pragma: no cover
     ap.add_argument("--iterations", type=int, default=4)
     ap.add_argument("--arch", default="mlp")
     ap.add_argument("--engines", default="jax,mujoco,brax")
+    ap.add_argument("--cpu-devices", type=int, default=None, help="JAX CPU devices (default: one per core)")
     a = ap.parse_args()
+    from quadswarm_mj.devices import use_cpu_cores
+
+    use_cpu_cores(a.cpu_devices, strict=False)
     res = measure_trainers(EnvConfig(num_quads=a.num_quads, scenario=a.scenario),
                            PPOConfig(num_worlds=a.num_worlds, arch=a.arch), a.iterations,
                            tuple(a.engines.split(",")))

@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -317,9 +318,16 @@ def make_policy_step(networks: Any) -> Callable:
     return step
 
 
-def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PPOConfig) -> Callable:
+def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PPOConfig,
+                   axis_name: str | None = None) -> Callable:
     """(TrainState, Transition [T, A], key, lr_scale) -> (TrainState, metrics): normalizer update, then
-    ``num_epochs`` x ``num_minibatches`` Adam steps on Brax's ``compute_ppo_loss`` (pure; jit it)."""
+    ``num_epochs`` x ``num_minibatches`` Adam steps on Brax's ``compute_ppo_loss`` (pure; jit it).
+
+    ``axis_name``: data parallel over that mapped axis (``shard_map``/``pmap``), as Brax's PPO does
+    under ``pmap``: each device holds A / D agents and shuffles them into its own minibatch slices,
+    gradients, metrics and the observation statistics are averaged over the devices (``pmean``), so
+    every device applies the same update to the same parameters. (The advantage normalization of the
+    loss is per device minibatch.)"""
     loss_fn = functools.partial(ppo_losses.compute_ppo_loss, ppo_network=networks,
                                 entropy_cost=p.entropy_cost, discounting=p.discounting,
                                 reward_scaling=p.reward_scaling, gae_lambda=p.gae_lambda,
@@ -330,6 +338,9 @@ def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PP
         opt_state, params, key = carry
         key, k = jax.random.split(key)
         (_, metrics), grads = grad_fn(params, normalizer, data, k)
+        if axis_name is not None:  # one all-reduce of one flat vector (each collective is a rendezvous)
+            flat, unravel = jax.flatten_util.ravel_pytree((grads, metrics))
+            grads, metrics = unravel(jax.lax.pmean(flat, axis_name))
         upd, opt_state = optimizer.update(grads, opt_state)
         upd = jax.tree_util.tree_map(lambda u: u * lr_scale, upd)  # learning-rate schedule
         return (opt_state, optax.apply_updates(params, upd), key), metrics
@@ -352,7 +363,7 @@ def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PP
         data = jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), data)  # [T, A] -> [A, T]
         normalizer = state.normalizer
         if p.normalize_observations:
-            normalizer = running_statistics.update(normalizer, data.observation)
+            normalizer = running_statistics.update(normalizer, data.observation, pmap_axis_name=axis_name)
         (opt_state, params, _), m = jax.lax.scan(
             functools.partial(epoch, data=data, normalizer=normalizer, lr_scale=lr_scale),
             (state.opt_state, state.params, key), None, length=p.num_epochs)
