@@ -14,6 +14,9 @@ data), so a call passes a handful of arrays instead of ~150 leaves; everything t
 (observations, rewards, reward terms, state, goals, parameters, episode metrics, flags) is packed
 inside the jit into one flat float array per world and split on the host with NumPy views. Compiled
 programs are cached per (config, number of worlds), so envs of the same config share compiles.
+B worlds are sharded over every device whose count divides B (``shard_map``: each device steps its
+own worlds; :func:`quadswarm_mj.use_cpu_cores` gives JAX one CPU device per core), with results
+bit-identical to one device; ``final_obs`` is a separate output, read only after an episode ended.
 
 Seeding: ``reset(seed=s)`` derives the JAX keys from ``np.random.SeedSequence(s)`` (any int), so
 seeded runs are bit-identical; later unseeded resets continue that stream. Random streams differ

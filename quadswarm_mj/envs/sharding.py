@@ -4,7 +4,8 @@ Worlds never interact, so each device simulates its own slice of them: the vmapp
 ``step`` run inside ``jax.shard_map`` (no cross-device communication) on a 1-D ``Mesh`` of the
 devices, and every leaf of a batched state is laid out with
 ``NamedSharding(mesh, PartitionSpec("worlds"))`` (leading axis = worlds). On a CPU-only machine
-``XLA_FLAGS=--xla_force_host_platform_device_count=K`` exposes K host devices for testing::
+:func:`quadswarm_mj.use_cpu_cores` (or ``JAX_NUM_CPU_DEVICES=K``) exposes one device per core, which
+is also the fastest way to use the cores (BENCHMARKS.md)::
 
     env = ShardedEnv(MjxQuadSwarmEnv(cfg), num_worlds=512)   # all devices, 512 / D worlds each
     state = env.reset(jax.random.key(0))
