@@ -140,3 +140,13 @@ def test_jax_trainer_data_parallel_on_two_devices():
     assert r["cache"] == 1  # the carry comes back placed as it went in
     assert "must divide every scenario's worlds" in r["bad"]
     assert all(abs(x) < 1e3 for x in r["reward"])
+
+
+def test_cli_cpu_devices_option_is_checked():
+    from quadswarm_mj.cli import benchmark, train
+
+    with pytest.raises(SystemExit) as e:
+        benchmark.main(["--cpu-devices", "two", "--no-write", "--rows", "single"])
+    assert e.value.code == 2
+    with pytest.raises(SystemExit, match="--cpu-devices must be 'cores' or an int"):
+        train.main(["--engine", "jax", "--cpu-devices", "two", "--timesteps", "1"])
