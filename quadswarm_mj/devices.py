@@ -22,6 +22,16 @@ import os
 import sys
 
 
+def cpu_devices_option(text: str) -> int | None:
+    """The console commands' ``--cpu-devices`` value: "cores" -> None (one device per core), "N" -> N
+    (an int >= 1); ValueError otherwise."""
+    if text == "cores":
+        return None
+    if not text.isdigit() or int(text) < 1:
+        raise ValueError(f"--cpu-devices must be 'cores' or an int >= 1, got {text!r}")
+    return int(text)
+
+
 def use_cpu_cores(n: int | None = None, strict: bool = True) -> int:
     """Ask JAX for ``n`` CPU devices (default: the cores this process may run on) and return the
     number it has. If JAX already started with a different number: RuntimeError (call it before any

@@ -148,5 +148,9 @@ def test_cli_cpu_devices_option_is_checked():
     with pytest.raises(SystemExit) as e:
         benchmark.main(["--cpu-devices", "two", "--no-write", "--rows", "single"])
     assert e.value.code == 2
-    with pytest.raises(SystemExit, match="--cpu-devices must be 'cores' or an int"):
-        train.main(["--engine", "jax", "--cpu-devices", "two", "--timesteps", "1"])
+    for bad in ("two", "0"):
+        with pytest.raises(SystemExit, match="--cpu-devices must be 'cores' or an int"):
+            train.main(["--engine", "jax", "--cpu-devices", bad, "--timesteps", "1"])
+    with pytest.raises(SystemExit) as e:
+        benchmark.main(["--cpu-devices", "0", "--no-write", "--rows", "single"])
+    assert e.value.code == 2

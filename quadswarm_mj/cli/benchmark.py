@@ -732,13 +732,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="BENCHMARKS.md", help="report file (default ./BENCHMARKS.md)")
     p.add_argument("--no-write", action="store_true", help="print only")
     args = p.parse_args(argv)
-    if args.cpu_devices != "cores" and not args.cpu_devices.isdigit():
-        p.error(f"--cpu-devices must be 'cores' or an int >= 1, got {args.cpu_devices!r}")
+    from quadswarm_mj.devices import cpu_devices_option, use_cpu_cores
+
+    try:
+        cpu_devices = cpu_devices_option(args.cpu_devices)
+    except ValueError as e:
+        p.error(str(e))
     if not args.skip_mjx:
         try:
-            from quadswarm_mj.devices import use_cpu_cores
-
-            use_cpu_cores(None if args.cpu_devices == "cores" else int(args.cpu_devices), strict=False)
+            use_cpu_cores(cpu_devices, strict=False)
         except ImportError:  # JAX missing: the JAX rows are skipped with a note
             pass
     seconds = args.seconds or (0.5 if args.quick else 2.0)

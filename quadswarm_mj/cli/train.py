@@ -220,11 +220,12 @@ def main(argv: list[str] | None = None) -> int:
     preset = PRESETS[args.preset]
     engine = args.engine or preset.get("engine", "mujoco")
     if engine == "jax":  # before any JAX operation: the device count is fixed when JAX starts
-        from quadswarm_mj.devices import use_cpu_cores
+        from quadswarm_mj.devices import cpu_devices_option, use_cpu_cores
 
-        if args.cpu_devices != "cores" and not args.cpu_devices.isdigit():
-            raise SystemExit(f"error: --cpu-devices must be 'cores' or an int >= 1, got {args.cpu_devices!r}")
-        use_cpu_cores(None if args.cpu_devices == "cores" else int(args.cpu_devices), strict=False)
+        try:
+            use_cpu_cores(cpu_devices_option(args.cpu_devices), strict=False)
+        except ValueError as e:
+            raise SystemExit(f"error: {e}") from None
     scenarios = [s.strip() for item in (args.scenario or preset["scenarios"]) for s in item.split(",") if s.strip()]
     weights = preset.get("weights") if args.scenario is None else None
     n = args.num_quads if args.num_quads is not None else preset["num_quads"]

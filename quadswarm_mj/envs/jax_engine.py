@@ -310,6 +310,8 @@ class _Program:
         return self._pack(s), self._pack_out(s, prev, final_obs), final_obs
 
     def step(self, bufs: tuple, action: np.ndarray) -> tuple:
+        """(state buffers, packed outputs) for one world; (state buffers, packed outputs, final_obs
+        (B, N, obs_dim) before the auto-reset) for B worlds. ``bufs`` are donated."""
         return self._step(bufs, action)
 
 
