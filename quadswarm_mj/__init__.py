@@ -12,6 +12,9 @@ if os.environ.get("MUJOCO_GL") in ("egl", "osmesa"):
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
 from quadswarm_mj import _quiet_imports  # noqa: E402
+from quadswarm_mj.devices import tune_jax_cpu  # noqa: E402
+
+tune_jax_cpu()  # XLA:CPU options for the JAX engine's small programs, if JAX has not started (devices.py)
 
 _quiet_imports.install()  # mujoco.mjx prints "Failed to import warp" twice without NVIDIA Warp
 

@@ -18,8 +18,11 @@ process, so call this first (or set the environment variable ``JAX_NUM_CPU_DEVIC
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
+from collections.abc import Callable
+from typing import Any
 
 
 def cpu_devices_option(text: str) -> int | None:
@@ -43,6 +46,7 @@ def use_cpu_cores(n: int | None = None, strict: bool = True) -> int:
         raise ValueError(f"n must be an int >= 1 (CPU devices), got {n!r}")
     import jax
 
+    tune_jax_cpu()  # before the devices are created (their client is then synchronous)
     try:
         jax.config.update("jax_num_cpu_devices", n)
     except RuntimeError as e:  # the CPU client exists already
@@ -58,6 +62,106 @@ def use_cpu_cores(n: int | None = None, strict: bool = True) -> int:
         warnings.warn(msg + f"; continuing with {have}", RuntimeWarning, stacklevel=2)
         return have
     return len(jax.devices("cpu"))
+
+
+#: XLA:CPU compiles a ``while`` loop whose body touches fewer bytes than this (one iteration, XLA's cost
+#: analysis) into ONE kernel (``SmallWhileLoopHoistingPass``; XLA's default limit is 1 kB). Set by
+#: :func:`tune_jax_cpu`; 64 MB covers the JAX engine's rollouts and steps up to a few thousand worlds.
+LOOP_KERNEL_BYTES = 64 * 1024 * 1024
+LOOP_KERNEL_FLAG = f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={LOOP_KERNEL_BYTES}"
+
+
+def tune_jax_cpu() -> dict[str, bool]:
+    """Set two XLA:CPU options for the JAX engine's small programs, if JAX has not started yet.
+
+    * loops as single kernels (``XLA_FLAGS`` += :data:`LOOP_KERNEL_FLAG`): XLA:CPU's runtime otherwise
+      launches every fused kernel of a loop body as its own task and hands them between its pool
+      threads; one compiled kernel per loop measured 2.7x the samples/s of a one-world rollout and
+      1.1-1.4x at 64-512 worlds (BENCHMARKS.md). The single-world step of the JAX engine runs its
+      body in a one-trip loop (:func:`loop_once`) to get the same.
+    * synchronous dispatch on CPU (``jax_cpu_enable_async_dispatch = False``): a single-device
+      program then runs in the calling thread instead of being handed to a worker thread, which a
+      ``step()`` that returns NumPy results waits for anyway (~60 us less per call, BENCHMARKS.md).
+
+    ``import quadswarm_mj`` sets the first (it does not import JAX), importing the JAX engine sets
+    the second; ``QUADSWARM_MJ_TUNE_JAX=0`` turns both off, and a value the user set (``XLA_FLAGS``
+    with the option, or the JAX config) is kept. Only the speed of CPU programs changes, and only
+    before JAX creates its CPU client (the first JAX operation of the process). Returns what is in
+    force as far as this process's settings tell."""
+    on = os.environ.get("QUADSWARM_MJ_TUNE_JAX", "1") != "0"
+    started = True
+    if "jax" not in sys.modules:
+        started = False
+    else:
+        try:
+            from jax._src import xla_bridge
+
+            started = bool(xla_bridge.backends_are_initialized())
+        except (ImportError, AttributeError):
+            pass
+    flags = os.environ.get("XLA_FLAGS", "")
+    if on and not started and "xla_cpu_small_while_loop_byte_threshold" not in flags:
+        os.environ["XLA_FLAGS"] = (flags + " " + LOOP_KERNEL_FLAG).strip()
+    sync = False
+    if "jax" in sys.modules:
+        import jax
+
+        global _ASYNC_SET
+        if on and not started and not _ASYNC_SET and jax.config.values.get("jax_cpu_enable_async_dispatch", True):
+            jax.config.update("jax_cpu_enable_async_dispatch", False)
+            _ASYNC_SET = True
+        sync = not jax.config.values.get("jax_cpu_enable_async_dispatch", True)
+    return {"loop_kernels": "xla_cpu_small_while_loop_byte_threshold" in os.environ.get("XLA_FLAGS", ""),
+            "sync_dispatch": sync}
+
+
+_ASYNC_SET = False
+
+
+@functools.lru_cache(maxsize=1)
+def loop_kernels_in_force() -> bool:
+    """Whether XLA:CPU compiles a loop with a 64 kB body into one kernel in this process (probed once
+    by compiling such a loop: true when :func:`tune_jax_cpu` ran before JAX started)."""
+    import jax
+    import jax.numpy as jnp
+
+    def loop(x: jax.Array) -> jax.Array:
+        n = jax.lax.optimization_barrier(jnp.int32(2))
+        return jax.lax.while_loop(lambda c: c[0] < n, lambda c: (c[0] + 1, c[1] * 0.5 + 1.0), (jnp.int32(0), x))[1]
+
+    try:
+        text = jax.jit(loop, backend="cpu").lower(jnp.zeros(16384, jnp.float32)).compile().as_text()
+    except Exception:  # noqa: BLE001 - no CPU backend: nothing to tune
+        return False
+    return "xla_cpu_small_call" in text
+
+
+def loop_once(step: Callable[..., tuple]) -> Callable[..., tuple]:
+    """``step(state, *args) -> (state, *outputs)`` as the body of a ``while`` loop with one trip (the
+    trip count hidden behind an optimization barrier, so XLA keeps the loop). With
+    :func:`loop_kernels_in_force` XLA:CPU then compiles the whole step into one kernel instead of
+    ~160 separately launched ones (a one-world step: ~185 -> ~40 us per call, BENCHMARKS.md); without
+    it the loop only costs, so ``step`` is returned as is. Same results either way."""
+    if not loop_kernels_in_force():
+        return step
+
+    import jax
+    import jax.numpy as jnp
+
+    def run(state: Any, *args: Any) -> tuple:
+        outs = jax.eval_shape(lambda s: step(s, *args)[1:], state)
+        zeros = jax.tree.map(lambda o: jnp.zeros(o.shape, o.dtype), outs)
+        trips = jax.lax.optimization_barrier(jnp.int32(1))
+
+        def body(carry: tuple) -> tuple:
+            i, s, _ = carry
+            new = step(s, *args)
+            return i + 1, new[0], tuple(new[1:])
+
+        _, s, o = jax.lax.while_loop(lambda c: c[0] < trips, body, (jnp.int32(0), state, tuple(zeros)))
+        return (s, *o)
+
+    return run
 
 
 _MALLOC_TUNED: bool | None = None

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from quadswarm_mj.config import EnvConfig
-from quadswarm_mj.devices import reuse_freed_memory
+from quadswarm_mj.devices import loop_once, reuse_freed_memory
 from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv, State
 from quadswarm_mj.envs.sharding import WorldSharding
 from quadswarm_mj.metrics import METRIC_KEYS, OBSTACLE_METRIC_KEYS, metric_keys
@@ -220,7 +220,9 @@ class _Program:
         # B worlds: sharded over every CPU/accelerator device whose count divides B (each device steps
         # its own worlds, no communication; quadswarm_mj.use_cpu_cores() gives JAX one device per core)
         self.worlds = None if batch is None else WorldSharding(batch)
-        self._step = self._jit(self._step_impl, donate=True)
+        import os
+        wrap = batch is None or os.environ.get("QSM_LOOP_BATCH") == "1"
+        self._step = self._jit(loop_once(self._step_impl) if wrap else self._step_impl, donate=True)
         self._resets: dict[Any, Any] = {}
 
     def _jit(self, impl: Any, donate: bool) -> Any:
