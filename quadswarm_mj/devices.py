@@ -65,20 +65,21 @@ def use_cpu_cores(n: int | None = None, strict: bool = True) -> int:
 
 
 #: XLA:CPU compiles a ``while`` loop whose body touches fewer bytes than this (one iteration, XLA's cost
-#: analysis) into ONE kernel (``SmallWhileLoopHoistingPass``; XLA's default limit is 1 kB). Set by
-#: :func:`tune_jax_cpu`; 64 MB covers the JAX engine's rollouts and steps up to a few thousand worlds.
-LOOP_KERNEL_BYTES = 64 * 1024 * 1024
+#: analysis) into ONE kernel (``SmallWhileLoopHoistingPass``; XLA's default limit is 1 kB). 256 kB holds
+#: the JAX engine's one-world step (~67 kB) and keeps larger loops (rollouts of many worlds, PPO
+#: updates) on XLA's default runtime, which measured faster for them: the trainers lost 20 % with a
+#: 64 MB limit.
+LOOP_KERNEL_BYTES = 256 * 1024
 LOOP_KERNEL_FLAG = f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={LOOP_KERNEL_BYTES}"
 
 
 def tune_jax_cpu() -> dict[str, bool]:
     """Set two XLA:CPU options for the JAX engine's small programs, if JAX has not started yet.
 
-    * loops as single kernels (``XLA_FLAGS`` += :data:`LOOP_KERNEL_FLAG`): XLA:CPU's runtime otherwise
-      launches every fused kernel of a loop body as its own task and hands them between its pool
-      threads; one compiled kernel per loop measured 2.7x the samples/s of a one-world rollout and
-      1.1-1.4x at 64-512 worlds (BENCHMARKS.md). The single-world step of the JAX engine runs its
-      body in a one-trip loop (:func:`loop_once`) to get the same.
+    * small loops as single kernels (``XLA_FLAGS`` += :data:`LOOP_KERNEL_FLAG`): XLA:CPU's runtime
+      otherwise launches each of the ~160 fused kernels of a one-world step as its own task and hands
+      them between its pool threads (~25 us per wake-up); the JAX engine's one-world step runs in a
+      one-trip loop (:func:`loop_once`) and becomes one kernel: ~185 -> ~40 us per call.
     * synchronous dispatch on CPU (``jax_cpu_enable_async_dispatch = False``): a single-device
       program then runs in the calling thread instead of being handed to a worker thread, which a
       ``step()`` that returns NumPy results waits for anyway (~60 us less per call, BENCHMARKS.md).
@@ -87,7 +88,12 @@ def tune_jax_cpu() -> dict[str, bool]:
     the second; ``QUADSWARM_MJ_TUNE_JAX=0`` turns both off, and a value the user set (``XLA_FLAGS``
     with the option, or the JAX config) is kept. Only the speed of CPU programs changes, and only
     before JAX creates its CPU client (the first JAX operation of the process). Returns what is in
-    force as far as this process's settings tell."""
+    force as far as this process's settings tell.
+
+    Caveat: XLA:CPU cannot put its YNNPACK library fusions into a loop kernel and then fails with
+    "Fusion kind not implemented on CPU"; none of this project's programs has one in a loop below the
+    limit, but if one of yours does, set ``QUADSWARM_MJ_TUNE_JAX=0`` (or your own
+    ``xla_cpu_small_while_loop_byte_threshold`` in ``XLA_FLAGS``, which is then kept)."""
     on = os.environ.get("QUADSWARM_MJ_TUNE_JAX", "1") != "0"
     started = True
     if "jax" not in sys.modules:
@@ -120,8 +126,8 @@ _ASYNC_SET = False
 
 @functools.lru_cache(maxsize=1)
 def loop_kernels_in_force() -> bool:
-    """Whether XLA:CPU compiles a loop with a 64 kB body into one kernel in this process (probed once
-    by compiling such a loop: true when :func:`tune_jax_cpu` ran before JAX started)."""
+    """Whether XLA:CPU compiles a loop with a 32 kB body into one kernel in this process (probed once by
+    compiling such a loop: true when :func:`tune_jax_cpu` ran before JAX started)."""
     import jax
     import jax.numpy as jnp
 
@@ -129,10 +135,9 @@ def loop_kernels_in_force() -> bool:
         n = jax.lax.optimization_barrier(jnp.int32(2))
         return jax.lax.while_loop(lambda c: c[0] < n, lambda c: (c[0] + 1, c[1] * 0.5 + 1.0), (jnp.int32(0), x))[1]
 
-    try:
-        text = jax.jit(loop, backend="cpu").lower(jnp.zeros(16384, jnp.float32)).compile().as_text()
-    except Exception:  # noqa: BLE001 - no CPU backend: nothing to tune
+    if jax.default_backend() != "cpu":  # the option is XLA:CPU's
         return False
+    text = jax.jit(loop).lower(jnp.zeros(4096, jnp.float32)).compile().as_text()
     return "xla_cpu_small_call" in text
 
 
