@@ -318,44 +318,72 @@ def make_policy_step(networks: Any) -> Callable:
     return step
 
 
+class DrawnEntropyNormals:
+    """A Brax tanh-normal action distribution whose ``entropy(parameters, eps)`` takes the standard
+    normal draws of its one-sample entropy estimate as an array ``eps`` (the shape of the actions)
+    instead of a key; everything else is the wrapped distribution's. Same estimator, same
+    distribution of draws: the update draws them for a whole epoch before its minibatch loop, because
+    inside the loop XLA:CPU fused the normals' erf_inv polynomial into every consumer of the backward
+    pass and recomputed it there (measured; BENCHMARKS.md)."""
+
+    def __init__(self, dist: Any):
+        self._dist = dist
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._dist, name)
+
+    def entropy(self, parameters: jax.Array, eps: jax.Array) -> jax.Array:
+        d = self._dist
+        normal = d.create_dist(parameters)
+        ent = normal.entropy() + d._postprocessor.forward_log_det_jacobian(eps * normal.scale + normal.loc)
+        return jnp.sum(ent, axis=-1) if d._event_ndims == 1 else ent
+
+
 def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PPOConfig,
                    axis_name: str | None = None) -> Callable:
     """(TrainState, Transition [T, A], key, lr_scale) -> (TrainState, metrics): normalizer update, then
     ``num_epochs`` x ``num_minibatches`` Adam steps on Brax's ``compute_ppo_loss`` (pure; jit it).
 
-    ``axis_name``: data parallel over that mapped axis (``shard_map``/``pmap``), as Brax's PPO does
-    under ``pmap``: each device holds A / D agents and shuffles them into its own minibatch slices,
-    gradients, metrics and the observation statistics are averaged over the devices (``pmean``), so
-    every device applies the same update to the same parameters. (The advantage normalization of the
-    loss is per device minibatch.)"""
-    loss_fn = functools.partial(ppo_losses.compute_ppo_loss, ppo_network=networks,
+    The entropy estimate's normal draws are made per epoch for all its minibatches
+    (:class:`DrawnEntropyNormals`). ``axis_name``: data parallel over that mapped axis
+    (``shard_map``/``pmap``), as Brax's PPO does under ``pmap``: each device holds A / D agents and
+    shuffles them into its own minibatch slices, gradients, metrics and the observation statistics are
+    averaged over the devices (``pmean``), so every device applies the same update to the same
+    parameters. (The advantage normalization of the loss is per device minibatch.)"""
+    drawn = networks.replace(parametric_action_distribution=DrawnEntropyNormals(
+        networks.parametric_action_distribution))
+    loss_fn = functools.partial(ppo_losses.compute_ppo_loss, ppo_network=drawn,
                                 entropy_cost=p.entropy_cost, discounting=p.discounting,
                                 reward_scaling=p.reward_scaling, gae_lambda=p.gae_lambda,
                                 clipping_epsilon=p.clipping_epsilon, normalize_advantage=True)
     grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
 
-    def minibatch_step(carry: Any, data: Any, normalizer: Any, lr_scale: Any) -> tuple[Any, Any]:
-        opt_state, params, key = carry
-        key, k = jax.random.split(key)
-        (_, metrics), grads = grad_fn(params, normalizer, data, k)
+    def minibatch_step(carry: Any, batch: Any, normalizer: Any, lr_scale: Any) -> tuple[Any, Any]:
+        opt_state, params = carry
+        data, eps = batch
+        (_, metrics), grads = grad_fn(params, normalizer, data, eps)
         if axis_name is not None:  # one all-reduce of one flat vector (each collective is a rendezvous)
             flat, unravel = jax.flatten_util.ravel_pytree((grads, metrics))
             grads, metrics = unravel(jax.lax.pmean(flat, axis_name))
         upd, opt_state = optimizer.update(grads, opt_state)
         upd = jax.tree_util.tree_map(lambda u: u * lr_scale, upd)  # learning-rate schedule
-        return (opt_state, optax.apply_updates(params, upd), key), metrics
+        return (opt_state, optax.apply_updates(params, upd)), metrics
 
     def epoch(carry: Any, _: Any, data: Any, normalizer: Any, lr_scale: Any) -> tuple[Any, Any]:
         opt_state, params, key = carry
-        key, kperm, kgrad = jax.random.split(key, 3)
+        key, kperm, keps = jax.random.split(key, 3)
 
         def shuffle(x: jax.Array) -> jax.Array:
             x = jax.random.permutation(kperm, x)
             return x.reshape((p.num_minibatches, -1) + x.shape[1:])
 
-        (opt_state, params, _), m = jax.lax.scan(functools.partial(minibatch_step, normalizer=normalizer,
-                                                                   lr_scale=lr_scale),
-                                                 (opt_state, params, kgrad), jax.tree_util.tree_map(shuffle, data))
+        batches = jax.tree_util.tree_map(shuffle, data)
+        raw = batches.extras["policy_extras"]["raw_action"]  # (minibatches, agents, T, action)
+        m_, a_, t_, d_ = raw.shape
+        eps = jax.random.normal(keps, (m_, t_, a_, d_), raw.dtype)  # time-major, as the loss sees the actions
+        (opt_state, params), m = jax.lax.scan(functools.partial(minibatch_step, normalizer=normalizer,
+                                                                lr_scale=lr_scale),
+                                              (opt_state, params), (batches, eps))
         return (opt_state, params, key), m
 
     def update(state: TrainState, data: brax_types.Transition, key: jax.Array,
