@@ -107,18 +107,55 @@ def _gather_index(rows: int, n: int, k: int) -> tuple[np.ndarray, np.ndarray]:
     return first, own
 
 
+def _sorted_position_rows_first(xp: Any, key: Any) -> Any:
+    """(N, N, *batch) int32: [i, j] = the position of ``key[i, j]`` in a stable ascending sort of row
+    ``key[i, :]`` (NaNs last, ties by index), for ``key`` (N, N, *batch) with any batch axes LAST."""
+    n = key.shape[0]
+    tail = (1,) * (key.ndim - 2)
+    nan = xp.isnan(key)
+    kk = xp.where(nan, xp.inf, key)
+    before = (np.arange(n)[None, :] < np.arange(n)[:, None]).reshape((1, n, n) + tail)  # [j, l] = l < j
+    kl, kj = kk[:, None, :], kk[:, :, None]  # [i, j, l] = key[i, l], key[i, j]
+    nl, nj = nan[:, None, :], nan[:, :, None]
+    less = (nl < nj) | ((nl == nj) & ((kl < kj) | ((kl == kj) & before)))
+    return xp.sum(less.astype(xp.int32), axis=2)
+
+
+@functools.cache
+def _sorted_position_jax() -> Any:
+    """:func:`_sorted_position_rows_first` for one (N, N) ``key`` under JAX, whose ``vmap`` moves the
+    mapped (worlds) axis LAST before comparing (``jax.custom_batching.custom_vmap``): the N^3
+    comparisons and the sum then run along contiguous worlds, which XLA:CPU vectorizes, instead of
+    along a last axis of N (measured ~6x faster at 512 worlds; the same integers)."""
+    import jax
+
+    @jax.custom_batching.custom_vmap
+    def position(key: Any) -> Any:
+        return _sorted_position_rows_first(jax.numpy, key)
+
+    @position.def_vmap
+    def _rule(axis_size: int, in_batched: list[bool], key: Any) -> tuple[Any, bool]:
+        if not in_batched[0]:
+            return position(key), False
+        moved = jax.numpy.moveaxis(key, 0, -1)  # (N, N, ..., W): the mapped axis last
+        return jax.numpy.moveaxis(_sorted_position_rows_first(jax.numpy, moved), -1, 0), True
+
+    return position
+
+
 def _nearest_one_hot(xp: Any, key: Any, k: int) -> Any:
     """(..., N, K, N) bool: [i, r, j] = j is the r-th smallest ``key[..., i, :]``, exactly as a stable
     argsort (``jnp.argsort``) orders them: ascending, NaNs last, ties by index. A sort-free form for
     small N (an (N, N, N) comparison count), which XLA fuses and vectorizes."""
-    n = key.shape[-1]
-    nan = xp.isnan(key)
-    kk = xp.where(nan, xp.inf, key)
-    before = np.arange(n)[None, :] < np.arange(n)[:, None]  # [j, l] = l < j
-    kl, kj = kk[..., :, None, :], kk[..., :, :, None]  # [i, j, l] = key[i, l], key[i, j]
-    nl, nj = nan[..., :, None, :], nan[..., :, :, None]
-    less = (nl < nj) | ((nl == nj) & ((kl < kj) | ((kl == kj) & before)))
-    rank = xp.sum(less.astype(xp.int32), axis=-1)  # (..., N, N): sorted position of j in row i
+    if xp is np or key.ndim != 2:
+        lead = key.ndim - 2
+        moved = xp.moveaxis(xp.moveaxis(key, -1, 0), -1, 0) if lead else key  # (N, N, ...)
+        rank = _sorted_position_rows_first(xp, moved)
+        rank = xp.moveaxis(xp.moveaxis(rank, 0, -1), 0, -1) if lead else rank
+    else:
+        import jax
+
+        rank = _sorted_position_jax()(jax.lax.stop_gradient(key))  # (N, N); vmapped: worlds axis last
     return rank[..., :, None, :] == np.arange(k)[:, None]
 
 
