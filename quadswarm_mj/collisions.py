@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from quadswarm_mj._xp import array_namespace, safe_normalize
+from quadswarm_mj._xp import array_namespace, is_jax_array, safe_normalize, worlds_last
 from quadswarm_mj.random_draws import DrawSpec, Normal, Uniform
 from quadswarm_mj.spatial import norm_last, yaw_cos_sin, yaw_of, yaw_quat, yaw_quat_cs, yaw_rotmat, yaw_rotmat_cs
 
@@ -178,9 +178,44 @@ def quad_collision_draw_spec(num_quads: int, tries: int, shared_std: float, own_
 
 def pairwise_contacts(pos: Any, hitbox: float) -> tuple[Any, Any]:
     """(..., N, N) contact mask (||p_i - p_j|| <= hitbox, i != j) and distances."""
-    rel = pos[..., :, None, :] - pos[..., None, :, :]
-    dist = norm_last(rel)
+    if is_jax_array(pos) and pos.ndim == 2:  # one world under JAX: vmapped with the worlds axis last
+        dist = _pair_distances_jax()(pos)
+    else:
+        rel = pos[..., :, None, :] - pos[..., None, :, :]
+        dist = norm_last(rel)
     return (dist <= hitbox) & off_diagonal(pos.shape[-2]), dist
+
+
+def _pair_distances_rows_first(pos: Any) -> Any:
+    """(N, N, *batch) ||p_i - p_j|| of ``pos`` (N, 3, *batch), summed as norm_last does."""
+    import jax.numpy as jnp
+
+    rel = pos[:, None] - pos[None, :]  # (N, N, 3, *batch): [i, j] = p_i - p_j
+    return jnp.sqrt(rel[:, :, 0] * rel[:, :, 0] + rel[:, :, 1] * rel[:, :, 1] + rel[:, :, 2] * rel[:, :, 2])
+
+
+@functools.cache
+def _pair_distances_jax() -> Any:
+    """:func:`_pair_distances_rows_first` for one world's (N, 3) ``pos``; vmapped, the worlds axis is
+    last (:func:`quadswarm_mj._xp.worlds_last`: the 3-component sums run along contiguous worlds).
+    Differentiable: d||r|| = r . dr / ||r|| (0 on the diagonal, where autodiff of the norm gives NaN)."""
+    import jax
+    import jax.numpy as jnp
+
+    primal = worlds_last(_pair_distances_rows_first)
+
+    @jax.custom_jvp
+    def dist(pos: Any) -> Any:
+        return primal(pos)
+
+    @dist.defjvp
+    def _jvp(primals: tuple, tangents: tuple) -> tuple[Any, Any]:
+        (pos,), (dpos,) = primals, tangents
+        d = primal(pos)
+        rel, drel = pos[:, None, :] - pos[None, :, :], dpos[:, None, :] - dpos[None, :, :]
+        return d, jnp.where(d > 0, jnp.sum(rel * drel, axis=-1) / jnp.where(d > 0, d, 1.0), 0.0)
+
+    return dist
 
 
 @functools.lru_cache(maxsize=64)

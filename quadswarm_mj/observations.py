@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from quadswarm_mj._xp import array_namespace
+from quadswarm_mj._xp import array_namespace, worlds_last
 from quadswarm_mj.collisions import off_diagonal
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.random_draws import DrawSpec, Normal
@@ -123,24 +123,12 @@ def _sorted_position_rows_first(xp: Any, key: Any) -> Any:
 
 @functools.cache
 def _sorted_position_jax() -> Any:
-    """:func:`_sorted_position_rows_first` for one (N, N) ``key`` under JAX, whose ``vmap`` moves the
-    mapped (worlds) axis LAST before comparing (``jax.custom_batching.custom_vmap``): the N^3
-    comparisons and the sum then run along contiguous worlds, which XLA:CPU vectorizes, instead of
-    along a last axis of N (measured ~6x faster at 512 worlds; the same integers)."""
-    import jax
+    """:func:`_sorted_position_rows_first` for one (N, N) ``key`` under JAX, vmapped with the worlds
+    axis last (:func:`quadswarm_mj._xp.worlds_last`): the N^3 comparisons and the sum then run along
+    contiguous worlds (the rank kernel of a 512-world step 318 -> 119 us; the same integers)."""
+    import jax.numpy as jnp
 
-    @jax.custom_batching.custom_vmap
-    def position(key: Any) -> Any:
-        return _sorted_position_rows_first(jax.numpy, key)
-
-    @position.def_vmap
-    def _rule(axis_size: int, in_batched: list[bool], key: Any) -> tuple[Any, bool]:
-        if not in_batched[0]:
-            return position(key), False
-        moved = jax.numpy.moveaxis(key, 0, -1)  # (N, N, ..., W): the mapped axis last
-        return jax.numpy.moveaxis(_sorted_position_rows_first(jax.numpy, moved), -1, 0), True
-
-    return position
+    return worlds_last(lambda key: _sorted_position_rows_first(jnp, key))
 
 
 def _nearest_one_hot(xp: Any, key: Any, k: int) -> Any:
