@@ -235,5 +235,14 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
         from quadswarm_mj.obstacles import obstacle_features
 
         parts.append(obstacle_feats if obstacle_feats is not None else obstacle_features(pos, *obstacles))
-    obs = xp.minimum(xp.maximum(xp.concatenate(parts, axis=-1), low), high)  # = clip into the bounds
+    if xp is np:
+        obs = np.minimum(np.maximum(np.concatenate(parts, axis=-1), low), high)  # = clip into the bounds
+    else:  # each part clipped into its bounds, then concatenated: the same values, and XLA:CPU then
+        # copies the parts into place instead of choosing a source for each of the N x D elements
+        low, high, start, clipped = xp.asarray(low, pos.dtype), xp.asarray(high, pos.dtype), 0, []
+        for part in parts:
+            w = part.shape[-1]
+            clipped.append(xp.minimum(xp.maximum(part, low[start:start + w]), high[start:start + w]))
+            start += w
+        obs = xp.concatenate(clipped, axis=-1)
     return obs if scale is None else obs / scale
