@@ -1,4 +1,6 @@
-"""One JAX CPU device per core, so the JAX engine shards worlds over the cores.
+"""JAX on the CPU for the JAX engine: one device per core (the engine shards worlds over the cores),
+XLA:CPU options for its small programs (:func:`tune_jax_cpu`, :func:`loop_once`) and glibc's
+allocator (:func:`reuse_freed_memory`).
 
 JAX exposes a single CPU device by default and parallelizes each XLA kernel over the cores
 itself. For the JAX engine's many small kernels (arrays of a few hundred to a few thousand

@@ -151,6 +151,13 @@ class OutputLayout:
         self.f64_start = sum(int(np.prod(self.shapes[k])) for k in self.FLOAT32 if k in self.shapes)
         self.items = [(k, self.slices[k], self.shapes[k]) for k in self.names]
         self.params = tuple(k for k in self.names if k.startswith("params/"))
+        # the float64 part as one structured record: its fields are the outputs' views (one view per
+        # field instead of a slice and a reshape each: ~18 -> ~6 us per step of one world)
+        rest = [(k, sl, shape) for k, sl, shape in self.items if k not in self.FLOAT32]
+        self._rec64 = np.dtype({"names": [k for k, _, _ in rest],
+                                "formats": [(np.float64, shape) if shape else np.float64 for _, _, shape in rest],
+                                "offsets": [8 * (sl.start - self.f64_start) for _, sl, _ in rest],
+                                "itemsize": 8 * (self.size - self.f64_start)})
 
     def pack(self, out: dict[str, jax.Array], dtype: Any) -> jax.Array:
         return jnp.concatenate([jnp.ravel(out[k]).astype(dtype) for k in self.names])
@@ -162,14 +169,9 @@ class OutputLayout:
 
     def views64(self, rest: np.ndarray, lead: tuple[int, ...] = ()) -> dict[str, np.ndarray]:
         """The views of :meth:`split64` from the float64 non-observation part ``rest`` (*lead, size - f64_start)."""
-        start = self.f64_start
-        out = {}
-        for k, sl, shape in self.items:
-            if k in self.FLOAT32:
-                continue
-            piece = rest[..., sl.start - start:sl.stop - start]
-            out[k] = piece.reshape(lead + shape) if lead else piece.reshape(shape)
-        return out
+        rest = np.ascontiguousarray(rest).reshape(lead + (-1,))
+        rec = rest.view(self._rec64)[..., 0]  # lead-shaped records
+        return {k: rec[k] for k in self._rec64.names}
 
 
 def _init_variant(state: dict[str, Any] | None) -> tuple[tuple[str, ...], str | None]:
