@@ -242,7 +242,7 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
         low, high, start, clipped = xp.asarray(low, pos.dtype), xp.asarray(high, pos.dtype), 0, []
         for part in parts:
             w = part.shape[-1]
-            clipped.append(xp.minimum(xp.maximum(part, low[start:start + w]), high[start:start + w]))
+            clipped.append(xp.minimum(xp.maximum(part, low[..., start:start + w]), high[..., start:start + w]))
             start += w
         obs = xp.concatenate(clipped, axis=-1)
     return obs if scale is None else obs / scale
