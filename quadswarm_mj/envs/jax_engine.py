@@ -170,7 +170,7 @@ class OutputLayout:
     def views64(self, rest: np.ndarray, lead: tuple[int, ...] = ()) -> dict[str, np.ndarray]:
         """The views of :meth:`split64` from the float64 non-observation part ``rest`` (*lead, size - f64_start)."""
         rest = np.ascontiguousarray(rest).reshape(lead + (-1,))
-        rec = rest.view(self._rec64)[..., 0]  # lead-shaped records
+        rec = rest.view(self._rec64).reshape(lead)  # lead-shaped record array (0-d for one world: fields are arrays)
         return {k: rec[k] for k in self._rec64.names}
 
 
