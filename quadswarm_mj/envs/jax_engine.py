@@ -111,6 +111,23 @@ class StatePacker:
         return jax.tree.unflatten(self.treedef, leaves)
 
 
+class LeafPacker:
+    """A state pytree as the tuple of its leaves (PRNG keys as their key data) and back: the state of
+    B worlds stays on the devices as ~70 arrays between calls. (For B worlds, :class:`StatePacker`'s
+    flat buffers cost more than they save: XLA:CPU's slices of the rows of a (B, 1473) buffer into
+    (B, 8, 3, 3) and similar shapes ran at scalar speed, ~0.7 ms of a 1024-world step.)"""
+
+    def __init__(self, struct: Any):
+        leaves, self.treedef = jax.tree.flatten(struct)
+        self.is_key = tuple(jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) for x in leaves)
+
+    def pack(self, state: Any) -> tuple[jax.Array, ...]:
+        return tuple(jax.random.key_data(x) if k else x for x, k in zip(jax.tree.leaves(state), self.is_key))
+
+    def unpack(self, bufs: tuple[jax.Array, ...]) -> Any:
+        return jax.tree.unflatten(self.treedef, [_wrap_keys(x) if k else x for x, k in zip(bufs, self.is_key)])
+
+
 # ------------------------------------------------------------------------------- output packing
 def _outputs(s: State, new_collisions: jax.Array, extra: dict[str, jax.Array]) -> dict[str, jax.Array]:
     """Everything the host reads after a reset or step of one world (unbatched)."""
@@ -129,6 +146,12 @@ def _outputs(s: State, new_collisions: jax.Array, extra: dict[str, jax.Array]) -
                 "done": s.done})
     out.update(extra)
     return out
+
+
+def _episode_key(name: str) -> bool:
+    """Outputs fixed for an episode (dynamics parameters, column map): B worlds return them only from
+    resets and renewals, not from every step."""
+    return name.startswith("params/") or name in ("obstacles", "obstacles_valid")
 
 
 class OutputLayout:
@@ -196,7 +219,16 @@ def _select(pred: jax.Array, a: Any, b: Any) -> Any:
 
 # ------------------------------------------------------------------------------- programs
 class _Program:
-    """Jitted reset/step of B worlds (``batch=None``: one unbatched world) of one config."""
+    """Jitted reset/step of B worlds (``batch=None``: one unbatched world) of one config.
+
+    One world: ``step(bufs, action) -> (bufs, out)`` with everything the host reads in one packed
+    float array (:attr:`layout`). B worlds: ``step(leaves, actions) -> (leaves, obs, rest)`` WITHOUT
+    the auto-reset (``obs`` is the stepped observation, i.e. the final one where an episode ended;
+    ``rest`` the per-step outputs of :attr:`step_layout`), and ``renew(leaves) -> (leaves, obs, rest,
+    episode)``, which the host calls only after a step that ended an episode: the fresh episodes of
+    the finished worlds (:meth:`AutoResetWrapper.renew_finished`, the same function as inside
+    ``vstep``); ``episode`` holds the outputs fixed for an episode (:attr:`episode_layout`:
+    parameters, column map), which B worlds return only from resets and renewals."""
 
     def __init__(self, cfg: EnvConfig, batch: int | None):
         self.cfg, self.batch = cfg, batch
@@ -215,11 +247,16 @@ class _Program:
         # constants inside the jit (no 2 x 48 x 48 mass matrix and factor per world in and out).
         self._small_data = self.env.physics == "freebody"
         struct = self._shrink(struct)
-        # the (small) state as flat buffers, one per dtype: a call passes a handful of arrays instead of
-        # ~150 leaves (measured ~4x faster for one world; for 1024 worlds the pytree's flattening cost
-        # ~2 ms per call)
-        self.packer = StatePacker(struct, self.lead)
-        self.layout = OutputLayout(jax.eval_shape(lambda s: self._outs(s, s, s.obs), one))
+        outs = jax.eval_shape(lambda s: self._outs(s, s), one)
+        if batch is None:
+            # one world: the state as flat buffers, one per dtype (a handful of arrays instead of ~70
+            # leaves: measured ~4x faster per call), all outputs in one packed array (one transfer)
+            self.packer: StatePacker | LeafPacker = StatePacker(struct, self.lead)
+            self.layout = OutputLayout(outs)
+        else:
+            self.packer = LeafPacker(struct)
+            self.step_layout = OutputLayout({k: v for k, v in outs.items() if k != "obs" and not _episode_key(k)})
+            self.episode_layout = OutputLayout({k: v for k, v in outs.items() if _episode_key(k)})
         # B worlds: sharded over every CPU/accelerator device whose count divides B (each device steps
         # its own worlds, no communication; quadswarm_mj.use_cpu_cores() gives JAX one device per core)
         self.worlds = None if batch is None else WorldSharding(batch)
@@ -227,6 +264,7 @@ class _Program:
         # keep XLA's default runtime: the same wrapping measured 0.63x at 1024 worlds.
         step = loop_once(self._step_impl) if batch is None else self._step_impl
         self._step = self._jit(step, donate=True)
+        self._renew = None if batch is None else self._jit(self._renew_impl, donate=True)
         self._resets: dict[Any, Any] = {}
 
     def _jit(self, impl: Any, donate: bool) -> Any:
@@ -261,19 +299,25 @@ class _Program:
     def _unpack(self, bufs: Any) -> State:
         return self._grow(self.packer.unpack(bufs))
 
-    def _outs(self, s: State, prev: State, final_obs: jax.Array) -> dict[str, jax.Array]:
+    def _outs(self, s: State, prev: State) -> dict[str, jax.Array]:
+        """One world's outputs; ``new_collisions`` are the contacts of ``s`` not in ``prev``."""
         new = jnp.any(s.info["contact"] & ~prev.info["contact"], axis=-1)
         extra = {"qpos": s.data.qpos} if self.batch is None else {}
         return _outputs(s, new, extra)
 
-    def _pack_out(self, s: State, prev: State, final_obs: jax.Array) -> jax.Array:
-        if self.batch is None:
-            return self.layout.pack(self._outs(s, prev, final_obs), self.float)
-        return jax.vmap(lambda a, b, c: self.layout.pack(self._outs(a, b, c), self.float))(s, prev, final_obs)
+    def _batch_outs(self, s: State, prev: State, episode: bool) -> tuple[jax.Array, ...]:
+        """B worlds: (obs, per-step outputs) and with ``episode`` the episode outputs, packed per world."""
+        def one(a: State, b: State) -> tuple[jax.Array, ...]:
+            out = self._outs(a, b)
+            packed = (self.step_layout.pack(out, self.float),)
+            return packed + ((self.episode_layout.pack(out, self.float),) if episode else ())
+
+        return (s.obs,) + jax.vmap(one)(s, prev)
 
     # ---------------------------------------------------------------- reset
     def reset_fn(self, variant: tuple[tuple[str, ...], str | None], masked: bool) -> Any:
-        """The jitted reset for this static variant (cached)."""
+        """The jitted reset for this static variant (cached): one world ``(bufs, out)``; B worlds
+        ``(leaves, obs, rest, episode)``."""
         key = (variant, masked)
         if key not in self._resets:
             motors = variant[1]
@@ -287,12 +331,12 @@ class _Program:
             if self.batch is None:
                 def impl(key_data: jax.Array, arrays: dict[str, jax.Array]) -> tuple:
                     s = one_reset(key_data, arrays)
-                    return self._pack(s), self._pack_out(s, s, s.obs)
+                    return self._pack(s), self.layout.pack(self._outs(s, s), self.float)
                 self._resets[key] = jax.jit(impl)
             elif not masked:
                 def impl(key_data: jax.Array, arrays: dict[str, jax.Array]) -> tuple:
                     s = jax.vmap(one_reset)(key_data, arrays)
-                    return self._pack(s), self._pack_out(s, s, s.obs)
+                    return (self._pack(s),) + self._batch_outs(s, s, episode=True)
                 self._resets[key] = self._jit(impl, donate=False)
             else:
                 def impl(bufs: tuple, key_data: jax.Array, arrays: dict[str, jax.Array], mask: jax.Array) -> tuple:
@@ -300,7 +344,7 @@ class _Program:
                     fresh = jax.vmap(one_reset)(key_data, arrays)
                     fresh = fresh.replace(info={**fresh.info, "total_steps": old.info["total_steps"]})
                     s = _select(mask, fresh, old)
-                    return self._pack(s), self._pack_out(s, s, s.obs)
+                    return (self._pack(s),) + self._batch_outs(s, s, episode=True)
                 self._resets[key] = self._jit(impl, donate=True)
         return self._resets[key]
 
@@ -309,16 +353,23 @@ class _Program:
         prev = self._unpack(bufs)
         if self.batch is None:
             s = self.env.step(prev, action)
-            return self._pack(s), self._pack_out(s, prev, s.obs)
+            return self._pack(s), self.layout.pack(self._outs(s, prev), self.float)
         s = jax.vmap(self.env.step)(prev, action)
-        final_obs = s.obs  # returned apart: the host reads it only after a step that ended an episode
-        s = self.auto.renew_finished(s)  # the rules of AutoResetWrapper (fresh episodes where done)
-        return self._pack(s), self._pack_out(s, prev, final_obs), final_obs
+        return (self._pack(s),) + self._batch_outs(s, prev, episode=False)
+
+    def _renew_impl(self, bufs: tuple) -> tuple:
+        s = self.auto.renew_finished(self._unpack(bufs))  # the rules of AutoResetWrapper (where done)
+        return (self._pack(s),) + self._batch_outs(s, s, episode=True)
 
     def step(self, bufs: tuple, action: np.ndarray) -> tuple:
-        """(state buffers, packed outputs) for one world; (state buffers, packed outputs, final_obs
-        (B, N, obs_dim) before the auto-reset) for B worlds. ``bufs`` are donated."""
+        """One world: (state buffers, packed outputs); B worlds: (state leaves, obs (B, N, obs_dim),
+        per-step outputs (B, step_layout.size)) before any auto-reset. ``bufs`` are donated."""
         return self._step(bufs, action)
+
+    def renew(self, bufs: tuple) -> tuple:
+        """B worlds after a step that ended an episode: (state leaves, obs, per-step outputs, episode
+        outputs) with the finished worlds in fresh episodes. ``bufs`` are donated."""
+        return self._renew(bufs)
 
 
 @functools.lru_cache(maxsize=8)
@@ -426,7 +477,17 @@ class JaxSingleBackend:
 # ------------------------------------------------------------------------------- B worlds
 class JaxVectorBackend:
     """B worlds on the JAX engine with ``QuadSwarmVectorEnv``'s outputs (NumPy in and out,
-    SAME_STEP auto-reset inside the jitted step, ``final_obs`` and ``episode_metrics`` with masks)."""
+    SAME_STEP auto-reset, ``final_obs`` and ``episode_metrics`` with masks).
+
+    A step is one jitted call without the auto-reset; only after a step that ended an episode a
+    second call renews the finished worlds (the fresh episodes of :class:`AutoResetWrapper`), whose
+    observation, state, goals, time, floor flags and episode constants are then returned, with the
+    step's rewards, reward terms, new collisions, done flags and episode metrics (as the MuJoCo
+    engine's vector env). The episode constants (parameters, column map) are read only after resets
+    and renewals and kept on the host."""
+
+    #: per-step outputs replaced by those of the fresh episodes after a renewal
+    RENEWED = ("goals", "goal_vel", "on_floor", "time") + tuple(f"state/{k}" for k in STATE_KEYS)
 
     def __init__(self, cfg: EnvConfig, num_envs: int, info_keys: tuple[str, ...] = VECTOR_INFO_KEYS,
                  copy: bool = True):
@@ -437,22 +498,31 @@ class JaxVectorBackend:
         self._keys: KeyStream | None = None
         self._bufs: tuple | None = None
         self._v: dict[str, np.ndarray] | None = None
+        self._episode: dict[str, np.ndarray] = {}
 
     def seed(self, seed: int) -> None:
         self._keys = KeyStream(seed)
 
-    def _split(self, out: jax.Array) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        # (B, size) float32 on one or more devices: read each device's rows in place (no gather copy),
-        # copy the observations out as float32 and convert the rest to float64 in one pass each
-        parts = _host_rows(out)
-        lay = self.prog.layout
-        obs = np.concatenate([p[:, lay.slices["obs"]] for p in parts]).reshape((self.B,) + lay.shapes["obs"])
-        v = lay.views64(np.concatenate([p[:, lay.f64_start:] for p in parts], dtype=np.float64), (self.B,))
-        self._v = v
-        return obs, {**v, "obs32": obs}
+    def _host(self, x: jax.Array, dtype: Any = None) -> np.ndarray:
+        """One host array of a batched device array: each device's rows read in place (no gather
+        copy) and copied once into a new array (converted to ``dtype`` on the way)."""
+        parts = _host_rows(x)
+        return np.concatenate(parts, dtype=dtype) if len(parts) > 1 else np.array(parts[0], dtype=dtype)
+
+    def _read(self, obs: jax.Array, rest: jax.Array, episode: jax.Array | None = None
+              ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """(obs (B, N, obs_dim) float32, float64 views of the per-step outputs); updates the episode
+        constants from ``episode``."""
+        v = self.prog.step_layout.views64(self._host(rest, np.float64), (self.B,))
+        if episode is not None:  # new read-only arrays at every reset and renewal, shared by the infos until then
+            ep = self.prog.episode_layout.views64(self._host(episode, np.float64), (self.B,))
+            for x in ep.values():
+                x.flags.writeable = False
+            self._episode = ep
+        return self._host(obs), v
 
     def _info(self, v: dict[str, np.ndarray], step: bool) -> dict[str, Any]:
-        keys, out = self.info_keys, {}
+        keys, out, ep = self.info_keys, {}, self._episode
         if step and "rewards" in keys:
             out["rewards"] = v["rewards"]
         if step and "reward_terms" in keys:
@@ -463,15 +533,15 @@ class JaxVectorBackend:
             if k in keys:
                 out[k] = v[k]
         if "params" in keys:
-            out["params"] = {k[len("params/"):]: v[k] for k in self.prog.layout.params}
+            out["params"] = {k[len("params/"):]: x for k, x in ep.items() if k.startswith("params/")}
         if "on_floor" in keys:
             out["on_floor"] = v["on_floor"] > 0.5
         if step and "new_collisions" in keys:
             out["new_collisions"] = v["new_collisions"] > 0.5
         if "time" in keys:
             out["time"] = v["time"]
-        if "obstacles" in v:  # (B, M_max, 2) centres, NaN in unused slots
-            out["obstacles"] = np.where(v["obstacles_valid"][..., None] > 0.5, v["obstacles"], np.nan)
+        if "obstacles" in ep:  # (B, M_max, 2) centres, NaN in unused slots
+            out["obstacles"] = np.where(ep["obstacles_valid"][..., None] > 0.5, ep["obstacles"], np.nan)
         return out
 
     def reset(self, mask: np.ndarray | None, state: dict[str, Any] | None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -482,24 +552,31 @@ class JaxVectorBackend:
         arrays = _init_arrays(state, self.prog.float)
         keys = self._keys.draw((self.B,))
         if mask is None or self._bufs is None:
-            self._bufs, out = self.prog.reset_fn(variant, masked=False)(keys, arrays)
+            self._bufs, *out = self.prog.reset_fn(variant, masked=False)(keys, arrays)
         else:
-            self._bufs, out = self.prog.reset_fn(variant, masked=True)(self._bufs, keys, arrays, np.asarray(mask))
-        v = self._split(out)[1]
-        return v["obs32"], self._info(v, step=False)
+            self._bufs, *out = self.prog.reset_fn(variant, masked=True)(self._bufs, keys, arrays, np.asarray(mask))
+        obs, self._v = self._read(*out)
+        return obs, self._info(self._v, step=False)
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        self._bufs, out, final_obs = self.prog.step(self._bufs, actions.astype(self.prog.float))
-        v = self._split(out)[1]
-        info = self._info(v, step=True)
+        self._bufs, obs, rest = self.prog.step(self._bufs, actions.astype(self.prog.float))
+        obs, v = self._read(obs, rest)
         done = v["done"] > 0.5
-        if done.any():
+        final_obs = None
+        if done.any():  # SAME_STEP auto-reset: the finished worlds' fresh episodes
+            final_obs = obs
+            self._bufs, *out = self.prog.renew(self._bufs)
+            obs, fresh = self._read(*out)
+            v.update({k: fresh[k] for k in self.RENEWED})
+        self._v = v
+        info = self._info(v, step=True)
+        if final_obs is not None:
             info["episode_metrics"] = {k: np.where(done, v["metrics"][:, i], np.nan)
                                        for i, k in enumerate(metric_keys(self.cfg))}
             info["_episode_metrics"] = done.copy()
-            info["final_obs"] = np.array(final_obs)  # (B, N, obs_dim) float32, transferred only now
+            info["final_obs"] = final_obs  # (B, N, obs_dim) float32, the stepped observations
             info["_final_obs"] = done.copy()
-        return v["obs32"], v["rewards"].mean(axis=-1), np.zeros(self.B, dtype=np.bool_), done, info
+        return obs, v["rewards"].mean(axis=-1), np.zeros(self.B, dtype=np.bool_), done, info
 
     def episode_metrics(self) -> dict[str, np.ndarray]:
         """Episode metrics (B,) of the running episodes so far (as of the last reset or step)."""
