@@ -64,7 +64,10 @@ world. Results depend on (seed, num_envs, num_shards, chunk_worlds); ``num_shard
 
 ``engine="jax"`` runs the B worlds instead as one jitted, vmapped MJX step
 (:class:`quadswarm_mj.envs.jax_engine.JaxVectorBackend`, in this process; ``num_shards``, ``backend``
-and ``chunk_worlds`` do not apply), with the same spaces, info, auto-reset and reset options.
+and ``chunk_worlds`` do not apply), with the same spaces, info, auto-reset and reset options. Its
+arrays are new every step (``copy`` does not apply), except ``info["params"]``: read-only arrays,
+new after every reset and episode end and shared by the infos in between (they do not change
+within an episode).
 """
 
 from __future__ import annotations
