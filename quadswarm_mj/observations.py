@@ -125,7 +125,7 @@ def _sorted_position_rows_first(xp: Any, key: Any) -> Any:
 def _sorted_position_jax() -> Any:
     """:func:`_sorted_position_rows_first` for one (N, N) ``key`` under JAX, vmapped with the worlds
     axis last (:func:`quadswarm_mj._xp.worlds_last`): the N^3 comparisons and the sum then run along
-    contiguous worlds (the rank kernel of a 512-world step 318 -> 119 us; the same integers)."""
+    contiguous worlds (the rank kernel of a 512-world step 318 -> ~55 us, BENCHMARKS.md; the same integers)."""
     import jax.numpy as jnp
 
     return worlds_last(lambda key: _sorted_position_rows_first(jnp, key))
