@@ -186,12 +186,10 @@ def pairwise_contacts(pos: Any, hitbox: float) -> tuple[Any, Any]:
     return (dist <= hitbox) & off_diagonal(pos.shape[-2]), dist
 
 
-def _pair_distances_rows_first(pos: Any) -> Any:
+def _pair_distances_rows_first(xp: Any, pos: Any) -> Any:
     """(N, N, *batch) ||p_i - p_j|| of ``pos`` (N, 3, *batch), summed as norm_last does."""
-    import jax.numpy as jnp
-
     rel = pos[:, None] - pos[None, :]  # (N, N, 3, *batch): [i, j] = p_i - p_j
-    return jnp.sqrt(rel[:, :, 0] * rel[:, :, 0] + rel[:, :, 1] * rel[:, :, 1] + rel[:, :, 2] * rel[:, :, 2])
+    return xp.sqrt(rel[:, :, 0] * rel[:, :, 0] + rel[:, :, 1] * rel[:, :, 1] + rel[:, :, 2] * rel[:, :, 2])
 
 
 @functools.cache
@@ -202,7 +200,7 @@ def _pair_distances_jax() -> Any:
     import jax
     import jax.numpy as jnp
 
-    primal = worlds_last(_pair_distances_rows_first)
+    primal = worlds_last(functools.partial(_pair_distances_rows_first, jnp))
 
     @jax.custom_jvp
     def dist(pos: Any) -> Any:
@@ -384,17 +382,15 @@ def quad_collisions_budgeted(pos: Any, vel: Any, omega: Any, prev_contact: Any, 
     :func:`quad_collisions` (``new_contact``: the resolved pairs, symmetric).
     """
     xp = array_namespace(pos, vel)
-    n = pos.shape[-2]
     S = slots["kick_mag"].shape[-1]
-    contact, dist = pairwise_contacts(pos, hitbox)
-    upper = np.triu(np.ones((n, n), bool), k=1)
-    new_u = (contact & ~prev_contact & upper).reshape(n * n)
-    rank = xp.cumsum(new_u.astype(xp.int32)) - 1
-    hot = new_u[:, None] & (rank[:, None] == np.arange(S))  # (N N, S): pair -> slot, first S only
-    resolved = xp.any(hot, axis=-1).reshape(n, n)
-    deferred = new_u.reshape(n, n) & ~resolved
-    hot3 = hot.reshape(n, n, S)
-    hi, hj = xp.any(hot3, axis=1), xp.any(hot3, axis=0)  # (N, S): quad q is i / j of slot s
+    dist = pairwise_contacts(pos, hitbox)[1]
+    if xp is np:
+        events = _pair_events_rows_first(np, pos[..., None], prev_contact[..., None], hitbox, S)
+        contact, res, hi, hj = (e[..., 0] for e in events)
+    else:
+        import jax
+
+        contact, res, hi, hj = _pair_events_jax(float(hitbox), S)(jax.lax.stop_gradient(pos), prev_contact)
 
     def gather(x: Any, h: Any) -> Any:  # (N, D) rows of the slots' quads -> (S, D)
         return xp.sum(xp.where(h[:, :, None], x[:, None, :], 0.0), axis=0)
@@ -431,7 +427,43 @@ def quad_collisions_budgeted(pos: Any, vel: Any, omega: Any, prev_contact: Any, 
     kick = safe_normalize(xp, slots["kick_dir"]) * slots["kick_mag"][:, None]  # (S, 3): +w for i, -w for j
     d_omega = scatter(kick, hi) - scatter(kick, hj)
     inv = involved[:, None]
-    drop = deferred | deferred.T
-    res = resolved | resolved.T
     return {"vel": xp.where(inv, v_new, vel), "omega": xp.where(inv, omega + d_omega, omega),
-            "contact": contact & ~drop, "new_contact": res, "dist": dist}
+            "contact": contact, "new_contact": res, "dist": dist}
+
+
+def _pair_events_rows_first(xp: Any, pos: Any, prev_contact: Any, hitbox: float, slots: int) -> tuple:
+    """The budget's pair events of ``pos`` (N, 3, *batch) with the batch axes LAST and
+    ``prev_contact`` (N, N, *batch): the new pairs (i < j) in row-major order, the first ``slots`` of
+    them resolved (slot s = the s-th new pair), the rest deferred.
+
+    Returns ``contact`` (N, N, *batch, symmetric; deferred pairs left out, so they are new again at
+    the next step), ``resolved`` (N, N, *batch, symmetric) and ``hi``, ``hj`` (N, S, *batch): quad q
+    is i / j of slot s. The s-th new pair is found as the smallest remaining flat index, S times
+    (O(S N^2) compares and minimums instead of a cumulative sum's rank)."""
+    n = pos.shape[0]
+    tail = (1,) * (pos.ndim - 2)
+    dist = _pair_distances_rows_first(xp, pos)
+    contact = (dist <= hitbox) & off_diagonal(n).reshape((n, n) + tail)
+    new_u = contact & ~prev_contact & np.triu(np.ones((n, n), bool), k=1).reshape((n, n) + tail)
+    flat = new_u.reshape((n * n,) + new_u.shape[2:])
+    index = np.arange(n * n, dtype=np.int32).reshape((n * n,) + tail)
+    hot = []
+    for _ in range(slots):  # static, tiny loop
+        first = xp.min(xp.where(flat, index, n * n), axis=0)  # n * n where no new pair is left
+        h = index == first[None]
+        hot.append(h.reshape((n, n) + h.shape[1:]))
+        flat = flat & ~h
+    hot3 = xp.stack(hot, axis=2)  # (N, N, S, *batch)
+    resolved = xp.any(hot3, axis=2)
+    deferred = new_u & ~resolved
+    drop = deferred | xp.swapaxes(deferred, 0, 1)
+    return contact & ~drop, resolved | xp.swapaxes(resolved, 0, 1), xp.any(hot3, axis=1), xp.any(hot3, axis=0)
+
+
+@functools.lru_cache(maxsize=16)
+def _pair_events_jax(hitbox: float, slots: int) -> Any:
+    """:func:`_pair_events_rows_first` for one world's (N, 3) ``pos`` and (N, N) ``prev_contact``
+    under JAX, vmapped with the worlds axis last (:func:`quadswarm_mj._xp.worlds_last`)."""
+    import jax.numpy as jnp
+
+    return worlds_last(lambda pos, prev: _pair_events_rows_first(jnp, pos, prev, hitbox, slots))
