@@ -1,5 +1,5 @@
 """The JAX engine's random words: the unrolled threefry hash and the materialized numbers are
-exact rewrites of JAX's own (same words, same floats)."""
+rewrites of JAX's own (same words, same uniforms; normals within a few float32 ulp)."""
 
 import jax
 import jax.numpy as jnp
@@ -11,6 +11,7 @@ from quadswarm_mj.envs.mjx_env import (
     FusedJaxSampler,
     _materialized_numbers,
     _unit_numbers,
+    erf_inv_f32,
     step_words,
     threefry_2x32_unrolled,
 )
@@ -29,11 +30,39 @@ def test_unrolled_threefry_equals_jax(seed):
 def test_materialized_numbers_are_the_unit_numbers(total):
     words = jax.random.bits(jax.random.key(3), (total,), jnp.uint32)
     u, n = jax.jit(_materialized_numbers, static_argnums=1)(words, True)
-    u_ref, n_ref = _unit_numbers(words)
+    u_ref, n_ref = jax.jit(_unit_numbers)(words)
     np.testing.assert_array_equal(np.asarray(u), np.asarray(u_ref))
     np.testing.assert_array_equal(np.asarray(n), np.asarray(n_ref))
     # the transform is jax.random's: same floats as jax.random.uniform / normal make from these bits
     assert np.all((np.asarray(u) >= 0) & (np.asarray(u) < 1))
+
+
+def test_erf_inv_f32_is_accurate_and_at_least_as_accurate_as_xla():
+    from scipy.special import erfinv
+
+    # every uniform the normals are made from lies in [nextafter(-1, 0), 1); a dense sweep and the tails
+    lo = np.nextafter(np.float32(-1.0), np.float32(0.0))
+    u = np.linspace(0.0, 1.0, 200_001, dtype=np.float32)[:-1]
+    tails = np.concatenate([np.nextafter(np.float32(1.0), np.float32(0.0)) - np.arange(200, dtype=np.float32) * 2**-24,
+                            lo + np.arange(200, dtype=np.float32) * 2**-24])
+    x = np.concatenate([np.maximum(lo, lo + (1.0 - lo) * u), tails]).astype(np.float32)
+    ours = np.asarray(jax.jit(erf_inv_f32)(jnp.asarray(x)), np.float64)
+    xla = np.asarray(jax.jit(jax.lax.erf_inv)(jnp.asarray(x)), np.float64)
+    exact = erfinv(x.astype(np.float64))
+    ulp = np.spacing(np.abs(exact).astype(np.float32)).astype(np.float64)
+    err_ours, err_xla = np.abs(ours - exact) / ulp, np.abs(xla - exact) / ulp
+    assert np.all(np.isfinite(ours)) and np.array_equal(np.sign(ours), np.sign(exact))
+    assert err_ours.max() <= 8  # XLA's own erf_inv is up to ~64 ulp off in the tails (log1p of a rounded x^2)
+    assert err_ours.max() <= err_xla.max()
+
+
+def test_unit_normals_are_standard_normal():
+    from scipy import stats
+
+    words = jax.random.bits(jax.random.key(11), (200_000,), jnp.uint32)
+    n = np.asarray(jax.jit(_unit_numbers)(words)[1], np.float64)
+    assert stats.kstest(n, "norm").pvalue > 1e-3
+    assert abs(n.mean()) < 0.01 and abs(n.std() - 1.0) < 0.01
 
 
 def test_from_words_shapes_and_moments():
