@@ -360,10 +360,18 @@ def expand_per_quad(mask: Any, slots: dict[str, Any]) -> dict[str, Any]:
 
     xp = array_namespace(mask, *slots.values())
     S = next(iter(slots.values())).shape[0]
-    if xp is not np and mask.ndim == 1:  # one world under jax: gather the slot rows (no batched dot)
-        slot = (xp.cumsum(mask.astype(xp.int32)) - 1) % S
-        return {k: xp.where(mask.reshape((-1,) + (1,) * (v.ndim - 1)), xp.take(v, slot, axis=0), 0.0)
-                for k, v in slots.items()}
+    if xp is not np and mask.ndim == 1:  # one world under jax: pick the slot rows by S - 1 selects
+        n = mask.shape[0]
+        before = np.arange(n)[None, :] < np.arange(n)[:, None]  # [q, p] = p < q
+        slot = xp.sum((mask[None, :] & before).astype(xp.int32), axis=-1) % S  # events before q (no cumsum)
+        out = {}
+        for k, v in slots.items():
+            lead = (-1,) + (1,) * (v.ndim - 1)
+            picked = xp.broadcast_to(v[0], mask.shape + v.shape[1:])
+            for s in range(1, S):
+                picked = xp.where((slot == s).reshape(lead), v[s], picked)
+            out[k] = xp.where(mask.reshape(lead), picked, 0.0)
+        return out
     hot = event_slots(xp, mask, S)
     return {k: spread(xp, hot, v) for k, v in slots.items()}
 

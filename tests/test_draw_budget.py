@@ -56,6 +56,24 @@ def test_per_quad_and_downwash_draws():
     assert d["omega_dir"].shape == (3, 3, 3) and np.all(d["acc"][~mask] == 0)
 
 
+@pytest.mark.parametrize("slots", [1, 2, 3])
+def test_per_quad_draws_under_jax_equal_the_numpy_rule(slots):
+    """The JAX engine's per-world path (selects, no cumsum or gather) gives event r the draws of slot
+    r mod S, exactly as the NumPy one-hot path, including more events than slots."""
+    import jax
+
+    rng = np.random.default_rng(slots)
+    masks = rng.random((64, 8)) < rng.uniform(0.0, 1.0, (64, 1))
+    draws = {"c": rng.normal(size=(64, slots)).astype(np.float32),
+             "v": rng.normal(size=(64, slots, 3)).astype(np.float32)}
+    got = jax.jit(jax.vmap(expand_per_quad))(masks, draws)
+    for w in range(64):
+        ref = expand_per_quad(masks[w], {k: v[w].astype(np.float64) for k, v in draws.items()})
+        for k in draws:
+            np.testing.assert_array_equal(np.asarray(got[k][w]), ref[k].astype(np.float32), err_msg=k)
+    assert masks.sum(axis=1).max() > slots  # the wrap-around (r mod S) was exercised
+
+
 def _headon_state(cfg: EnvConfig) -> dict[str, np.ndarray]:
     """Two quads just outside each other's hitbox closing at 2 m/s: a new contact within one step."""
     gap = cfg.hitbox + 0.005
