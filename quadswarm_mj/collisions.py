@@ -398,7 +398,8 @@ def quad_collisions_budgeted(pos: Any, vel: Any, omega: Any, prev_contact: Any, 
     else:
         import jax
 
-        contact, res, hi, hj = _pair_events_jax(float(hitbox), S)(jax.lax.stop_gradient(pos), prev_contact)
+        contact, res, hi, hj = _pair_events_jax(S)(jax.lax.stop_gradient(pos), prev_contact,
+                                                   xp.asarray(hitbox, pos.dtype))
 
     def gather(x: Any, h: Any) -> Any:  # (N, D) rows of the slots' quads -> (S, D)
         return xp.sum(xp.where(h[:, :, None], x[:, None, :], 0.0), axis=0)
@@ -439,10 +440,11 @@ def quad_collisions_budgeted(pos: Any, vel: Any, omega: Any, prev_contact: Any, 
             "contact": contact, "new_contact": res, "dist": dist}
 
 
-def _pair_events_rows_first(xp: Any, pos: Any, prev_contact: Any, hitbox: float, slots: int) -> tuple:
+def _pair_events_rows_first(xp: Any, pos: Any, prev_contact: Any, hitbox: Any, slots: int) -> tuple:
     """The budget's pair events of ``pos`` (N, 3, *batch) with the batch axes LAST and
-    ``prev_contact`` (N, N, *batch): the new pairs (i < j) in row-major order, the first ``slots`` of
-    them resolved (slot s = the s-th new pair), the rest deferred.
+    ``prev_contact`` (N, N, *batch) and ``hitbox`` (m; a float or an array broadcasting against
+    (N, N, *batch)): the new pairs (i < j) in row-major order, the first ``slots`` of them resolved
+    (slot s = the s-th new pair), the rest deferred.
 
     Returns ``contact`` (N, N, *batch, symmetric; deferred pairs left out, so they are new again at
     the next step), ``resolved`` (N, N, *batch, symmetric) and ``hi``, ``hj`` (N, S, *batch): quad q
@@ -469,9 +471,10 @@ def _pair_events_rows_first(xp: Any, pos: Any, prev_contact: Any, hitbox: float,
 
 
 @functools.lru_cache(maxsize=16)
-def _pair_events_jax(hitbox: float, slots: int) -> Any:
-    """:func:`_pair_events_rows_first` for one world's (N, 3) ``pos`` and (N, N) ``prev_contact``
-    under JAX, vmapped with the worlds axis last (:func:`quadswarm_mj._xp.worlds_last`)."""
+def _pair_events_jax(slots: int) -> Any:
+    """:func:`_pair_events_rows_first` for one world's (N, 3) ``pos``, (N, N) ``prev_contact`` and the
+    hitbox (a scalar array, m) under JAX, vmapped with the worlds axis last
+    (:func:`quadswarm_mj._xp.worlds_last`)."""
     import jax.numpy as jnp
 
-    return worlds_last(lambda pos, prev: _pair_events_rows_first(jnp, pos, prev, hitbox, slots))
+    return worlds_last(lambda pos, prev, hitbox: _pair_events_rows_first(jnp, pos, prev, hitbox, slots))
