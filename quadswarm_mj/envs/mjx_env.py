@@ -272,7 +272,6 @@ def erf_inv_f32(x: jax.Array) -> jax.Array:
     return p * x
 
 
-
 def _materialized_numbers(words: jax.Array, normals: bool) -> tuple[jax.Array, jax.Array | None]:
     """:func:`_unit_numbers` of flat ``words``, computed once into buffers.
 
@@ -875,8 +874,8 @@ class AutoResetWrapper:
 
     ``step`` is per world (vmap it): the fresh episode is computed every step and selected with
     ``where``. ``vstep`` steps a batch of worlds (leading axis) and computes the resets only on
-    steps where some world finished (``lax.cond`` outside the vmap), which saves about a fifth of
-    the step time; :class:`~quadswarm_mj.envs.sharding.ShardedEnv`, :func:`benchmark_mjx` and the
+    steps where some world finished (a one-trip ``while`` outside the vmap), which saves about a
+    fifth of the step time; :class:`~quadswarm_mj.envs.sharding.ShardedEnv`, :func:`benchmark_mjx` and the
     Brax front end use it.
     """
 
@@ -899,7 +898,8 @@ class AutoResetWrapper:
 
     def renew_finished(self, s: State) -> State:
         """A batch of stepped worlds (leading axis W) with the finished ones replaced by fresh
-        episodes (:meth:`_renew`), computed only when some world finished (``lax.cond``)."""
+        episodes (:meth:`_renew`), computed only when some world finished (a one-trip ``while``,
+        :func:`_run_if`)."""
         if self.env.physics == "mjx":
             return _run_if(jnp.any(s.done), jax.vmap(self._renew), s)
         # freebody: only qpos, qvel, time (and the column pool's mocap_pos) of mjx.Data change; the
