@@ -115,7 +115,7 @@ def freebody_step(qpos: Any, qvel: Any, xfrc: Any, mass: Any, inertia: Any, ipos
     body->world], ``qvel`` (..., N, 6) [m/s world, rad/s BODY], ``xfrc`` (..., N, 6) [N world at the COM,
     N m world], ``mass`` (..., N) kg, ``inertia`` (..., N, 3) kg m^2 principal, ``ipos`` (N, 3) m /
     ``iquat`` (N, 4) the inertial frame in the body frame, or ``None`` for zero / identity, ``gravity`` (3,)
-    m/s^2 world, ``dt`` s. ``max_omega`` (rad/s, optional) clips the new angular velocity per body axis.
+    m/s^2 world, ``dt`` s. ``max_omega`` (rad/s, optional) clips the new angular velocity per axis.
     Outputs have the dtype of ``qpos`` (constants are cast to it) and the broadcast leading shape.
     """
     xp = array_namespace(qpos, qvel, xfrc, mass, inertia, gravity)
@@ -124,14 +124,34 @@ def freebody_step(qpos: Any, qvel: Any, xfrc: Any, mass: Any, inertia: Any, ipos
     def cast(a: Any) -> Any:
         return xp.asarray(a, dtype=dtype)
 
-    px, py, pz, qw, qx, qy, qz = _split(qpos)
-    v = _split(qvel[..., :3])
-    w = _split(qvel[..., 3:])
-    F = _split(cast(xfrc[..., :3]))
-    tau = _split(cast(xfrc[..., 3:]))
-    m = cast(mass)
-    d = _split(cast(inertia))
-    g = _split(cast(gravity))
+    q = _split(qpos)
+    pos, quat, v, w = freebody_step_components(
+        q[:3], q[3:], _split(qvel[..., :3]), _split(qvel[..., 3:]), _split(cast(xfrc[..., :3])),
+        _split(cast(xfrc[..., 3:])), cast(mass), _split(cast(inertia)), ipos, iquat, _split(cast(gravity)), dt,
+        max_omega, xp)
+    # per-body constants may carry leading dims the state lacks (or the converse): broadcast, then stack
+    out = xp.broadcast_arrays(*pos, *quat, *v, *w)
+    return xp.stack(out[:7], axis=-1).astype(dtype), xp.stack(out[7:], axis=-1).astype(dtype)
+
+
+def freebody_step_components(pos: Vec, quat: tuple[Any, Any, Any, Any], vel: Vec, omega: Vec, force: Vec,
+                             torque: Vec, mass: Any, inertia: Vec, ipos: Any | None, iquat: Any | None,
+                             gravity: Vec, dt: float | Any, max_omega: float | None = None,
+                             xp: Any = None) -> tuple[Vec, tuple[Any, Any, Any, Any], Vec, Vec]:
+    """:func:`freebody_step` on vectors given as tuples of their components (structure of arrays).
+
+    ``pos`` (m, world), ``quat`` (w, x, y, z; body->world), ``vel`` (m/s, world), ``omega`` (rad/s, BODY),
+    ``force`` (N, world, at the COM), ``torque`` (N m, world), ``inertia`` (kg m^2, principal) and
+    ``gravity`` (m/s^2, world) are tuples of (..., N) arrays, ``mass`` (..., N) kg; ``ipos``/``iquat`` as
+    in :func:`freebody_step`. Returns ``(pos, quat, vel, omega)`` as tuples of components. The formulas
+    are those of :func:`freebody_step`, which calls this function (the JAX engine's sub-step loop carries
+    components, so XLA runs contiguous loops instead of strided slices of (N, 7) rows).
+    """
+    xp = array_namespace(*pos, *vel) if xp is None else xp
+    dtype = pos[0].dtype
+    px, py, pz = pos
+    qw, qx, qy, qz = quat
+    v, w, F, tau, m, d, g = vel, omega, force, torque, mass, inertia, gravity
 
     # mj_kinematics: normalise the quaternion, body-to-world rotation
     inv_n = 1 / xp.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
@@ -143,7 +163,7 @@ def freebody_step(qpos: Any, qvel: Any, xfrc: Any, mass: Any, inertia: Any, ipos
     if iquat is None:
         w_i, tau_i = w, tau_b
     else:
-        Ri = _quat2mat(*_split(cast(iquat)))
+        Ri = _quat2mat(*_split(xp.asarray(iquat, dtype=dtype)))
         w_i, tau_i = _mtv(Ri, w), _mtv(Ri, tau_b)
     gyro = _cross(w_i, (d[0] * w_i[0], d[1] * w_i[1], d[2] * w_i[2]))
     alpha_i = tuple((tau_i[k] - gyro[k]) / d[k] for k in range(3))
@@ -153,7 +173,7 @@ def freebody_step(qpos: Any, qvel: Any, xfrc: Any, mass: Any, inertia: Any, ipos
     # motion of the COM offset c about it: a = a_com - R (alpha x c + w x (w x c))
     acc = tuple(g[k] + F[k] / m for k in range(3))
     if ipos is not None:
-        c = _split(cast(ipos))
+        c = _split(xp.asarray(ipos, dtype=dtype))
         wc = _cross(w, c)
         rel = _cross(alpha, c)
         cen = _cross(w, wc)
@@ -182,9 +202,7 @@ def freebody_step(qpos: Any, qvel: Any, xfrc: Any, mass: Any, inertia: Any, ipos
 
     if max_omega is not None:
         w = tuple(xp.clip(wk, -max_omega, max_omega) for wk in w)
-    # per-body constants may carry leading dims the state lacks (or the converse): broadcast, then stack
-    out = xp.broadcast_arrays(px, py, pz, nw, nx, ny, nz, *v, *w)
-    return xp.stack(out[:7], axis=-1).astype(dtype), xp.stack(out[7:], axis=-1).astype(dtype)
+    return (px, py, pz), (nw, nx, ny, nz), v, w
 
 
 # ---------------------------------------------------------------------------------------- model constants

@@ -73,16 +73,20 @@ def quat_to_rotmat(q: Any) -> Any:
 
 
 def _quat_to_rotmat_textbook(xp: Any, q: Any) -> Any:
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = quat_to_rotmat_components(q[..., 0], q[..., 1], q[..., 2], q[..., 3])
+    return xp.stack(rows, axis=-1).reshape(q.shape[:-1] + (3, 3))
+
+
+def quat_to_rotmat_components(w: Any, x: Any, y: Any, z: Any) -> tuple[Any, ...]:
+    """Body-to-world rotation of the unit quaternion (w, x, y, z) given as component arrays: the 9
+    entries (R00, R01, R02, R10, ..., R22), row-major, by the textbook formula (:func:`quat_to_rotmat`'s
+    path for large and JAX arrays)."""
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
-    rows = [
-        1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
-        2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
-        2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
-    ]
-    return xp.stack(rows, axis=-1).reshape(q.shape[:-1] + (3, 3))
+    return (1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
+            2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
+            2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy))
 
 
 def rotmat_to_quat(R: Any) -> Any:
@@ -133,8 +137,12 @@ def yaw_rotmat(yaw: Any) -> Any:
 def yaw_cos_sin(R: Any) -> tuple[Any, Any]:
     """(cos, sin) of :func:`yaw_of` without trigonometry: the body x axis' xy projection normalized
     ((1, 0) where it vanishes, as ``atan2(0, 0) = 0``). Equal to ``cos/sin(yaw_of(R))`` up to round-off."""
-    xp = array_namespace(R)
-    c0, s0 = R[..., 0, 0], R[..., 1, 0]
+    return yaw_cos_sin_components(R[..., 0, 0], R[..., 1, 0])
+
+
+def yaw_cos_sin_components(c0: Any, s0: Any) -> tuple[Any, Any]:
+    """:func:`yaw_cos_sin` from the rotation's entries R00 (``c0``) and R10 (``s0``)."""
+    xp = array_namespace(c0, s0)
     h = xp.sqrt(c0 * c0 + s0 * s0)
     ok = h > 0
     inv = 1.0 / xp.where(ok, h, 1.0)
@@ -146,14 +154,22 @@ def yaw_quat_cs(c: Any, s: Any) -> Any:
     formulas in their well-conditioned branches; the representative with w >= 0, as ``yaw_quat``
     of an angle in [-pi, pi])."""
     xp = array_namespace(c, s)
+    ch, sh = yaw_half_cos_sin(c, s)
+    z = xp.zeros_like(c)
+    return xp.stack([ch, z, z, sh], axis=-1)
+
+
+def yaw_half_cos_sin(c: Any, s: Any) -> tuple[Any, Any]:
+    """(cos, sin) of half the yaw with cosine ``c`` and sine ``s``: the w and z components of
+    :func:`yaw_quat_cs` (x = y = 0)."""
+    xp = array_namespace(c, s)
     pos_branch = c >= 0
     ch_a = xp.sqrt(xp.maximum(0.5 * (1.0 + c), 0.0))
     sh_b = xp.sqrt(xp.maximum(0.5 * (1.0 - c), 0.0))
     sh_b = xp.where(s < 0, -sh_b, sh_b) if xp is np else xp.copysign(sh_b, s)
     ch = xp.where(pos_branch, ch_a, s / xp.where(pos_branch, 1.0, 2.0 * sh_b))
     sh = xp.where(pos_branch, s / xp.where(pos_branch, 2.0 * ch_a, 1.0), sh_b)
-    z = xp.zeros_like(c)
-    return xp.stack([ch, z, z, sh], axis=-1)
+    return ch, sh
 
 
 def yaw_rotmat_cs(c: Any, s: Any) -> Any:

@@ -103,8 +103,8 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
+from quadswarm_mj import components, pipeline
 from quadswarm_mj import metrics as metrics_lib
-from quadswarm_mj import pipeline
 from quadswarm_mj.actuation import (
     SPIN,
     action_to_command,
@@ -142,13 +142,14 @@ from quadswarm_mj.downwash import (
     expand_downwash_draws,
 )
 from quadswarm_mj.envs.validation import check_obstacles, check_state
+from quadswarm_mj.freebody import freebody_step_components
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.random_draws import DrawSpec, JaxSampler, MeanSampler, Normal, Uniform
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
 from quadswarm_mj.rewards import anneal_factor, env_terms, total_reward
 from quadswarm_mj.scenarios import get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
-from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
+from quadswarm_mj.spatial import quat_to_rotmat, quat_to_rotmat_components, rotmat_to_quat
 
 tune_jax_cpu()  # synchronous CPU dispatch for the engine's small programs, if JAX has not started
 
@@ -454,6 +455,12 @@ class MjxQuadSwarmEnv:
             **(_prefixed("aero", aero_draw_spec(cfg)) if cfg.randomize and cfg.aero.any else {}),
         }
         self._act = pipeline.make_substep_actuation(cfg)  # None: the paper's chain (no extra work)
+        # the default configuration's sub-steps run on tuples of components (quadswarm_mj.components)
+        self._component_substeps = self._act is None and self._paper_floor and physics == "freebody"
+        if physics == "freebody":
+            from quadswarm_mj.freebody import freebody_constants
+
+            self._fb_constants = freebody_constants(self.mj_model, self.arena)  # checks the model's assumptions
         self._modes = cfg.control_mode != "rotor"
         coll_spec = {
             **_prefixed("floor", floor_draw_spec(FLOOR_BUDGET), (cfg.substeps,)),  # slots per sub-step
@@ -743,11 +750,16 @@ class MjxQuadSwarmEnv:
             return (q, v, r["R"], r["u"], f_norm, r["on_floor"], hit_floor | r["hit_floor"], aux, ctrl), None
 
         q0, v0 = self._read(data)
-        aux0 = data if self.physics == "mjx" else None
-        carry0 = (q0.astype(f), v0.astype(f), info["state"]["rot"], info["motor_u"], info["state"]["thrust"],
-                  info["on_floor"], jnp.zeros((n,), bool), aux0, self._ctrl0(info, eps))
         yaw_cs = (jnp.cos(rnd["floor/yaw"]), jnp.sin(rnd["floor/yaw"]))  # (substeps, slots) each
-        (q, v, R, u, f_norm, on_floor, hit_floor, aux, ctrl), _ = jax.lax.scan(substep, carry0, yaw_cs)
+        if self._component_substeps:
+            q, v, R, u, f_norm, on_floor, hit_floor = self._substeps_components(
+                q0.astype(f), v0.astype(f), info, params, cmd, eps, torque_spin, yaw_cs)
+            aux, ctrl = None, None
+        else:
+            aux0 = data if self.physics == "mjx" else None
+            carry0 = (q0.astype(f), v0.astype(f), info["state"]["rot"], info["motor_u"], info["state"]["thrust"],
+                      info["on_floor"], jnp.zeros((n,), bool), aux0, self._ctrl0(info, eps))
+            (q, v, R, u, f_norm, on_floor, hit_floor, aux, ctrl), _ = jax.lax.scan(substep, carry0, yaw_cs)
         data = data if aux is None else aux
         # once per control step: walls, ceiling, quad-quad, (obstacles), downwash (velocity-level models)
         pos, vel, omega = q[:, :3], v[:, :3], v[:, 3:]
@@ -795,6 +807,44 @@ class MjxQuadSwarmEnv:
              "hit_ceiling": w["hit_ceiling"], "at_wall": w["at_wall"], "at_ceiling": w["at_ceiling"],
              "on_floor": on_floor, "u": u, "f_norm": f_norm, "eps": eps, "ctrl": ctrl, **obst}
         return data, k
+
+    def _substeps_components(self, q: Any, v: Any, info: dict[str, Any], params: dict[str, Any], cmd: Any, eps: Any,
+                             torque_spin: Any, yaw_cs: tuple[Any, Any]) -> tuple[Any, ...]:
+        """The sub-step loop of the default configuration (rotor control, the paper's floor, free-body
+        physics) with the vectors carried as tuples of components (:mod:`quadswarm_mj.components`):
+        the same formulas as the general loop of :meth:`_physics`, in contiguous (W, N) arrays under
+        vmap. Takes q (N, 7), v (N, 6); returns (q, v, R (N, 3, 3), u, f_norm (N, 4), on_floor,
+        hit_floor (N,)) after ``cfg.substeps`` sub-steps."""
+        cfg, n, f = self.cfg, self.N, q.dtype
+        k = self._fb_constants
+        split = components.split
+        alpha, mass, inertia = params["alpha"], params["mass"], split(params["inertia"])
+        gravity = split(jnp.asarray(k.gravity, f))
+        cmd4, eps4, thrust_max, spin = split(cmd), split(eps), split(params["thrust_max"]), split(torque_spin)
+        max_w, floor_z, mix = cfg.quad.max_omega, cfg.quad.arm, self._mix
+
+        def substep(carry: tuple, yaw_slots: jax.Array) -> tuple[tuple, None]:
+            pos, quat, vel, omega, R, u, _, on_floor, hit_floor = carry
+            u, f_norm, force, torque = components.rotor_wrench(u, cmd4, eps4, alpha, thrust_max, spin, mix, R)
+            force, torque = components.floor_wrench(on_floor, force, torque, vel, mass, params["gravity"],
+                                                    cfg.collision.floor_friction, cfg.sim_dt)
+            pos, quat, vel, omega = freebody_step_components(pos, quat, vel, omega, force, torque, mass, inertia,
+                                                             k.ipos, k.iquat, gravity, k.dt, xp=jnp)
+            omega = tuple(jnp.clip(w, -max_w, max_w) for w in omega)
+            R = quat_to_rotmat_components(*quat)
+            landing = (pos[2] <= floor_z) & ~on_floor
+            d = expand_per_quad(landing, {"c": yaw_slots[0], "s": yaw_slots[1]})  # trig-free yaw draws
+            r = components.floor_impact(pos, vel, omega, quat, R, u, on_floor, floor_z, (d["c"], d["s"]))
+            return (r["pos"], r["quat"], r["vel"], r["omega"], r["R"], r["u"], f_norm, r["on_floor"],
+                    hit_floor | r["hit_floor"]), None
+
+        qc, vc = split(q), split(v)
+        carry0 = (qc[:3], qc[3:], vc[:3], vc[3:], split(info["state"]["rot"].reshape(n, 9)), split(info["motor_u"]),
+                  split(info["state"]["thrust"]), info["on_floor"], jnp.zeros((n,), bool))
+        (pos, quat, vel, omega, R, u, f_norm, on_floor, hit_floor), _ = jax.lax.scan(substep, carry0, yaw_cs)
+        stack = components.stack
+        return (stack(pos + quat), stack(vel + omega), stack(R).reshape(n, 3, 3), stack(u), stack(f_norm),
+                on_floor, hit_floor)
 
     def _ctrl0(self, info: dict[str, Any], eps: Any) -> Any:
         """The sub-step carry of :func:`pipeline.make_substep_actuation`: (last rotor command (N, 4),

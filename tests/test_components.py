@@ -1,0 +1,143 @@
+"""The component-form (structure-of-arrays) sub-step functions of ``quadswarm_mj.components`` against
+the array-of-structures functions they mirror: the same bits on NumPy, and the JAX engine's component
+sub-step loop against its general loop within float32 round-off."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from quadswarm_mj import components as C
+from quadswarm_mj.actuation import SPIN, rotor_positions, substep_wrench, wrench_matrix
+from quadswarm_mj.collisions import floor_impact, floor_wrench
+from quadswarm_mj.config import EnvConfig, QuadParams
+from quadswarm_mj.freebody import freebody_step, freebody_step_components
+from quadswarm_mj.spatial import quat_to_rotmat, quat_to_rotmat_components
+
+# (worlds, quads): a small batch takes NumPy's x.sum path of sum_last, a large one its explicit sums
+SHAPES = [(3, 8), (200, 8)]
+
+
+def _random_rotations(rng: np.random.Generator, lead: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    q = rng.normal(size=lead + (4,))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    return q, quat_to_rotmat(q)
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> None:
+    """Bit-identical, including the sign of zeros."""
+    np.testing.assert_array_equal(np.signbit(a), np.signbit(b))
+    np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("lead", SHAPES)
+def test_rotor_wrench_matches_substep_wrench_bitwise(lead):
+    rng = np.random.default_rng(0)
+    quad = QuadParams()
+    u, cmd = rng.uniform(0, 1, lead + (4,)), rng.uniform(0, 1, lead + (4,))
+    noise = rng.normal(0, 0.1, lead + (4,))
+    params = {"alpha": rng.uniform(0.2, 1, lead), "thrust_max": rng.uniform(0.1, 0.2, lead + (4,)),
+              "torque_max": rng.uniform(0.001, 0.003, lead + (4,))}
+    _, R = _random_rotations(rng, lead)
+    mix = wrench_matrix(rotor_positions(quad))
+    spin = params["torque_max"] * SPIN
+    ref = substep_wrench(u, cmd, noise, params, R, rotor_positions(quad), mix, spin)
+    got = C.rotor_wrench(C.split(u), C.split(cmd), C.split(noise), params["alpha"], C.split(params["thrust_max"]),
+                         C.split(spin), mix, C.split(R.reshape(lead + (9,))))
+    for a, b in zip(ref, got):
+        _same(a, C.stack(b))
+
+
+@pytest.mark.parametrize("lead", SHAPES)
+def test_floor_wrench_matches_bitwise(lead):
+    rng = np.random.default_rng(1)
+    on_floor = rng.uniform(size=lead) < 0.6
+    force, torque = rng.normal(0, 0.3, lead + (3,)), rng.normal(0, 0.01, lead + (3,))
+    vel = rng.normal(0, 1, lead + (3,)) * (rng.uniform(size=lead + (1,)) < 0.5)  # half at rest
+    force[..., :2] *= rng.uniform(size=lead + (1,)) < 0.7  # some without horizontal force
+    mass = rng.uniform(0.025, 0.035, lead)
+    ref = floor_wrench(on_floor, force, torque, vel, mass, 9.81, 0.3, 0.005)
+    got = C.floor_wrench(on_floor, C.split(force), C.split(torque), C.split(vel), mass, 9.81, 0.3, 0.005)
+    for a, b in zip(ref, got):
+        _same(a, C.stack(b))
+
+
+@pytest.mark.parametrize("lead", SHAPES)
+def test_floor_impact_matches_bitwise(lead):
+    rng = np.random.default_rng(2)
+    arm = 0.046
+    pos = rng.uniform(-1, 1, lead + (3,))
+    pos[..., 2] = rng.choice([arm - 0.01, arm, arm + 5e-7, arm + 0.01, 1.0], size=lead)
+    on_floor = rng.uniform(size=lead) < 0.5
+    vel, omega = rng.normal(size=lead + (3,)), rng.normal(size=lead + (3,))
+    quat, R = _random_rotations(rng, lead)
+    u = rng.uniform(size=lead + (4,))
+    yaw = rng.uniform(-np.pi, np.pi, lead)
+    cs = (np.cos(yaw), np.sin(yaw))
+    ref = floor_impact(pos, vel, omega, quat, R, u, on_floor, arm, None, yaw_draw_cs=cs)
+    got = C.floor_impact(C.split(pos), C.split(vel), C.split(omega), C.split(quat), C.split(R.reshape(lead + (9,))),
+                         C.split(u), on_floor, arm, cs)
+    assert ref["hit_floor"].any() and (ref["on_floor"] & ~ref["hit_floor"]).any()  # both branches exercised
+    for key in ("pos", "vel", "omega", "quat", "u"):
+        _same(ref[key], C.stack(got[key]))
+    _same(ref["R"], C.stack(got["R"]).reshape(lead + (3, 3)))
+    for key in ("on_floor", "hit_floor"):
+        np.testing.assert_array_equal(ref[key], got[key])
+
+
+def test_quat_to_rotmat_components_is_the_large_array_path():
+    rng = np.random.default_rng(3)
+    q, _ = _random_rotations(rng, (2000,))  # >= spatial.BIG elements: the textbook path
+    _same(quat_to_rotmat(q), C.stack(quat_to_rotmat_components(*C.split(q))).reshape(-1, 3, 3))
+
+
+def test_freebody_components_is_freebody_step():
+    rng = np.random.default_rng(4)
+    n = 8
+    q, _ = _random_rotations(rng, (n,))
+    qpos = np.concatenate([rng.normal(size=(n, 3)), q], -1)
+    qvel = rng.normal(size=(n, 6))
+    xfrc = rng.normal(0, 0.1, (n, 6))
+    mass, inertia = rng.uniform(0.02, 0.04, n), rng.uniform(1e-5, 3e-5, (n, 3))
+    g = np.array([0.0, 0.0, -9.81])
+    qp, qv = freebody_step(qpos, qvel, xfrc, mass, inertia, None, None, g, 0.005)
+    p, quat, v, w = freebody_step_components(C.split(qpos[:, :3]), C.split(qpos[:, 3:]), C.split(qvel[:, :3]),
+                                             C.split(qvel[:, 3:]), C.split(xfrc[:, :3]), C.split(xfrc[:, 3:]), mass,
+                                             C.split(inertia), None, None, C.split(g), 0.005)
+    _same(qp, C.stack(p + quat))
+    _same(qv, C.stack(v + w))
+
+
+def test_jax_component_substeps_match_the_general_loop():
+    """The JAX engine's default sub-step loop (components) and its general loop (the AoS functions)
+    agree within float32 round-off over 25 control steps with floor landings, flips and spins."""
+    jax = pytest.importorskip("jax")
+    jnp = jax.numpy
+    from quadswarm_mj.envs.mjx_env import MjxQuadSwarmEnv
+
+    cfg = EnvConfig(num_quads=8, scenario="static_same_goal")
+    fast, general = MjxQuadSwarmEnv(cfg), MjxQuadSwarmEnv(cfg)
+    assert fast._component_substeps
+    general._component_substeps = False
+    rng = np.random.default_rng(5)
+    n = 8
+    quat, R = _random_rotations(rng, (n,))
+    pos = np.concatenate([rng.uniform(-1, 1, (n, 2)), np.full((n, 1), 0.12)], -1)
+    pos[:, 0] = np.linspace(-1.5, 1.5, n)  # apart: no quad-quad contacts
+    init = {"pos": pos, "vel": np.concatenate([rng.normal(0, 0.5, (n, 2)), np.full((n, 1), -2.0)], -1),
+            "rot": R, "omega": rng.normal(0, 5, (n, 3)), "motors": "hover"}
+    actions = jnp.asarray(rng.uniform(-1, 1, (25, n, 4)), jnp.float32)
+
+    def rollout(env):
+        def body(s, a):
+            s = env.step(s, a)
+            return s, (s.info["state"]["pos"], s.info["state"]["rot"], s.info["state"]["vel"], s.info["on_floor"])
+        s0 = env.reset(jax.random.key(0), init)
+        return jax.lax.scan(body, s0, actions)[1]
+
+    a, b = jax.jit(lambda: rollout(fast))(), jax.jit(lambda: rollout(general))()
+    floor_a = np.asarray(a[3])
+    assert floor_a.any() and not floor_a.all()  # landings happen, not everywhere
+    np.testing.assert_array_equal(floor_a, np.asarray(b[3]))
+    for x, y in zip(a[:3], b[:3]):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), atol=2e-5, rtol=0)
