@@ -818,13 +818,16 @@ class MjxQuadSwarmEnv:
         cfg, n, f = self.cfg, self.N, q.dtype
         k = self._fb_constants
         split = components.split
-        alpha, mass, inertia = params["alpha"], params["mass"], split(params["inertia"])
+        alpha, mass = params["alpha"], params["mass"]
         gravity = split(jnp.asarray(k.gravity, f))
-        cmd4, eps4, thrust_max, spin = split(cmd), split(eps), split(params["thrust_max"]), split(torque_spin)
         max_w, floor_z, mix = cfg.quad.max_omega, cfg.quad.arm, self._mix
 
         def substep(carry: tuple, yaw_slots: jax.Array) -> tuple[tuple, None]:
             pos, quat, vel, omega, R, u, _, on_floor, hit_floor = carry
+            # the loop-invariant inputs are split inside the body, where XLA fuses the slices into
+            # their consumers (split outside, each component would be a loop operand: a copy kernel)
+            cmd4, eps4, thrust_max, spin = split(cmd), split(eps), split(params["thrust_max"]), split(torque_spin)
+            inertia = split(params["inertia"])
             u, f_norm, force, torque = components.rotor_wrench(u, cmd4, eps4, alpha, thrust_max, spin, mix, R)
             force, torque = components.floor_wrench(on_floor, force, torque, vel, mass, params["gravity"],
                                                     cfg.collision.floor_friction, cfg.sim_dt)
@@ -839,8 +842,11 @@ class MjxQuadSwarmEnv:
                     hit_floor | r["hit_floor"]), None
 
         qc, vc = split(q), split(v)
+        # every sub-step sets f_norm before reading it: zeros, not the slices of the previous step's
+        zeros = jnp.zeros((n,), f)
+        f_norm0 = (zeros,) * 4 if cfg.substeps >= 1 else split(info["state"]["thrust"])
         carry0 = (qc[:3], qc[3:], vc[:3], vc[3:], split(info["state"]["rot"].reshape(n, 9)), split(info["motor_u"]),
-                  split(info["state"]["thrust"]), info["on_floor"], jnp.zeros((n,), bool))
+                  f_norm0, info["on_floor"], jnp.zeros((n,), bool))
         (pos, quat, vel, omega, R, u, f_norm, on_floor, hit_floor), _ = jax.lax.scan(substep, carry0, yaw_cs)
         stack = components.stack
         return (stack(pos + quat), stack(vel + omega), stack(R).reshape(n, 3, 3), stack(u), stack(f_norm),
