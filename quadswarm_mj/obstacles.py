@@ -260,9 +260,22 @@ def contact_hits(pos: Any, centres: Any, valid: Any, radius: Any, arm: float) ->
 def first_hit(hit: Any, centres: Any) -> tuple[Any, Any]:
     """``index`` (..., N) of the first column hit (index order; 0 without contact) and its centre (..., N, 2)."""
     xp = array_namespace(centres)
-    index = xp.argmax(hit, axis=-1)
-    cx = xp.take_along_axis(centres[..., 0], index, axis=-1)
-    cy = xp.take_along_axis(centres[..., 1], index, axis=-1)
+    if xp is np:
+        index = xp.argmax(hit, axis=-1)
+        cx = xp.take_along_axis(centres[..., 0], index, axis=-1)
+        cy = xp.take_along_axis(centres[..., 1], index, axis=-1)
+        return index, xp.stack([cx, cy], axis=-1)
+    # under XLA: selects from the last column to the first (M static) instead of an argmax and two
+    # gathers over the short column axis; the same index and centre (column 0's without a hit)
+    m_cols = centres.shape[-2]
+    index = xp.zeros(hit.shape[:-1], dtype=np.int32)
+    cx = xp.broadcast_to(centres[..., None, 0, 0], hit.shape[:-1])
+    cy = xp.broadcast_to(centres[..., None, 0, 1], hit.shape[:-1])
+    for m in range(m_cols - 1, -1, -1):
+        h = hit[..., m]
+        index = xp.where(h, np.int32(m), index)
+        cx = xp.where(h, centres[..., None, m, 0], cx)
+        cy = xp.where(h, centres[..., None, m, 1], cy)
     return index, xp.stack([cx, cy], axis=-1)
 
 

@@ -522,3 +522,29 @@ def test_one_grid_gives_the_contact_test_and_the_features_exactly():
     np.testing.assert_array_equal(hits_from_grid(grid, radius, 0.046), contact_hits(pos, centres, valid, radius, 0.046))
     np.testing.assert_array_equal(features_from_grid(grid, radius), obstacle_features(pos, centres, valid, radius))
     assert hits_from_grid(grid, radius, 0.046)[0, 0].any() and not hits_from_grid(grid, radius, 0.046)[1].any()
+
+
+def test_jax_first_hit_selects_equal_numpy():
+    """first_hit's XLA path (selects from the last column to the first, no argmax or gathers) gives
+    NumPy's index and centre exactly, under jit and vmap, with and without hits."""
+    jax = pytest.importorskip("jax")
+    import jax.numpy as jnp
+
+    from quadswarm_mj.obstacles import contact_hits, first_hit
+
+    rng = np.random.default_rng(11)
+    W, N, M = 6, 8, 12
+    pos = rng.uniform(-2, 2, (W, N, 3)).astype(np.float32)
+    centres = rng.uniform(-2, 2, (W, M, 2)).astype(np.float32)
+    valid = rng.random((W, M)) < 0.6
+    valid[1] = False  # a world without columns
+    radius = rng.uniform(0.1, 0.4, W).astype(np.float32)
+    pos[0, :3, :2] = centres[0, :3] + 0.05  # quads inside columns
+    pos[2, 0, :2] = centres[2, 5] + 0.1
+    hit = contact_hits(pos, centres, valid, radius, 0.046)
+    hit[3, 0] = True  # several columns at once: the first counts
+    assert hit.any() and (~hit.any(-1)).any()
+    want_i, want_c = first_hit(hit, centres)
+    got_i, got_c = jax.jit(jax.vmap(first_hit))(jnp.asarray(hit), jnp.asarray(centres))
+    np.testing.assert_array_equal(np.asarray(got_i), want_i)
+    np.testing.assert_array_equal(np.asarray(got_c), want_c)
