@@ -750,12 +750,12 @@ class MjxQuadSwarmEnv:
             return (q, v, r["R"], r["u"], f_norm, r["on_floor"], hit_floor | r["hit_floor"], aux, ctrl), None
 
         q0, v0 = self._read(data)
-        yaw_cs = (jnp.cos(rnd["floor/yaw"]), jnp.sin(rnd["floor/yaw"]))  # (substeps, slots) each
         if self._component_substeps:
             q, v, R, u, f_norm, on_floor, hit_floor = self._substeps_components(
-                q0.astype(f), v0.astype(f), info, params, cmd, eps, torque_spin, yaw_cs)
+                q0.astype(f), v0.astype(f), info, params, cmd, eps, torque_spin, rnd["floor/yaw"])
             aux, ctrl = None, None
         else:
+            yaw_cs = (jnp.cos(rnd["floor/yaw"]), jnp.sin(rnd["floor/yaw"]))  # (substeps, slots) each
             aux0 = data if self.physics == "mjx" else None
             carry0 = (q0.astype(f), v0.astype(f), info["state"]["rot"], info["motor_u"], info["state"]["thrust"],
                       info["on_floor"], jnp.zeros((n,), bool), aux0, self._ctrl0(info, eps))
@@ -809,12 +809,13 @@ class MjxQuadSwarmEnv:
         return data, k
 
     def _substeps_components(self, q: Any, v: Any, info: dict[str, Any], params: dict[str, Any], cmd: Any, eps: Any,
-                             torque_spin: Any, yaw_cs: tuple[Any, Any]) -> tuple[Any, ...]:
+                             torque_spin: Any, yaw: Any) -> tuple[Any, ...]:
         """The sub-step loop of the default configuration (rotor control, the paper's floor, free-body
         physics) with the vectors carried as tuples of components (:mod:`quadswarm_mj.components`):
         the same formulas as the general loop of :meth:`_physics`, in contiguous (W, N) arrays under
-        vmap. Takes q (N, 7), v (N, 6); returns (q, v, R (N, 3, 3), u, f_norm (N, 4), on_floor,
-        hit_floor (N,)) after ``cfg.substeps`` sub-steps."""
+        vmap. Takes q (N, 7), v (N, 6) and ``yaw`` (substeps, slots), the floor landings' yaw draws (rad);
+        returns (q, v, R (N, 3, 3), u, f_norm (N, 4), on_floor, hit_floor (N,)) after ``cfg.substeps``
+        sub-steps."""
         cfg, n, f = self.cfg, self.N, q.dtype
         k = self._fb_constants
         split = components.split
@@ -822,8 +823,11 @@ class MjxQuadSwarmEnv:
         gravity = split(jnp.asarray(k.gravity, f))
         max_w, floor_z, mix = cfg.quad.max_omega, cfg.quad.arm, self._mix
 
-        def substep(carry: tuple, yaw_slots: jax.Array) -> tuple[tuple, None]:
+        def substep(i: jax.Array, carry: tuple) -> tuple:
             pos, quat, vel, omega, R, u, _, on_floor, hit_floor = carry
+            # this sub-step's floor-landing yaw draws (slots,), indexed in the body: scanning over them
+            # would transpose the (W, substeps, slots) draws into (substeps, W, slots) first
+            yaw_i = jax.lax.dynamic_index_in_dim(yaw, i, 0, keepdims=False)
             # the loop-invariant inputs are split inside the body, where XLA fuses the slices into
             # their consumers (split outside, each component would be a loop operand: a copy kernel)
             cmd4, eps4, thrust_max, spin = split(cmd), split(eps), split(params["thrust_max"]), split(torque_spin)
@@ -836,10 +840,10 @@ class MjxQuadSwarmEnv:
             omega = tuple(jnp.clip(w, -max_w, max_w) for w in omega)
             R = quat_to_rotmat_components(*quat)
             landing = (pos[2] <= floor_z) & ~on_floor
-            d = expand_per_quad(landing, {"c": yaw_slots[0], "s": yaw_slots[1]})  # trig-free yaw draws
+            d = expand_per_quad(landing, {"c": jnp.cos(yaw_i), "s": jnp.sin(yaw_i)})  # trig-free yaw draws
             r = components.floor_impact(pos, vel, omega, quat, R, u, on_floor, floor_z, (d["c"], d["s"]))
             return (r["pos"], r["quat"], r["vel"], r["omega"], r["R"], r["u"], f_norm, r["on_floor"],
-                    hit_floor | r["hit_floor"]), None
+                    hit_floor | r["hit_floor"])
 
         qc, vc = split(q), split(v)
         # every sub-step sets f_norm before reading it: zeros, not the slices of the previous step's
@@ -847,7 +851,7 @@ class MjxQuadSwarmEnv:
         f_norm0 = (zeros,) * 4 if cfg.substeps >= 1 else split(info["state"]["thrust"])
         carry0 = (qc[:3], qc[3:], vc[:3], vc[3:], split(info["state"]["rot"].reshape(n, 9)), split(info["motor_u"]),
                   f_norm0, info["on_floor"], jnp.zeros((n,), bool))
-        (pos, quat, vel, omega, R, u, f_norm, on_floor, hit_floor), _ = jax.lax.scan(substep, carry0, yaw_cs)
+        pos, quat, vel, omega, R, u, f_norm, on_floor, hit_floor = jax.lax.fori_loop(0, cfg.substeps, substep, carry0)
         stack = components.stack
         return (stack(pos + quat), stack(vel + omega), stack(R).reshape(n, 3, 3), stack(u), stack(f_norm),
                 on_floor, hit_floor)
