@@ -17,7 +17,11 @@ inside the jit into one flat float array per world and split on the host with Nu
 programs are cached per (config, number of worlds), so envs of the same config share compiles.
 B worlds are sharded over every device whose count divides B (``shard_map``: each device steps its
 own worlds; :func:`quadswarm_mj.use_cpu_cores` gives JAX one CPU device per core), with results
-bit-identical to one device; ``final_obs`` is a separate output, read only after an episode ended.
+bit-identical to one device when each device's worlds x quads fill XLA:CPU's vector loops (a multiple
+of 16 elements, e.g. 8 quads and an even number of worlds per device; otherwise XLA:CPU may contract
+a multiply-add into an FMA differently in a loop's scalar remainder, and the runs agree within
+float32 round-off: ``tests/test_devices.py``); ``final_obs`` is a separate output, read only after an
+episode ended.
 
 Seeding: ``reset(seed=s)`` derives the JAX keys from ``np.random.SeedSequence(s)`` (any int), so
 seeded runs are bit-identical; later unseeded resets continue that stream. Random streams differ
