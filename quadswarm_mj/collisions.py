@@ -19,7 +19,7 @@ import numpy as np
 
 from quadswarm_mj._xp import array_namespace, is_jax_array, safe_normalize, worlds_last
 from quadswarm_mj.random_draws import DrawSpec, Normal, Uniform
-from quadswarm_mj.spatial import norm_last, yaw_cos_sin, yaw_of, yaw_quat, yaw_quat_cs, yaw_rotmat, yaw_rotmat_cs
+from quadswarm_mj.spatial import BIG, norm_last, yaw_of, yaw_quat, yaw_rotmat
 
 # ---------------------------------------------------------------------------------------- floor
 
@@ -42,6 +42,12 @@ def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any
     one sub-step). Roll and pitch torques are removed (the quad stays flat, yaw-only).
     """
     xp = array_namespace(force_w, vel)
+    if xp is not np or force_w.size >= BIG:  # component form (one formula, quadswarm_mj.components)
+        from quadswarm_mj import components as C
+
+        f, t = C.floor_wrench(on_floor, C.split(force_w), C.split(torque_w), C.split(vel), mass, gravity, friction, dt)
+        return C.stack(f), C.stack(t)
+    # small NumPy arrays: the same formulas in the fewest NumPy calls (tests/test_components.py)
     weight = mass * gravity
     normal = xp.maximum(0.0, weight - force_w[..., 2])
     cap = friction * normal
@@ -77,20 +83,25 @@ def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_f
     (:func:`~quadswarm_mj.spatial.yaw_cos_sin`), equal to the angle path up to round-off.
     """
     xp = array_namespace(pos, vel)
+    if yaw_draw_cs is not None:  # the trig-free path is defined once, in component form
+        from quadswarm_mj import components as C
+
+        lead = R.shape[:-2]
+        r = C.floor_impact(C.split(pos), C.split(vel), C.split(omega), C.split(quat), C.split(R.reshape(lead + (9,))),
+                           C.split(u), on_floor, floor_z, yaw_draw_cs)
+        out = {k: C.stack(v) if isinstance(v, tuple) else v for k, v in r.items()}
+        if with_rotmat:
+            out["R"] = out["R"].reshape(lead + (3, 3))
+        else:
+            del out["R"]
+        return out
     z = pos[..., 2]
     hit = (z <= floor_z) & ~on_floor
     staying = on_floor & (z <= floor_z + FLOOR_TOL)
     grounded = hit | staying
     upside_down = R[..., 2, 2] < 0
-    if yaw_draw_cs is not None:
-        c, s = yaw_cos_sin(R)
-        flip = hit & upside_down
-        dc, ds = yaw_draw_cs
-        c, s = xp.where(flip, c * dc - s * ds, c), xp.where(flip, s * dc + c * ds, s)
-        yaw_q, yaw_R = yaw_quat_cs(c, s), (yaw_rotmat_cs(c, s) if with_rotmat else None)
-    else:
-        yaw = yaw_of(R) + xp.where(hit & upside_down, yaw_draw, 0.0)
-        yaw_q, yaw_R = yaw_quat(yaw), (yaw_rotmat(yaw) if with_rotmat else None)
+    yaw = yaw_of(R) + xp.where(hit & upside_down, yaw_draw, 0.0)
+    yaw_q, yaw_R = yaw_quat(yaw), (yaw_rotmat(yaw) if with_rotmat else None)
     new_pos = xp.concatenate([pos[..., :2], xp.where(grounded, floor_z, z)[..., None]], axis=-1)
     zero2 = xp.zeros_like(vel[..., :2])
     vel_stay = xp.concatenate([vel[..., :2], zero2[..., :1]], axis=-1)

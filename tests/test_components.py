@@ -1,6 +1,9 @@
-"""The component-form (structure-of-arrays) sub-step functions of ``quadswarm_mj.components`` against
-the array-of-structures functions they mirror: the same bits on NumPy, and the JAX engine's component
-sub-step loop against its general loop within float32 round-off."""
+"""The component-form (structure-of-arrays) sub-step functions of ``quadswarm_mj.components``: the
+array-of-structures functions delegate to them for JAX and large NumPy arrays and keep a
+fewest-calls form for small NumPy arrays; both forms give the same bits (small arrays compared
+directly, large arrays against the small form chunk by chunk). The trig-free floor impact against
+the angle path, and the JAX engine's component sub-step loop against its general loop, within
+round-off."""
 
 from __future__ import annotations
 
@@ -14,8 +17,17 @@ from quadswarm_mj.config import EnvConfig, QuadParams
 from quadswarm_mj.freebody import freebody_step, freebody_step_components
 from quadswarm_mj.spatial import quat_to_rotmat, quat_to_rotmat_components
 
-# (worlds, quads): a small batch takes NumPy's x.sum path of sum_last, a large one its explicit sums
+# (worlds, quads): a small batch takes the AoS functions' own NumPy form, a large one (>= spatial.BIG
+# elements) their delegation to the component functions
 SHAPES = [(3, 8), (200, 8)]
+
+
+def _chunked(fn, *arrays, rows: int = 3):
+    """``fn`` applied to row chunks of the leading axis (each below spatial.BIG: the small NumPy form),
+    outputs concatenated: an independent reference for the large-array (component) path."""
+    n = arrays[0].shape[0]
+    outs = [fn(*(a[i:i + rows] for a in arrays)) for i in range(0, n, rows)]
+    return tuple(np.concatenate([o[k] for o in outs]) for k in range(len(outs[0])))
 
 
 def _random_rotations(rng: np.random.Generator, lead: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -41,11 +53,16 @@ def test_rotor_wrench_matches_substep_wrench_bitwise(lead):
     _, R = _random_rotations(rng, lead)
     mix = wrench_matrix(rotor_positions(quad))
     spin = params["torque_max"] * SPIN
-    ref = substep_wrench(u, cmd, noise, params, R, rotor_positions(quad), mix, spin)
+    def aos(u, cmd, noise, alpha, thrust_max, torque_max, R):
+        p = {"alpha": alpha, "thrust_max": thrust_max, "torque_max": torque_max}
+        return substep_wrench(u, cmd, noise, p, R, rotor_positions(quad), mix, torque_max * SPIN)
+
+    ref = _chunked(aos, u, cmd, noise, params["alpha"], params["thrust_max"], params["torque_max"], R)
     got = C.rotor_wrench(C.split(u), C.split(cmd), C.split(noise), params["alpha"], C.split(params["thrust_max"]),
                          C.split(spin), mix, C.split(R.reshape(lead + (9,))))
-    for a, b in zip(ref, got):
+    for a, b, c in zip(ref, got, aos(u, cmd, noise, params["alpha"], params["thrust_max"], params["torque_max"], R)):
         _same(a, C.stack(b))
+        _same(a, c)  # the AoS function at this size (its small form, or its delegation)
 
 
 @pytest.mark.parametrize("lead", SHAPES)
@@ -56,14 +73,21 @@ def test_floor_wrench_matches_bitwise(lead):
     vel = rng.normal(0, 1, lead + (3,)) * (rng.uniform(size=lead + (1,)) < 0.5)  # half at rest
     force[..., :2] *= rng.uniform(size=lead + (1,)) < 0.7  # some without horizontal force
     mass = rng.uniform(0.025, 0.035, lead)
-    ref = floor_wrench(on_floor, force, torque, vel, mass, 9.81, 0.3, 0.005)
+    def aos(on_floor, force, torque, vel, mass):
+        return floor_wrench(on_floor, force, torque, vel, mass, 9.81, 0.3, 0.005)
+
+    ref = _chunked(aos, on_floor, force, torque, vel, mass)
     got = C.floor_wrench(on_floor, C.split(force), C.split(torque), C.split(vel), mass, 9.81, 0.3, 0.005)
-    for a, b in zip(ref, got):
+    for a, b, c in zip(ref, got, aos(on_floor, force, torque, vel, mass)):
         _same(a, C.stack(b))
+        _same(a, c)
 
 
 @pytest.mark.parametrize("lead", SHAPES)
-def test_floor_impact_matches_bitwise(lead):
+def test_floor_impact_trig_free_matches_the_angle_path(lead):
+    """The trig-free floor impact (defined once, in component form; ``collisions.floor_impact`` with
+    ``yaw_draw_cs`` delegates to it) against the angle path with the same yaw draws: the same flags,
+    positions, velocities and motors exactly, the yaw-only rotations within round-off."""
     rng = np.random.default_rng(2)
     arm = 0.046
     pos = rng.uniform(-1, 1, lead + (3,))
@@ -74,15 +98,17 @@ def test_floor_impact_matches_bitwise(lead):
     u = rng.uniform(size=lead + (4,))
     yaw = rng.uniform(-np.pi, np.pi, lead)
     cs = (np.cos(yaw), np.sin(yaw))
-    ref = floor_impact(pos, vel, omega, quat, R, u, on_floor, arm, None, yaw_draw_cs=cs)
-    got = C.floor_impact(C.split(pos), C.split(vel), C.split(omega), C.split(quat), C.split(R.reshape(lead + (9,))),
-                         C.split(u), on_floor, arm, cs)
+    ref = floor_impact(pos, vel, omega, quat, R, u, on_floor, arm, yaw)  # the angle path
+    got = floor_impact(pos, vel, omega, quat, R, u, on_floor, arm, None, yaw_draw_cs=cs)
     assert ref["hit_floor"].any() and (ref["on_floor"] & ~ref["hit_floor"]).any()  # both branches exercised
-    for key in ("pos", "vel", "omega", "quat", "u"):
-        _same(ref[key], C.stack(got[key]))
-    _same(ref["R"], C.stack(got["R"]).reshape(lead + (3, 3)))
-    for key in ("on_floor", "hit_floor"):
-        np.testing.assert_array_equal(ref[key], got[key])
+    flipped = ref["hit_floor"] & (R[..., 2, 2] < 0)
+    assert flipped.any()  # an upside-down landing takes its yaw draw
+    for key in ("pos", "vel", "omega", "u", "on_floor", "hit_floor"):
+        _same(ref[key], got[key])
+    np.testing.assert_allclose(got["R"], ref["R"], rtol=0, atol=1e-12)
+    # quaternions: the same rotation (q and -q), within round-off
+    dots = np.abs(np.sum(got["quat"] * ref["quat"], axis=-1))
+    np.testing.assert_allclose(dots, 1.0, rtol=0, atol=1e-12)
 
 
 def test_quat_to_rotmat_components_is_the_large_array_path():
