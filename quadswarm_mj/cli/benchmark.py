@@ -13,7 +13,9 @@ of 200 Hz), paper defaults (collisions, noise, K = 6 neighbours, static_same_goa
 * the peer, crazyflow's ``Sim`` (first-principles dynamics, per-rotor control, 200 Hz physics, 2
   physics steps per 100 Hz sample) when ``crazyflow`` is installed (``pip install crazyflow``; the
   rows are skipped with a note otherwise): jitted scan (as ``benchmark_mjx``) and Python loop (as a
-  Gymnasium env), so every ratio to it is of figures of the same run;
+  Gymnasium env), so every ratio to it is of figures of the same run; with ``--alternate R`` also the
+  JAX engine against crazyflow's scan in R alternating rounds of fresh processes (the median of the
+  per-round ratios: robust on a machine whose speed drifts within a run);
 * for every row, the bare-MuJoCo ceiling for the same number of bodies: free bodies with the
   Crazyflie's inertia, contacts off, Euler, 2 sub-steps per control step; ``1 core`` steps one model
   holding all bodies with ``mj_step``, ``rollout`` steps them split in equal models on both cores
@@ -188,7 +190,7 @@ def bench_single_jax(n: int, seconds: float, repeat: int, cfg: EnvConfig | None 
 
 
 def crazyflow_rates(worlds: int, n: int, steps: int, seconds: float, repeat: int,
-                    devices: int = 1) -> dict[str, float] | None:
+                    devices: int = 1, scan_only: bool = False) -> dict[str, float] | None:
     """crazyflow's ``Sim`` (first-principles dynamics, per-rotor ``rotor_vel`` control) at the same
     protocol: 200 Hz physics, one control step = 2 physics steps, samples = drone-steps at 100 Hz.
     ``scan``: a jitted ``lax.scan`` of (control, 2 physics steps), as ``benchmark_mjx``; ``loop``: one
@@ -197,7 +199,8 @@ def crazyflow_rates(worlds: int, n: int, steps: int, seconds: float, repeat: int
     state (pos, vel, quat, ang_vel) to NumPy after every step, as a Gymnasium env must return its
     observation. With ``devices`` > 1 (and dividing ``worlds``) also ``scan_sharded``: the same scan
     with the worlds sharded over that many JAX devices (crazyflow's arrays have the worlds axis first;
-    jit partitions its step along it), the peer of the JAX engine's sharded rows."""
+    jit partitions its step along it), the peer of the JAX engine's sharded rows. ``scan_only``: the scans
+    only (no Python loops)."""
     try:
         import contextlib
         import io
@@ -258,6 +261,11 @@ def crazyflow_rates(worlds: int, n: int, steps: int, seconds: float, repeat: int
             d_sh = jax.block_until_ready(run_sh(d_sh, rpm_sh))
             times.append(time.perf_counter() - t)
         sharded = worlds * n * steps / float(np.min(times))
+    if scan_only:
+        out = {"scan": scan, "compile_s": compile_s}
+        if sharded is not None:
+            out["scan_sharded"] = sharded
+        return out
 
     def loop(k: int) -> float:
         t = time.perf_counter()
@@ -323,6 +331,60 @@ def crazyflow_best(worlds: int, n: int, steps: int, seconds: float, repeat: int,
             best[k], setup[k] = v, "tuned"
     best["setup"] = setup
     return best
+
+
+def _fresh_process(code: str, env: dict[str, str]) -> Any:
+    """The JSON after ``RESULT`` printed by ``python -c code`` in a fresh process (None on failure); the
+    package is importable there as here (an installed wheel or this checkout)."""
+    import quadswarm_mj
+
+    root = str(Path(quadswarm_mj.__file__).resolve().parent.parent)
+    env = {**os.environ, **env}
+    env["PYTHONPATH"] = os.pathsep.join([root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    try:
+        res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=1800)
+        line = [x for x in res.stdout.splitlines() if x.startswith("RESULT ")]
+        return json.loads(line[-1][len("RESULT "):]) if line else None
+    except (OSError, subprocess.SubprocessError, ValueError):
+        return None
+
+
+def alternating_peer_ratio(worlds: int, devices: int, rounds: int, steps: int, repeat: int) -> dict[str, Any] | None:
+    """The JAX engine's jitted rollout (``benchmark_mjx``, paper defaults, ``worlds`` x 8) against
+    crazyflow's jitted scan on the same ``devices``, in ``rounds`` alternating rounds of fresh processes:
+    each round measures the JAX engine (best of ``repeat`` rollouts of ``steps`` control steps, with
+    :func:`quadswarm_mj.devices.tune_jax_cpu` in force) and then crazyflow (the better of a tuned
+    process and one with JAX's defaults, as :func:`crazyflow_best`). On a shared machine whose speed
+    drifts by tens of per cent within minutes, the median of the per-round ratios is the robust figure.
+    Returns ``ratios``, ``median``, ``min``, ``max`` and the per-round samples/s (``ours``, ``peer``), or
+    None when a side could not be measured (crazyflow or JAX missing)."""
+    import statistics
+
+    ours_code = ("import json; from quadswarm_mj.devices import use_cpu_cores; "
+                 f"use_cpu_cores({devices}, strict=False); from quadswarm_mj import EnvConfig; "
+                 "from quadswarm_mj.envs.mjx_env import benchmark_mjx; "
+                 f"r = [benchmark_mjx(EnvConfig(num_quads=8), {worlds}, {steps}, devices={devices})"
+                 f"['samples_per_s'] for _ in range({max(repeat, 1)})]; print('RESULT', json.dumps(max(r)))")
+    key = "scan_sharded" if devices > 1 else "scan"
+    peer_code = ("import json; from quadswarm_mj.devices import use_cpu_cores; "
+                 f"use_cpu_cores({devices}, strict=False); from quadswarm_mj.cli.benchmark import crazyflow_rates; "
+                 f"r = crazyflow_rates({worlds}, 8, {steps}, 1.0, {max(repeat, 3)}, devices={devices}, "
+                 f"scan_only=True); print('RESULT', json.dumps(r and r.get('{key}')))")
+    flags = os.environ.get("XLA_FLAGS", "").replace(LOOP_KERNEL_FLAG, "").strip()  # the user's own flags only
+    defaults = {"QUADSWARM_MJ_TUNE_JAX": "0", "SCIPY_ARRAY_API": "1", "XLA_FLAGS": flags}
+    ours, peer, ratios = [], [], []
+    for r in range(rounds):
+        a = _fresh_process(ours_code, {})
+        b = [x for x in (_fresh_process(peer_code, {}), _fresh_process(peer_code, defaults)) if x]
+        if not a or not b:
+            return None
+        ours.append(float(a))
+        peer.append(max(b))
+        ratios.append(ours[-1] / peer[-1])
+        print(f"  alternating {worlds} x 8, {devices} device(s), round {r + 1}/{rounds}: JAX engine {fmt(ours[-1])}, "
+              f"crazyflow {fmt(peer[-1])}, ratio {ratios[-1]:.2f}x", flush=True)
+    return {"ratios": ratios, "median": statistics.median(ratios), "min": min(ratios), "max": max(ratios),
+            "ours": ours, "peer": peer}
 
 
 # -------------------------------------------------------------------------------------- ceiling
@@ -587,6 +649,20 @@ def _jax_rows(rows: set[str], args: Any, seconds: float, repeat: int, steps: int
                             f"({'sharded the same way' if key == 'scan_sharded' else '1 device'})")
                 out.append((f"JAX engine, jitted rollout, {W} x 8, {variant}, {where}", res["samples_per_s"],
                             f"{res['compile_s']:.1f}", note))
+    if getattr(args, "alternate", 0) and "peers" in rows and "jax" in rows:
+        import statistics
+
+        for W in (int(x) for x in args.alternate_worlds.split(",")):
+            for dev in sorted({1, ndev}):
+                res = alternating_peer_ratio(W, dev, args.alternate, steps, repeat)
+                if res is None:
+                    print(f"  alternating rounds at {W} x 8 skipped (crazyflow or JAX not available)", flush=True)
+                    break
+                where = "1 device" if dev == 1 else f"sharded over {dev} CPU devices"
+                out.append((f"JAX engine vs crazyflow scan, {W} x 8, {where}, {args.alternate} alternating rounds of "
+                            f"fresh processes (median of the JAX engine's)", statistics.median(res["ours"]), "",
+                            f"median {res['median']:.2f}x crazyflow scan (range {res['min']:.2f}x to "
+                            f"{res['max']:.2f}x; crazyflow median {fmt(statistics.median(res['peer']))})"))
     if args.ablations and "jax" in rows:
         W = 512
         for variant, cfg, kw in (
@@ -762,6 +838,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="worlds of the JAX-engine rows (rows 'jax': jitted rollouts, paper defaults and without_noise)")
     p.add_argument("--jax-vector-b", default="1024", help="worlds of the JAX-engine vector env rows ('jaxvector')")
     p.add_argument("--peer-worlds", default="1,512,2048", help="worlds of the crazyflow peer rows ('peers')")
+    p.add_argument("--alternate", type=int, default=0, metavar="R",
+                   help="also measure the JAX engine against crazyflow's scan in R alternating rounds of fresh "
+                        "processes (rows 'jax' and 'peers'; 1 device and all devices): the median ratio, robust "
+                        "to a machine whose speed drifts within a run (default 0: off)")
+    p.add_argument("--alternate-worlds", default="512", help="worlds of the --alternate rounds (default 512)")
     p.add_argument("--ablations", action="store_true",
                    help="JAX engine at 512 x 8 with stages switched off/on (where the time goes)")
     p.add_argument("--skip-mjx", action="store_true")
@@ -784,6 +865,8 @@ def main(argv: list[str] | None = None) -> int:
         cpu_devices = cpu_devices_option(args.cpu_devices)
     except ValueError as e:
         p.error(str(e))
+    if args.alternate < 0:
+        p.error("--alternate must be >= 0")
     if not args.skip_mjx:
         try:
             use_cpu_cores(cpu_devices, strict=False)

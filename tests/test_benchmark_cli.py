@@ -1,0 +1,40 @@
+"""The benchmark's alternating peer measurement (fresh processes stubbed) and its option checks."""
+
+from __future__ import annotations
+
+import pytest
+
+from quadswarm_mj.cli import benchmark
+
+
+def test_alternating_ratio_takes_median_and_better_peer_setup(monkeypatch: pytest.MonkeyPatch) -> None:
+    # per round: the JAX engine's figure, then crazyflow tuned and crazyflow with JAX's defaults
+    answers = iter([100.0, 200.0, 250.0,   # round 1: ratio 100 / 250
+                    300.0, 400.0, 100.0,   # round 2: ratio 300 / 400
+                    90.0, None, 100.0])    # round 3: one peer set-up failed, the other counts: 90 / 100
+    calls: list[dict[str, str]] = []
+
+    def fake(code: str, env: dict[str, str]) -> float | None:
+        calls.append(env)
+        return next(answers)
+
+    monkeypatch.setattr(benchmark, "_fresh_process", fake)
+    res = benchmark.alternating_peer_ratio(512, 2, rounds=3, steps=10, repeat=1)
+    assert res is not None
+    assert res["ratios"] == pytest.approx([0.4, 0.75, 0.9])
+    assert res["median"] == pytest.approx(0.75)
+    assert (res["min"], res["max"]) == (pytest.approx(0.4), pytest.approx(0.9))
+    assert res["peer"] == [250.0, 400.0, 100.0]
+    # the second peer process of each round runs with JAX's defaults
+    assert [c.get("QUADSWARM_MJ_TUNE_JAX") for c in calls[:3]] == [None, None, "0"]
+
+
+def test_alternating_ratio_none_when_a_side_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(benchmark, "_fresh_process", lambda code, env: None)
+    assert benchmark.alternating_peer_ratio(512, 1, rounds=2, steps=10, repeat=1) is None
+
+
+def test_negative_alternate_is_rejected(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        benchmark.main(["--alternate", "-1", "--no-write"])
+    assert "--alternate must be >= 0" in capsys.readouterr().err
