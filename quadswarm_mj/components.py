@@ -16,6 +16,7 @@ order, ``Rot`` the 9 entries of a body-to-world rotation (R00, R01, R02, R10, ..
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -46,6 +47,15 @@ def _sum(terms: list[Any]) -> Any:
     for t in terms[2:]:
         r = r + t
     return r
+
+
+def kernel_boundary(parts: tuple[Any, ...], one: Any) -> tuple[Any, ...]:
+    """``parts`` unchanged (each divided by ``one``, a traced float32 scalar equal to 1.0, which is exact),
+    computed by XLA:CPU in their own kernels. XLA fuses cheap elementwise producers into every consumer,
+    recomputing them there, but does not duplicate a division (an "expensive" op); a value read by many
+    consumers is thus computed once and read back. ``one`` must be a run-time value (e.g. ``1 + 0 * i``
+    with the loop index ``i``), or XLA folds the division away."""
+    return tuple(p / one for p in parts)
 
 
 def rotor_wrench(u: Rotors, cmd: Rotors, noise: Rotors, alpha: Any, thrust_max: Rotors, torque_spin: Rotors,
@@ -90,10 +100,14 @@ def floor_wrench(on_floor: Any, force: Vec3, torque: Vec3, vel: Vec3, mass: Any,
 
 
 def floor_impact(pos: Vec3, vel: Vec3, omega: Vec3, quat: Quat, R: Rot, u: Rotors, on_floor: Any, floor_z: float,
-                 yaw_draw_cs: tuple[Any, Any]) -> dict[str, Any]:
+                 yaw_draw_cs: tuple[Any, Any],
+                 materialize: Callable[[tuple[Any, ...]], tuple[Any, ...]] | None = None) -> dict[str, Any]:
     """:func:`quadswarm_mj.collisions.floor_impact` (its trig-free ``yaw_draw_cs`` path) per component.
 
-    Returns a dict of ``pos, vel, omega, quat, R, u`` (tuples) and ``on_floor, hit_floor`` (..., N) bool."""
+    ``materialize``: applied to the landing yaw's (cos, sin) (an identity on their values, e.g.
+    :func:`kernel_boundary`), so that XLA computes them once instead of inside each of the ~20 selects
+    that read them. Returns a dict of ``pos, vel, omega, quat, R, u`` (tuples) and ``on_floor,
+    hit_floor`` (..., N) bool."""
     xp = array_namespace(pos[0], vel[0])
     z = pos[2]
     hit = (z <= floor_z) & ~on_floor
@@ -103,6 +117,8 @@ def floor_impact(pos: Vec3, vel: Vec3, omega: Vec3, quat: Quat, R: Rot, u: Rotor
     flip = hit & (R[8] < 0)  # upside down
     dc, ds = yaw_draw_cs
     c, s = xp.where(flip, c * dc - s * ds, c), xp.where(flip, s * dc + c * ds, s)
+    if materialize is not None:
+        c, s = materialize((c, s))
     ch, sh = yaw_half_cos_sin(c, s)
     zero, one = xp.zeros_like(c), xp.ones_like(c)
 

@@ -167,3 +167,19 @@ def test_jax_component_substeps_match_the_general_loop():
     np.testing.assert_array_equal(floor_a, np.asarray(b[3]))
     for x, y in zip(a[:3], b[:3]):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), atol=2e-5, rtol=0)
+
+
+def test_kernel_boundary_is_an_exact_identity_that_xla_keeps() -> None:
+    """C.kernel_boundary: the same bits (division by exactly 1.0), and the division survives
+    compilation when ``one`` is a run-time value (folded away, it would not make a kernel boundary)."""
+    import jax
+    import jax.numpy as jnp
+
+    x = jnp.asarray([0.0, -0.0, 1e-37, -3.5, 1e30, np.inf, -np.inf, 0.1], jnp.float32)
+
+    def f(x: jax.Array, i: jax.Array) -> jax.Array:
+        return C.kernel_boundary((x,), 1.0 + 0.0 * i.astype(jnp.float32))[0]
+
+    out = jax.jit(f)(x, jnp.int32(5))
+    np.testing.assert_array_equal(np.asarray(out).view(np.uint32), np.asarray(x).view(np.uint32))
+    assert "divide(" in jax.jit(f).lower(x, jnp.int32(5)).compile().as_text()

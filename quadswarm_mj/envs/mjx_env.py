@@ -98,6 +98,7 @@ flags come from the proximity to them.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from typing import Any
 
@@ -844,7 +845,11 @@ class MjxQuadSwarmEnv:
             R = quat_to_rotmat_components(*quat)
             landing = (pos[2] <= floor_z) & ~on_floor
             d = expand_per_quad(landing, {"c": jnp.cos(yaw_i), "s": jnp.sin(yaw_i)})  # trig-free yaw draws
-            r = components.floor_impact(pos, vel, omega, quat, R, u, on_floor, floor_z, (d["c"], d["s"]))
+            # the landing yaw's (cos, sin) computed once, in their own kernels, instead of inside each
+            # select of the floor impact that reads them (~25 % fewer operations in the loop body)
+            one = 1.0 + 0.0 * i.astype(f)  # 1.0 that XLA cannot fold: see components.kernel_boundary
+            mat = functools.partial(components.kernel_boundary, one=one)
+            r = components.floor_impact(pos, vel, omega, quat, R, u, on_floor, floor_z, (d["c"], d["s"]), mat)
             return (r["pos"], r["quat"], r["vel"], r["omega"], r["R"], r["u"], f_norm, r["on_floor"],
                     hit_floor | r["hit_floor"])
 
