@@ -50,7 +50,7 @@ def _sum(terms: list[Any]) -> Any:
 
 
 def kernel_boundary(parts: tuple[Any, ...], one: Any) -> tuple[Any, ...]:
-    """``parts`` unchanged (each divided by ``one``, a traced float32 scalar equal to 1.0, which is exact),
+    """``parts`` unchanged (each divided by ``one``, a traced scalar equal to 1.0, which is exact),
     computed by XLA:CPU in their own kernels. XLA fuses cheap elementwise producers into every consumer,
     recomputing them there, but does not duplicate a division (an "expensive" op); a value read by many
     consumers is thus computed once and read back. ``one`` must be a run-time value (e.g. ``1 + 0 * i``

@@ -172,13 +172,6 @@ def yaw_half_cos_sin(c: Any, s: Any) -> tuple[Any, Any]:
     return ch, sh
 
 
-def yaw_rotmat_cs(c: Any, s: Any) -> Any:
-    """:func:`yaw_rotmat` from the yaw's cosine and sine."""
-    xp = array_namespace(c, s)
-    z, o = xp.zeros_like(c), xp.ones_like(c)
-    return xp.stack([c, -s, z, s, c, z, z, z, o], axis=-1).reshape(c.shape + (3, 3))
-
-
 def rotate(R: Any, v: Any) -> Any:
     """Apply (..., 3, 3) rotations to (..., 3) vectors."""
     xp = array_namespace(R, v)
