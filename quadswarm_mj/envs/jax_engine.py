@@ -226,7 +226,8 @@ class _Program:
     """Jitted reset/step of B worlds (``batch=None``: one unbatched world) of one config.
 
     One world: ``step(bufs, action) -> (bufs, out)`` with everything the host reads in one packed
-    float array (:attr:`layout`). B worlds: ``step(leaves, actions) -> (leaves, obs, rest)`` WITHOUT
+    float array (:attr:`step_layout`; resets return :attr:`layout`, which adds the episode constants:
+    parameters, column map). B worlds: ``step(leaves, actions) -> (leaves, obs, rest)`` WITHOUT
     the auto-reset (``obs`` is the stepped observation, i.e. the final one where an episode ended;
     ``rest`` the per-step outputs of :attr:`step_layout`), and ``renew(leaves) -> (leaves, obs, rest,
     episode)``, which the host calls only after a step that ended an episode: the fresh episodes of
@@ -256,7 +257,9 @@ class _Program:
             # one world: the state as flat buffers, one per dtype (a handful of arrays instead of ~70
             # leaves: measured ~4x faster per call), all outputs in one packed array (one transfer)
             self.packer: StatePacker | LeafPacker = StatePacker(struct, self.lead)
-            self.layout = OutputLayout(outs)
+            self.layout = OutputLayout(outs)  # resets: everything
+            # steps: without the episode constants (parameters, column map), which the host keeps from the reset
+            self.step_layout = OutputLayout({k: v for k, v in outs.items() if not _episode_key(k)})
         else:
             self.packer = LeafPacker(struct)
             self.step_layout = OutputLayout({k: v for k, v in outs.items() if k != "obs" and not _episode_key(k)})
@@ -357,7 +360,7 @@ class _Program:
         prev = self._unpack(bufs)
         if self.batch is None:
             s = self.env.step(prev, action)
-            return self._pack(s), self.layout.pack(self._outs(s, prev), self.float)
+            return self._pack(s), self.step_layout.pack(self._outs(s, prev), self.float)
         s = jax.vmap(self.env.step)(prev, action)
         return (self._pack(s),) + self._batch_outs(s, prev, episode=False)
 
@@ -387,6 +390,11 @@ def _init_arrays(state: dict[str, Any] | None, dtype: Any) -> dict[str, np.ndarr
     return {k: np.asarray(v, dtype) for k, v in state.items() if v is not None and not isinstance(v, str)}
 
 
+def _read_only(x: np.ndarray) -> np.ndarray:
+    x.setflags(write=False)
+    return x
+
+
 def _host_rows(x: jax.Array) -> list[np.ndarray]:
     """The host views of a batched array's device shards, in world order (read-only; CPU: no copy)."""
     shards = x.addressable_shards
@@ -408,7 +416,9 @@ class JaxSingleBackend:
         self._keys: KeyStream | None = None
         self._bufs: tuple | None = None
         self._last: dict[str, np.ndarray] | None = None
+        # the episode's constants, from the reset (read-only; steps do not return them)
         self._params: dict[str, np.ndarray] = {}
+        self._obstacles: np.ndarray | None = None
         self._renderer: Any = None
 
     @property
@@ -418,18 +428,20 @@ class JaxSingleBackend:
     def seed(self, seed: int) -> None:
         self._keys = KeyStream(seed)
 
-    def _info(self, v: dict[str, np.ndarray], params: dict[str, np.ndarray]) -> dict[str, Any]:
-        return {"state": {"pos": v["state/pos"], "vel": v["state/vel"], "rot": v["state/rot"],
+    def _info(self, v: dict[str, np.ndarray]) -> dict[str, Any]:
+        info = {"state": {"pos": v["state/pos"], "vel": v["state/vel"], "rot": v["state/rot"],
                           "omega": v["state/omega"], "thrust": v["state/thrust"]},
-                "goals": v["goals"], "goal_vel": v["goal_vel"], "params": params,
-                "on_floor": v["on_floor"] > 0.5, "time": float(v["time"]),
-                **({"obstacles": v["obstacles"][v["obstacles_valid"] > 0.5]} if "obstacles" in v else {})}
+                "goals": v["goals"], "goal_vel": v["goal_vel"], "params": dict(self._params),
+                "on_floor": v["on_floor"] > 0.5, "time": float(v["time"])}
+        if self._obstacles is not None:
+            info["obstacles"] = self._obstacles
+        return info
 
-    def _split(self, out: jax.Array) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def _split(self, out: jax.Array, layout: OutputLayout) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         o = np.array(out)  # one transfer, writable
-        v = self.prog.layout.split64(o)
+        v = layout.split64(o)
         self._last = v
-        return o[self.prog.layout.slices["obs"]].reshape(self.prog.layout.shapes["obs"]), v
+        return o[layout.slices["obs"]].reshape(layout.shapes["obs"]), v
 
     def reset(self, state: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         if self._keys is None:
@@ -437,18 +449,19 @@ class JaxSingleBackend:
         variant = _init_variant(state)
         fn = self.prog.reset_fn(variant, masked=False)
         self._bufs, out = fn(self._keys.draw(), _init_arrays(state, self.prog.float))
-        obs, v = self._split(out)
+        obs, v = self._split(out, self.prog.layout)
         if self._renderer is not None:
             self._renderer.reset()
-        # dynamics parameters are fixed for the episode: split once here, fresh copies per step
-        self._params = {k[len("params/"):]: v[k] for k in self.prog.layout.params}
-        return obs, self._info(v, self._params)
+        # the dynamics parameters and the column map are fixed for the episode: kept from here, read-only
+        self._params = {k[len("params/"):]: _read_only(v[k].copy()) for k in self.prog.layout.params}
+        self._obstacles = _read_only(v["obstacles"][v["obstacles_valid"] > 0.5]) if "obstacles" in v else None
+        return obs, self._info(v)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict[str, Any]]:
         """One control step; returns (obs, team reward (mean over quads), truncated, info)."""
         self._bufs, out = self.prog.step(self._bufs, action.astype(self.prog.float))
-        obs, v = self._split(out)
-        info = self._info(v, {k: x.copy() for k, x in self._params.items()})
+        obs, v = self._split(out, self.prog.step_layout)
+        info = self._info(v)
         info["rewards"] = v["rewards"]
         info["reward_terms"] = dict(zip(env_terms(self.cfg), v["terms"]))
         info["new_collisions"] = v["new_collisions"] > 0.5
@@ -469,8 +482,7 @@ class JaxSingleBackend:
             arena = build_arena(self.cfg, 1)
             self._renderer = SwarmRenderer(types.SimpleNamespace(arena=arena, model=arena.model))
         v = self._last
-        obst = v["obstacles"][v["obstacles_valid"] > 0.5] if "obstacles" in v else None
-        return self._renderer.render(qpos=v["qpos"], goals=v["goals"], obstacles=obst)
+        return self._renderer.render(qpos=v["qpos"], goals=v["goals"], obstacles=self._obstacles)
 
     def close(self) -> None:
         if self._renderer is not None:

@@ -3,6 +3,7 @@ the environment exactly as it was."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -13,7 +14,7 @@ def check_action(action: Any, expected_shape: tuple[int, ...]) -> np.ndarray:
     NaN or inf. Out-of-range values are clipped later, as in the paper."""
     if type(action) is np.ndarray and action.shape == tuple(expected_shape) and action.dtype.kind == "f":
         a = action.astype(np.float64, copy=False)
-        if np.isfinite(np.add.reduce(a, axis=None)):  # fast path: a NaN or inf makes the sum non-finite
+        if math.isfinite(np.add.reduce(a, axis=None)):  # fast path: a NaN or inf makes the sum non-finite
             return a
     try:
         a = np.asarray(action, dtype=np.float64)
