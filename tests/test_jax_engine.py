@@ -181,6 +181,35 @@ def test_single_env_seeded_runs_are_bit_identical(noisy_env):
     assert not np.array_equal(o1, a[0])
 
 
+def test_single_env_episode_constants_kept_from_reset(noisy_env):
+    """Steps do not return the dynamics parameters: info["params"] holds copies of the reset's (no
+    object shared between two calls' infos, so a caller's edits of one info cannot reach the next);
+    with domain randomization a new episode brings new parameters."""
+    env = noisy_env
+    prog = env._jax.prog
+    assert not any(k.startswith("params/") for k in prog.step_layout.names)
+    assert any(k.startswith("params/") for k in prog.layout.names)
+    _, info0 = env.reset(seed=11)
+    p0 = {k: np.array(v) for k, v in info0["params"].items()}
+    _, _, _, _, info1 = env.step(np.zeros((3, 4)))
+    _, _, _, _, info2 = env.step(np.zeros((3, 4)))
+    for k, v in p0.items():
+        np.testing.assert_array_equal(info1["params"][k], v)
+        assert not np.shares_memory(info1["params"][k], info2["params"][k])
+        info1["params"][k][...] = -1.0  # a caller's copy, not the env's
+    np.testing.assert_array_equal(info2["params"]["mass"], p0["mass"])
+    _, _, _, _, info3 = env.step(np.zeros((3, 4)))
+    np.testing.assert_array_equal(info3["params"]["mass"], p0["mass"])
+    rnd = QuadSwarmEnv(NOISY.replace(randomize=True), engine="jax")
+    _, r0 = rnd.reset(seed=11)
+    _, _, _, _, r1 = rnd.step(np.zeros((3, 4)))
+    np.testing.assert_array_equal(r1["params"]["mass"], r0["params"]["mass"])
+    _, r2 = rnd.reset(seed=12)
+    _, _, _, _, r3 = rnd.step(np.zeros((3, 4)))
+    assert not np.array_equal(r3["params"]["mass"], r0["params"]["mass"])
+    np.testing.assert_array_equal(r3["params"]["mass"], r2["params"]["mass"])
+
+
 def test_single_env_bad_actions_rejected_state_unchanged(noisy_env):
     env = noisy_env
     good = np.full((3, 4), 0.1)

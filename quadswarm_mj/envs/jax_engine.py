@@ -390,11 +390,6 @@ def _init_arrays(state: dict[str, Any] | None, dtype: Any) -> dict[str, np.ndarr
     return {k: np.asarray(v, dtype) for k, v in state.items() if v is not None and not isinstance(v, str)}
 
 
-def _read_only(x: np.ndarray) -> np.ndarray:
-    x.setflags(write=False)
-    return x
-
-
 def _host_rows(x: jax.Array) -> list[np.ndarray]:
     """The host views of a batched array's device shards, in world order (read-only; CPU: no copy)."""
     shards = x.addressable_shards
@@ -416,7 +411,8 @@ class JaxSingleBackend:
         self._keys: KeyStream | None = None
         self._bufs: tuple | None = None
         self._last: dict[str, np.ndarray] | None = None
-        # the episode's constants, from the reset (read-only; steps do not return them)
+        # the episode's constants, from the reset (steps do not return them; each info gets copies, as
+        # Gymnasium's checker requires that no two calls return shared objects)
         self._params: dict[str, np.ndarray] = {}
         self._obstacles: np.ndarray | None = None
         self._renderer: Any = None
@@ -431,10 +427,11 @@ class JaxSingleBackend:
     def _info(self, v: dict[str, np.ndarray]) -> dict[str, Any]:
         info = {"state": {"pos": v["state/pos"], "vel": v["state/vel"], "rot": v["state/rot"],
                           "omega": v["state/omega"], "thrust": v["state/thrust"]},
-                "goals": v["goals"], "goal_vel": v["goal_vel"], "params": dict(self._params),
+                "goals": v["goals"], "goal_vel": v["goal_vel"],
+                "params": {k: x.copy() for k, x in self._params.items()},
                 "on_floor": v["on_floor"] > 0.5, "time": float(v["time"])}
         if self._obstacles is not None:
-            info["obstacles"] = self._obstacles
+            info["obstacles"] = self._obstacles.copy()
         return info
 
     def _split(self, out: jax.Array, layout: OutputLayout) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -452,9 +449,9 @@ class JaxSingleBackend:
         obs, v = self._split(out, self.prog.layout)
         if self._renderer is not None:
             self._renderer.reset()
-        # the dynamics parameters and the column map are fixed for the episode: kept from here, read-only
-        self._params = {k[len("params/"):]: _read_only(v[k].copy()) for k in self.prog.layout.params}
-        self._obstacles = _read_only(v["obstacles"][v["obstacles_valid"] > 0.5]) if "obstacles" in v else None
+        # the dynamics parameters and the column map are fixed for the episode: kept from here
+        self._params = {k[len("params/"):]: v[k].copy() for k in self.prog.layout.params}
+        self._obstacles = v["obstacles"][v["obstacles_valid"] > 0.5] if "obstacles" in v else None
         return obs, self._info(v)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict[str, Any]]:
