@@ -298,41 +298,6 @@ def _peer_tag(setup: dict[str, str], key: str) -> str:
     return f"peer ({setup.get(key, 'tuned')})"
 
 
-def crazyflow_best(worlds: int, n: int, steps: int, seconds: float, repeat: int,
-                   devices: int = 1) -> dict[str, float] | None:
-    """:func:`crazyflow_rates` at the better of two JAX set-ups, per figure: in this process (the XLA:CPU
-    options of ``quadswarm_mj.devices.tune_jax_cpu``, which the JAX engine's rows run with) and in a
-    fresh process with JAX's defaults (``QUADSWARM_MJ_TUNE_JAX=0``: asynchronous dispatch, XLA's loop
-    limits), so the peer is never measured below its own best. ``"setup"`` says which won each figure."""
-    here = crazyflow_rates(worlds, n, steps, seconds, repeat, devices=devices)
-    if here is None:
-        return None
-    call = f"crazyflow_rates({worlds}, {n}, {steps}, {seconds}, {repeat}, devices={devices})"
-    code = (f"import json; from quadswarm_mj.devices import use_cpu_cores; use_cpu_cores({devices}, strict=False); "
-            f"from quadswarm_mj.cli.benchmark import crazyflow_rates; print('RESULT', json.dumps({call}))")
-    flags = os.environ.get("XLA_FLAGS", "").replace(LOOP_KERNEL_FLAG, "").strip()  # the user's own flags only
-    env = {**os.environ, "QUADSWARM_MJ_TUNE_JAX": "0", "SCIPY_ARRAY_API": "1", "XLA_FLAGS": flags}
-    try:
-        res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=1800)
-        line = [x for x in res.stdout.splitlines() if x.startswith("RESULT ")]
-        default = json.loads(line[-1][len("RESULT "):]) if line else None
-    except (OSError, subprocess.SubprocessError, ValueError):
-        default = None
-    if not default:
-        return {**here, "setup": {k: "tuned" for k in here}}
-    best, setup = {}, {}
-    for k, v in here.items():
-        d = default.get(k)
-        if k == "compile_s":
-            best[k], setup[k] = v, "tuned"
-        elif d is not None and d > v:
-            best[k], setup[k] = d, "JAX defaults"
-        else:
-            best[k], setup[k] = v, "tuned"
-    best["setup"] = setup
-    return best
-
-
 def _fresh_process(code: str, env: dict[str, str]) -> Any:
     """The JSON after ``RESULT`` printed by ``python -c code`` in a fresh process (None on failure); the
     package is importable there as here (an installed wheel or this checkout)."""
@@ -347,6 +312,40 @@ def _fresh_process(code: str, env: dict[str, str]) -> Any:
         return json.loads(line[-1][len("RESULT "):]) if line else None
     except (OSError, subprocess.SubprocessError, ValueError):
         return None
+
+
+def _jax_defaults_env() -> dict[str, str]:
+    """Environment of a fresh process with JAX's own defaults (no ``tune_jax_cpu``; the user's XLA flags kept)."""
+    flags = os.environ.get("XLA_FLAGS", "").replace(LOOP_KERNEL_FLAG, "").strip()  # the user's own flags only
+    return {"QUADSWARM_MJ_TUNE_JAX": "0", "SCIPY_ARRAY_API": "1", "XLA_FLAGS": flags}
+
+
+def crazyflow_best(worlds: int, n: int, steps: int, seconds: float, repeat: int,
+                   devices: int = 1) -> dict[str, float] | None:
+    """:func:`crazyflow_rates` at the better of two JAX set-ups, per figure: in this process (the XLA:CPU
+    options of ``quadswarm_mj.devices.tune_jax_cpu``, which the JAX engine's rows run with) and in a
+    fresh process with JAX's defaults (``QUADSWARM_MJ_TUNE_JAX=0``: asynchronous dispatch, XLA's loop
+    limits), so the peer is never measured below its own best. ``"setup"`` says which won each figure."""
+    here = crazyflow_rates(worlds, n, steps, seconds, repeat, devices=devices)
+    if here is None:
+        return None
+    call = f"crazyflow_rates({worlds}, {n}, {steps}, {seconds}, {repeat}, devices={devices})"
+    code = (f"import json; from quadswarm_mj.devices import use_cpu_cores; use_cpu_cores({devices}, strict=False); "
+            f"from quadswarm_mj.cli.benchmark import crazyflow_rates; print('RESULT', json.dumps({call}))")
+    default = _fresh_process(code, _jax_defaults_env())
+    if not default:
+        return {**here, "setup": {k: "tuned" for k in here}}
+    best, setup = {}, {}
+    for k, v in here.items():
+        d = default.get(k)
+        if k == "compile_s":
+            best[k], setup[k] = v, "tuned"
+        elif d is not None and d > v:
+            best[k], setup[k] = d, "JAX defaults"
+        else:
+            best[k], setup[k] = v, "tuned"
+    best["setup"] = setup
+    return best
 
 
 def alternating_peer_ratio(worlds: int, devices: int, rounds: int, steps: int, repeat: int) -> dict[str, Any] | None:
@@ -370,8 +369,7 @@ def alternating_peer_ratio(worlds: int, devices: int, rounds: int, steps: int, r
                  f"use_cpu_cores({devices}, strict=False); from quadswarm_mj.cli.benchmark import crazyflow_rates; "
                  f"r = crazyflow_rates({worlds}, 8, {steps}, 1.0, {max(repeat, 3)}, devices={devices}, "
                  f"scan_only=True); print('RESULT', json.dumps(r and r.get('{key}')))")
-    flags = os.environ.get("XLA_FLAGS", "").replace(LOOP_KERNEL_FLAG, "").strip()  # the user's own flags only
-    defaults = {"QUADSWARM_MJ_TUNE_JAX": "0", "SCIPY_ARRAY_API": "1", "XLA_FLAGS": flags}
+    defaults = _jax_defaults_env()
     ours, peer, ratios = [], [], []
     for r in range(rounds):
         a = _fresh_process(ours_code, {})
