@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import functools
 import types
+import weakref
 from typing import Any
 
 import jax
@@ -488,6 +489,282 @@ class JaxSingleBackend:
 
 
 # ------------------------------------------------------------------------------- B worlds
+#: per-step outputs replaced by those of the fresh episodes after a renewal
+RENEWED = ("goals", "goal_vel", "on_floor", "time") + tuple(f"state/{k}" for k in STATE_KEYS)
+#: on CPU the JAX engine's vector env runs in worker processes (one core each) from this many worlds per
+#: worker (measured on 2 cores: 1024 worlds 1.04-1.24x the in-process engine, 256 worlds 0.86-1.36x)
+MIN_WORLDS_PER_WORKER = 256
+
+
+def _copy_rows(dst: np.ndarray, x: jax.Array) -> None:
+    """Copy a batched device array into the host array ``dst`` (converting dtype), each device's rows
+    read in place (no gather copy)."""
+    lo = 0
+    for part in _host_rows(x):
+        hi = lo + part.shape[0]
+        np.copyto(dst[lo:hi], part, casting="same_kind")
+        lo = hi
+
+
+class LocalWorlds:
+    """B worlds on this process's JAX devices, their outputs read into host arrays.
+
+    ``out`` arrays (given by the caller: fresh ones, or a worker's rows of the shared block):
+    ``obs`` (B, N, obs_dim) float32, ``final_obs`` (B, N, obs_dim) float32, ``rest`` (B, S) float64
+    (the per-step outputs of :attr:`_Program.step_layout`) and ``episode`` (B, E) float64 (the episode
+    constants of :attr:`_Program.episode_layout`)."""
+
+    def __init__(self, cfg: EnvConfig, num_worlds: int):
+        self.cfg, self.B = cfg, int(num_worlds)
+        self.prog = _program(cfg, self.B)
+        reuse_freed_memory()  # no page faults on the step's megabytes of fresh outputs (see there)
+        self.bufs: tuple | None = None
+        lay = self.prog.step_layout
+        self._done = lay.slices["done"].start
+        self._renewed = [lay.slices[k] for k in RENEWED]
+
+    def reset(self, keys: np.ndarray, mask: np.ndarray | None, state: dict[str, Any] | None,
+              out: dict[str, np.ndarray]) -> None:
+        """Reset every world (or those in ``mask``) from the key data ``keys`` (B, *key_shape) uint32;
+        writes ``obs``, ``rest`` and ``episode``."""
+        variant = _init_variant(state)
+        arrays = _init_arrays(state, self.prog.float)
+        if mask is None or self.bufs is None:
+            self.bufs, obs, rest, episode = self.prog.reset_fn(variant, masked=False)(keys, arrays)
+        else:
+            self.bufs, obs, rest, episode = self.prog.reset_fn(variant, masked=True)(self.bufs, keys, arrays,
+                                                                                     np.asarray(mask))
+        for name, x in (("obs", obs), ("rest", rest), ("episode", episode)):
+            _copy_rows(out[name], x)
+
+    def step(self, actions: np.ndarray, out: dict[str, np.ndarray]) -> bool:
+        """One control step; writes ``obs`` and ``rest``. Where an episode ended, also ``final_obs``
+        (the stepped observations), the fresh episodes' ``obs``, their :data:`RENEWED` columns of
+        ``rest`` and ``episode``; returns whether that happened (SAME_STEP auto-reset)."""
+        self.bufs, obs, rest = self.prog.step(self.bufs, actions.astype(self.prog.float, copy=False))
+        _copy_rows(out["rest"], rest)
+        if not (out["rest"][:, self._done] > 0.5).any():
+            _copy_rows(out["obs"], obs)
+            return False
+        _copy_rows(out["final_obs"], obs)
+        self.bufs, obs, rest, episode = self.prog.renew(self.bufs)
+        _copy_rows(out["obs"], obs)
+        _copy_rows(out["episode"], episode)
+        fresh = np.concatenate(_host_rows(rest))
+        for sl in self._renewed:
+            out["rest"][:, sl] = fresh[:, sl]
+        return True
+
+    def close(self) -> None:
+        self.bufs = None
+
+
+#: output blocks a worker-process vector env hands out before it falls back to copying (see WorkerWorlds)
+MAX_OUTPUT_BLOCKS = 8
+
+
+class WorkerShard:
+    """Worlds [lo, hi) of a worker process (the ``factory`` :func:`jax_shard`): a :class:`LocalWorlds`
+    on the worker's one CPU core, writing its rows of the shared arrays: ``obs`` and ``rest`` into the
+    output block the step names, the rest into the control block."""
+
+    def __init__(self, init: dict[str, Any], arrays: dict[str, np.ndarray]):
+        self.lo, self.hi = init["lo"], init["hi"]
+        self.index, self.out_layout = init["index"], init["out_layout"]
+        self.worlds = LocalWorlds(init["cfg"], self.hi - self.lo)
+        self.ctrl = {k: v[self.lo:self.hi] for k, v in arrays.items() if k != "renewed"}
+        self.renewed = arrays["renewed"]
+        self.blocks: dict[int, tuple[Any, dict[str, np.ndarray]]] = {}
+
+    def _out(self, block: int) -> dict[str, np.ndarray]:
+        rows = self.blocks[block][1]
+        return {"obs": rows["obs"], "rest": rows["rest"], "final_obs": self.ctrl["final_obs"],
+                "episode": self.ctrl["episode"]}
+
+    def step_into(self, block: int) -> None:
+        self.renewed[self.index] = self.worlds.step(self.ctrl["actions"], self._out(block))
+
+    def handle(self, msg: tuple) -> Any:
+        """("map", block, name), ("reset", keys, mask, state, block) or ("call", fn, *args) (a test
+        hook: fn(shard, *args))."""
+        from quadswarm_mj.envs.workers import SharedBlock, map_arrays
+
+        if msg[0] == "map":  # a new output block of the env
+            shm = SharedBlock(name=msg[2])
+            arrays = map_arrays(shm.buf, self.out_layout)
+            self.blocks[msg[1]] = (shm, {k: v[self.lo:self.hi] for k, v in arrays.items()})
+            return None
+        if msg[0] == "reset":
+            self.worlds.reset(msg[1], msg[2], msg[3], self._out(msg[4]))
+            return None
+        if msg[0] == "call":
+            return msg[1](self, *msg[2:])
+        raise ValueError(f"unknown command {msg[0]!r}")
+
+
+def jax_shard(init: dict[str, Any], arrays: dict[str, np.ndarray]) -> WorkerShard:
+    """A worker's JAX-engine shard (the ``factory`` of :func:`quadswarm_mj.envs.workers.worker_main`)."""
+    return WorkerShard(init, arrays)
+
+
+def worker_environ() -> dict[str, str | None]:
+    """The environment of a JAX-engine worker: JAX on CPU with ONE device (the parent's device count,
+    e.g. from :func:`quadswarm_mj.use_cpu_cores` or ``--xla_force_host_platform_device_count``, is
+    not inherited)."""
+    import os
+
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split()
+             if not f.startswith("--xla_force_host_platform_device_count")]
+    return {"JAX_PLATFORMS": "cpu", "JAX_NUM_CPU_DEVICES": "1", "XLA_FLAGS": " ".join(flags) or None}
+
+
+class WorkerWorlds:
+    """B worlds split over ``num_workers`` worker processes, each a single-device JAX program pinned
+    to one CPU core (worker k to the k-th core this process may run on, cyclically).
+
+    Why: on CPU one program per core in its own process measured ~1.8x the same worlds as one program
+    sharded over the cores' devices in one process (1024 x 8 in a loop: ~4 ms against ~7.4 ms per
+    step, BENCHMARKS.md): a lone call of a sharded XLA:CPU program starts its second device's work
+    late and shares the cores' threads.
+
+    Transport (:mod:`quadswarm_mj.envs.workers`): a control block (actions, final observations,
+    episode constants, flags) and output blocks of shared memory. Each step's observations and
+    per-step outputs are written by the workers straight into an output block that nothing refers
+    to any more, and the env returns views of it: no copy in this process. A block is free again when
+    every array viewing it is gone (``weakref.finalize`` on the step's carrier array); at most
+    :data:`MAX_OUTPUT_BLOCKS` exist, and if a caller keeps all of them alive the step goes through a
+    scratch block and is copied out."""
+
+    def __init__(self, cfg: EnvConfig, num_worlds: int, num_workers: int):
+        import os
+
+        from quadswarm_mj.envs.workers import Resources, Worker, WorkerError, layout_bytes, map_arrays
+
+        self.cfg, self.B, self.n = cfg, int(num_worlds), int(num_workers)
+        prog = _program(cfg, self.B)  # layouts only (traced, not compiled, in this process)
+        N, D = cfg.num_quads, cfg.obs_dim
+        self.layout = [("actions", (self.B, N, 4), np.float32), ("final_obs", (self.B, N, D), np.float32),
+                       ("episode", (self.B, prog.episode_layout.size), np.float64), ("renewed", (self.n,), np.bool_)]
+        self.out_layout = [("obs", (self.B, N, D), np.float32), ("rest", (self.B, prog.step_layout.size), np.float64)]
+        self._out_bytes = layout_bytes(self.out_layout)
+        edges = np.linspace(0, self.B, self.n + 1).round().astype(int)
+        self.bounds = [(int(edges[k]), int(edges[k + 1])) for k in range(self.n)]
+        cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else [None]
+        self.res = res = Resources()
+        self.blocks: list[Any] = []  # output blocks; 0 is the scratch block (copied out, never handed out)
+        self.free: list[bool] = []
+        try:
+            self.a = map_arrays(res.create_block(layout_bytes(self.layout)).buf, self.layout)
+            env = worker_environ()
+            for k, (lo, hi) in enumerate(self.bounds):
+                init = {"factory": "quadswarm_mj.envs.jax_engine:jax_shard", "shm": res.shm.name,
+                        "layout": self.layout, "out_layout": self.out_layout, "cfg": cfg, "lo": lo, "hi": hi,
+                        "index": k, "cpu": cores[k % len(cores)]}
+                res.workers.append(Worker(k, lo, hi, init, environ=env))
+            error = None
+            for w in res.workers:  # read every reply, then raise the first error
+                try:
+                    w.result("start")
+                except WorkerError as e:
+                    error = error or e
+            if error is not None:
+                raise error
+            res.unlink()  # every worker has mapped the block: its name can go
+            self._new_block()  # the scratch block
+        except BaseException:
+            self.close()
+            raise
+
+    def _run(self, what: str, msg_for: Any) -> None:
+        from quadswarm_mj.envs.workers import run_on_workers
+
+        run_on_workers(self.res.workers, what, msg_for, self.n)
+
+    def _new_block(self) -> int:
+        from quadswarm_mj.envs.workers import SharedBlock
+
+        block = SharedBlock(create=True, size=self._out_bytes)
+        try:
+            k = len(self.blocks)
+            self._run("map", lambda _: ("map", k, block.name))
+        finally:
+            block.unlink()  # mapped by every worker (or failed): the name can go
+        self.blocks.append(block)
+        self.free.append(k != 0)
+        return k
+
+    def _acquire(self) -> int:
+        """A free output block (a new one while fewer than MAX_OUTPUT_BLOCKS exist), else 0 (scratch)."""
+        for k in range(1, len(self.blocks)):
+            if self.free[k]:
+                return k
+        if len(self.blocks) <= MAX_OUTPUT_BLOCKS:
+            return self._new_block()
+        return 0
+
+    def _outputs(self, k: int) -> dict[str, np.ndarray]:
+        """``obs`` and ``rest`` of block k as new arrays (scratch) or views that free the block when gone."""
+        from quadswarm_mj.envs.workers import map_arrays
+
+        carrier = np.frombuffer(self.blocks[k].buf, np.uint8, count=self._out_bytes)
+        out = map_arrays(carrier, self.out_layout)
+        if k == 0:
+            return {name: x.copy() for name, x in out.items()}
+        self.free[k] = False
+        weakref.finalize(carrier, self.free.__setitem__, k, True)
+        return out
+
+    def _episode_outputs(self, out: dict[str, np.ndarray], renewed: np.ndarray | None) -> dict[str, np.ndarray]:
+        a = self.a
+        out["episode"] = a["episode"].copy()
+        if renewed is not None:
+            final = a["final_obs"].copy()
+            for k, (lo, hi) in enumerate(self.bounds):  # no episode ended there: stepped = current observation
+                if not renewed[k]:
+                    final[lo:hi] = out["obs"][lo:hi]
+            out["final_obs"] = final
+        return out
+
+    def reset(self, keys: np.ndarray, mask: np.ndarray | None, state: dict[str, Any] | None
+              ) -> dict[str, np.ndarray]:
+        """Reset every world (or those in ``mask``); returns ``obs``, ``rest`` and ``episode``."""
+        def rows(x: Any, k: int) -> Any:
+            lo, hi = self.bounds[k]
+            return None if x is None else x[lo:hi]
+
+        block = self._acquire()
+
+        def msg(k: int) -> tuple:
+            sub = None if state is None else {key: (v if isinstance(v, str) or v is None else rows(v, k))
+                                              for key, v in state.items()}
+            return ("reset", rows(keys, k), rows(mask, k), sub, block)
+
+        self._run("reset", msg)
+        return self._episode_outputs(self._outputs(block), None)
+
+    def step(self, actions: np.ndarray) -> tuple[dict[str, np.ndarray], bool]:
+        """Step every worker: (``obs`` and ``rest``, with ``final_obs`` and ``episode`` if an episode
+        ended anywhere; every world's stepped observation in ``final_obs``), and whether one ended."""
+        from quadswarm_mj.envs.workers import STEP_INTO
+
+        a = self.a
+        np.copyto(a["actions"], actions, casting="same_kind")
+        block = self._acquire()
+        msg = STEP_INTO + block.to_bytes(2, "little")
+        self._run("step", lambda _: msg)
+        out = self._outputs(block)
+        renewed = a["renewed"]
+        if not renewed.any():
+            return out, False
+        return self._episode_outputs(out, renewed.copy()), True
+
+    def close(self) -> None:
+        self.res.release()
+        for block in self.blocks:
+            block.close()
+        self.blocks, self.free = [], []
+
+
 class JaxVectorBackend:
     """B worlds on the JAX engine with ``QuadSwarmVectorEnv``'s outputs (NumPy in and out,
     SAME_STEP auto-reset, ``final_obs`` and ``episode_metrics`` with masks).
@@ -497,42 +774,54 @@ class JaxVectorBackend:
     observation, state, goals, time, floor flags and episode constants are then returned, with the
     step's rewards, reward terms, new collisions, done flags and episode metrics (as the MuJoCo
     engine's vector env). The episode constants (parameters, column map) are read only after resets
-    and renewals and kept on the host."""
+    and renewals and kept on the host.
 
-    #: per-step outputs replaced by those of the fresh episodes after a renewal
-    RENEWED = ("goals", "goal_vel", "on_floor", "time") + tuple(f"state/{k}" for k in STATE_KEYS)
+    ``num_workers`` 0: the worlds run in this process (sharded over its devices); k >= 1: in k worker
+    processes (:class:`WorkerWorlds`). Either way every returned array is the caller's: no later
+    call writes into it (``copy`` does not apply). The reset keys are drawn here for all B worlds, so
+    a seed gives the same worlds whatever the split (bit-identical where each part's worlds x quads
+    is a multiple of 16, see the module doc)."""
+
+    RENEWED = RENEWED
 
     def __init__(self, cfg: EnvConfig, num_envs: int, info_keys: tuple[str, ...] = VECTOR_INFO_KEYS,
-                 copy: bool = True):
+                 copy: bool = True, num_workers: int = 0):
         self.cfg, self.B = cfg, int(num_envs)
         self.info_keys, self.copy = tuple(info_keys), bool(copy)
+        self.num_workers = int(num_workers)
         self.prog = _program(cfg, self.B)
-        reuse_freed_memory()  # no page faults on the step's megabytes of fresh outputs (see there)
         self._keys: KeyStream | None = None
-        self._bufs: tuple | None = None
         self._v: dict[str, np.ndarray] | None = None
         self._episode: dict[str, np.ndarray] = {}
+        self._worlds: LocalWorlds | WorkerWorlds | None = None
+        self.start()
+
+    def start(self) -> None:
+        """(Re)build the worlds (their state is gone: reset every world next)."""
+        self.close()
+        self._worlds = (WorkerWorlds(self.cfg, self.B, self.num_workers) if self.num_workers
+                        else LocalWorlds(self.cfg, self.B))
 
     def seed(self, seed: int) -> None:
         self._keys = KeyStream(seed)
 
-    def _host(self, x: jax.Array, dtype: Any = None) -> np.ndarray:
-        """One host array of a batched device array: each device's rows read in place (no gather
-        copy) and copied once into a new array (converted to ``dtype`` on the way)."""
-        parts = _host_rows(x)
-        return np.concatenate(parts, dtype=dtype) if len(parts) > 1 else np.array(parts[0], dtype=dtype)
+    def _new_outputs(self) -> dict[str, np.ndarray]:
+        N, D = self.cfg.num_quads, self.cfg.obs_dim
+        return {"obs": np.empty((self.B, N, D), np.float32), "final_obs": np.empty((self.B, N, D), np.float32),
+                "rest": np.empty((self.B, self.prog.step_layout.size)),
+                "episode": np.empty((self.B, self.prog.episode_layout.size))}
 
-    def _read(self, obs: jax.Array, rest: jax.Array, episode: jax.Array | None = None
-              ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """(obs (B, N, obs_dim) float32, float64 views of the per-step outputs); updates the episode
-        constants from ``episode``."""
-        v = self.prog.step_layout.views64(self._host(rest, np.float64), (self.B,))
-        if episode is not None:  # new read-only arrays at every reset and renewal, shared by the infos until then
-            ep = self.prog.episode_layout.views64(self._host(episode, np.float64), (self.B,))
+    def _read(self, out: dict[str, np.ndarray], episode: bool, final: bool = False
+              ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None]:
+        """(obs (B, N, obs_dim) float32, float64 views of the per-step outputs, final_obs or None)
+        from arrays no one else writes; updates the episode constants with ``episode``."""
+        v = self.prog.step_layout.views64(out["rest"], (self.B,))
+        if episode:  # new read-only arrays at every reset and renewal, shared by the infos until then
+            ep = self.prog.episode_layout.views64(out["episode"], (self.B,))
             for x in ep.values():
                 x.flags.writeable = False
             self._episode = ep
-        return self._host(obs), v
+        return out["obs"], v, (out["final_obs"] if final else None)
 
     def _info(self, v: dict[str, np.ndarray], step: bool) -> dict[str, Any]:
         keys, out, ep = self.info_keys, {}, self._episode
@@ -561,26 +850,25 @@ class JaxVectorBackend:
         """Reset every world, or those in ``mask`` (B,) bool (the first reset must reset all)."""
         if self._keys is None:
             raise RuntimeError("seed() before reset()")
-        variant = _init_variant(state)
-        arrays = _init_arrays(state, self.prog.float)
         keys = self._keys.draw((self.B,))
-        if mask is None or self._bufs is None:
-            self._bufs, *out = self.prog.reset_fn(variant, masked=False)(keys, arrays)
+        w = self._worlds
+        if isinstance(w, WorkerWorlds):
+            out = w.reset(keys, mask, state)
         else:
-            self._bufs, *out = self.prog.reset_fn(variant, masked=True)(self._bufs, keys, arrays, np.asarray(mask))
-        obs, self._v = self._read(*out)
+            out = self._new_outputs()
+            w.reset(keys, mask, state, out)
+        obs, self._v, _ = self._read(out, episode=True)
         return obs, self._info(self._v, step=False)
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        self._bufs, obs, rest = self.prog.step(self._bufs, actions.astype(self.prog.float))
-        obs, v = self._read(obs, rest)
+        w = self._worlds
+        if isinstance(w, WorkerWorlds):
+            out, renewed = w.step(actions)
+        else:
+            out = self._new_outputs()
+            renewed = w.step(actions, out)
+        obs, v, final_obs = self._read(out, episode=renewed, final=renewed)
         done = v["done"] > 0.5
-        final_obs = None
-        if done.any():  # SAME_STEP auto-reset: the finished worlds' fresh episodes
-            final_obs = obs
-            self._bufs, *out = self.prog.renew(self._bufs)
-            obs, fresh = self._read(*out)
-            v.update({k: fresh[k] for k in self.RENEWED})
         self._v = v
         info = self._info(v, step=True)
         if final_obs is not None:
@@ -598,4 +886,6 @@ class JaxVectorBackend:
         return {k: self._v["metrics"][:, i].copy() for i, k in enumerate(metric_keys(self.cfg))}
 
     def close(self) -> None:
-        self._bufs = None
+        if self._worlds is not None:
+            self._worlds.close()
+            self._worlds = None

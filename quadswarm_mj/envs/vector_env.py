@@ -62,28 +62,26 @@ draws from its shard's generator (randomization, scenario, spawn, noise), so one
 world. Results depend on (seed, num_envs, num_shards, chunk_worlds); ``num_shards`` defaults to 2
 (1 for fewer than 16 worlds) whatever the machine, so seeded runs are reproducible anywhere.
 
-``engine="jax"`` runs the B worlds instead as one jitted, vmapped MJX step
-(:class:`quadswarm_mj.envs.jax_engine.JaxVectorBackend`, in this process; ``num_shards``, ``backend``
-and ``chunk_worlds`` do not apply), with the same spaces, info, auto-reset and reset options. Its
-arrays are new every step (``copy`` does not apply), except ``info["params"]``: read-only arrays,
-new after every reset and episode end and shared by the infos in between (they do not change
-within an episode).
+``engine="jax"`` runs the B worlds instead as jitted, vmapped MJX steps
+(:class:`quadswarm_mj.envs.jax_engine.JaxVectorBackend`; ``backend`` and ``chunk_worlds`` do not
+apply), with the same spaces, info, auto-reset and reset options. ``num_shards`` 1 runs them in this
+process (sharded over its JAX devices); k >= 2 in k worker processes, each a single-device JAX
+program pinned to one CPU core (:class:`~quadswarm_mj.envs.jax_engine.WorkerWorlds`, ~1.1x at 1024
+worlds on 2 cores, BENCHMARKS.md). The default is one worker per core on a CPU backend when every
+worker gets at least ``jax_engine.MIN_WORLDS_PER_WORKER`` (256) worlds, else 1. The reset keys are
+drawn in this process for every world, so a seed gives the same worlds whatever ``num_shards`` (bit
+for bit at 8 quads and an even number of worlds per part). Its arrays are the caller's: no later
+call writes into them (``copy`` does not apply; with workers they are views of shared output blocks,
+reused only once every array viewing them is gone), except ``info["params"]``: read-only arrays, new
+after every reset and episode end and shared by the infos in between (they do not change within an
+episode).
 """
 
 from __future__ import annotations
 
-import multiprocessing
 import os
-import pickle
-import signal
-import sys
-import threading
-import time
-import traceback
 import weakref
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
-from multiprocessing import shared_memory
+from collections.abc import Callable
 from typing import Any
 
 import gymnasium as gym
@@ -95,6 +93,7 @@ from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.control_modes import action_box_bounds
 from quadswarm_mj.envs.cpu_core import CpuSwarm
 from quadswarm_mj.envs.validation import check_action, check_engine, check_obstacles, check_state
+from quadswarm_mj.envs.workers import STEP, Resources, Worker, WorkerError, layout_bytes, map_arrays, run_on_workers
 from quadswarm_mj.metrics import metric_keys
 from quadswarm_mj.observations import obs_bounds
 from quadswarm_mj.rewards import env_terms
@@ -111,10 +110,6 @@ def param_fields(cfg: EnvConfig) -> dict[str, tuple[int, ...]]:
     """The per-quad parameters of ``info["params"]`` (name -> per-quad shape) for ``cfg``."""
     return {**PARAM_FIELDS, **AERO_PARAM_FIELDS} if cfg.aero.any else PARAM_FIELDS
 MIN_WORLDS_PER_SHARD = 8
-STEP, DONE = b"s", b"k"  # the step message and its reply (a pickled message never equals them)
-WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}  # defaults for workers (one core each)
-PARENT_CHECK_S = 1.0  # how often a worker checks that its parent process still exists (s)
-JOIN_TIMEOUT_S = 5.0  # how long close() waits for a worker to exit before terminating it (s)
 
 
 def _layout(cfg: EnvConfig, B: int) -> list[tuple[str, tuple[int, ...], Any]]:
@@ -132,19 +127,6 @@ def _layout(cfg: EnvConfig, B: int) -> list[tuple[str, tuple[int, ...], Any]]:
     if cfg.obstacles is not None:  # column centres (B, M_max, 2), NaN in unused slots
         out.append(("obstacles", (B, cfg.obstacles.slots, 2), np.float64))
     return out
-
-
-def _map_arrays(buf: Any, layout: list) -> dict[str, np.ndarray]:
-    arrays, off = {}, 0
-    for name, shape, dtype in layout:
-        n = int(np.prod(shape)) * np.dtype(dtype).itemsize
-        arrays[name] = np.ndarray(shape, dtype=dtype, buffer=buf, offset=off)
-        off += -(-n // 64) * 64  # 64-byte aligned
-    return arrays
-
-
-def _layout_bytes(layout: list) -> int:
-    return sum(-(-int(np.prod(s)) * np.dtype(d).itemsize // 64) * 64 for _, s, d in layout)
 
 
 class _Shard:
@@ -240,216 +222,24 @@ class _Shard:
         return None
 
 
-# ---------------------------------------------------------------------------------------- workers
-class WorkerError(RuntimeError):
-    """A vector-env worker failed: raised an exception (``traceback`` holds its text) or died."""
+def _default_jax_shards(B: int) -> int:
+    """The JAX engine's default split: on CPU one worker process per core this process may run on,
+    with at least ``MIN_WORLDS_PER_WORKER`` worlds each; 1 (this process) otherwise or on accelerators."""
+    import jax
 
-    def __init__(self, message: str, worker: int, traceback_text: str | None = None):
-        super().__init__(message)
-        self.worker, self.traceback = worker, traceback_text
+    from quadswarm_mj.envs.jax_engine import MIN_WORLDS_PER_WORKER
 
-
-class _SharedMemory(shared_memory.SharedMemory):
-    """A ``SharedMemory`` block that NumPy views may outlive: ``close()`` cannot unmap while views
-    exist (BufferError); the mapping then goes with the last view and only the descriptor is closed."""
-
-    def close(self) -> None:
-        try:
-            super().close()
-        except BufferError:
-            fd = getattr(self, "_fd", -1)
-            if fd >= 0:
-                os.close(fd)
-                self._fd = -1
+    if jax.default_backend() != "cpu":
+        return 1
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    k = min(cores, B // MIN_WORLDS_PER_WORKER)
+    return k if k >= 2 else 1
 
 
-def _exit_with_parent(parent_pid: int) -> None:
-    """Watchdog thread of a worker: end the process once its parent is gone."""
-    while os.getppid() == parent_pid:
-        time.sleep(PARENT_CHECK_S)
-    os._exit(1)
-
-
-def _error_reply(e: BaseException) -> tuple:
-    return ("error", type(e).__name__, str(e), traceback.format_exc())
-
-
-def _worker_main(conn: Any, init: dict[str, Any], parent_pid: int) -> None:
-    """A worker process: map the shared arrays, build the shard, serve messages until the pipe closes.
-
-    ``STEP`` steps the shard and answers ``DONE``; a pickled command tuple is answered with
-    ``("ok", value)``; any exception is answered with ``("error", type, message, traceback)``."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is for the parent, which then ends us
-    threading.Thread(target=_exit_with_parent, args=(parent_pid,), name="parent-watchdog", daemon=True).start()
-    try:
-        shm = _SharedMemory(name=init["shm"])
-        arrays = _map_arrays(shm.buf, init["layout"])
-        shard = _Shard(init["cfg"], init["lo"], init["hi"], arrays, init["info_keys"], init["backend"],
-                       init["chunk_worlds"])
-        reply: tuple = ("ok", None)
-    except Exception as e:  # noqa: BLE001 - reported to the parent, which raises it
-        reply = _error_reply(e)
-    try:
-        conn.send(reply)
-        if reply[0] != "ok":
-            return
-        while True:
-            msg = conn.recv_bytes()
-            try:
-                if msg == STEP:
-                    shard.step()
-                    reply = None
-                else:
-                    reply = ("ok", shard.handle(pickle.loads(msg)))
-            except Exception as e:  # noqa: BLE001 - reported to the parent, which raises it
-                reply = _error_reply(e)
-            if reply is None:
-                conn.send_bytes(DONE)
-                continue
-            try:
-                conn.send(reply)
-            except (EOFError, OSError):
-                raise
-            except Exception as e:  # noqa: BLE001 - e.g. a result that does not pickle (nothing was sent)
-                conn.send(_error_reply(e))
-    except (EOFError, OSError):  # the env closed its end (close(), garbage collection, its process died)
-        return
-
-
-@contextmanager
-def _worker_environ() -> Iterator[None]:
-    """``WORKER_ENV`` defaults in ``os.environ`` while a worker is spawned (it inherits them)."""
-    added = [k for k in WORKER_ENV if k not in os.environ]
-    for k in added:
-        os.environ[k] = WORKER_ENV[k]
-    try:
-        yield
-    finally:
-        for k in added:
-            os.environ.pop(k, None)
-
-
-@contextmanager
-def _main_module_hidden() -> Iterator[None]:
-    """Hide ``__main__``'s file and spec while a worker is spawned, so the worker does not import the
-    user's script (the "spawn" start method re-imports it by default, which would run a script's
-    top-level code, env creation included, in every worker). The worker's target and arguments live
-    in quadswarm_mj, so it never needs the main module; scripts need no ``__main__`` guard."""
-    main = sys.modules.get("__main__")
-    saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if main is not None and k in main.__dict__}
-    try:
-        if main is not None:
-            main.__dict__.pop("__file__", None)
-            main.__dict__["__spec__"] = None
-        yield
-    finally:
-        if main is not None:
-            main.__dict__.pop("__spec__", None)
-            main.__dict__.update(saved)
-
-
-class _Worker:
-    """Parent-side handle of the worker process running shard ``index`` (worlds [lo, hi))."""
-
-    def __init__(self, index: int, lo: int, hi: int, init: dict[str, Any]):
-        ctx = multiprocessing.get_context("spawn")
-        self.index, self.lo, self.hi = index, lo, hi
-        self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_worker_main, args=(child, init, os.getpid()), daemon=True,
-                                name=f"quadswarm-vector-worker-{index}")
-        try:
-            with _worker_environ(), _main_module_hidden():
-                self.proc.start()
-        finally:
-            child.close()  # only the worker holds its end now: its death closes the pipe
-
-    def describe(self) -> str:
-        return f"vector env worker {self.index} (worlds [{self.lo}, {self.hi}), pid {self.proc.pid})"
-
-    def send(self, msg: Any, what: str) -> None:
-        """Send ``STEP`` or a command tuple; a dead worker raises WorkerError."""
-        try:
-            if msg == STEP:
-                self.conn.send_bytes(STEP)
-            else:
-                self.conn.send(msg)
-        except OSError:
-            raise self._died(what) from None
-
-    def result(self, what: str) -> Any:
-        """Wait for the reply to the last message; a failure raises WorkerError."""
-        try:
-            buf = self.conn.recv_bytes()
-        except (EOFError, OSError):
-            raise self._died(what) from None
-        if buf == DONE:
-            return None
-        status, *rest = pickle.loads(buf)
-        if status == "ok":
-            return rest[0]
-        name, text, tb = rest
-        raise WorkerError(f"{self.describe()} raised {name} during {what}: {text}\n\nWorker traceback:\n{tb}",
-                          self.index, tb)
-
-    def _died(self, what: str) -> WorkerError:
-        self.proc.join(timeout=2.0)
-        code = self.proc.exitcode
-        if code is None:
-            how = "closed its pipe"
-        elif code < 0:
-            try:
-                how = f"was killed by signal {signal.Signals(-code).name}"
-            except ValueError:
-                how = f"was killed by signal {-code}"
-        else:
-            how = f"exited with code {code}"
-        msg = f"{self.describe()} {how} during {what}"
-        if what == "start":
-            msg += " (its output above tells why)"
-        return WorkerError(msg, self.index)
-
-    def stop(self) -> None:
-        """Close the pipe (the worker exits); ``join`` then waits for it."""
-        self.conn.close()
-
-    def join(self) -> None:
-        self.proc.join(timeout=JOIN_TIMEOUT_S)
-        if self.proc.exitcode is None:
-            self.proc.terminate()
-            self.proc.join(timeout=1.0)
-        if self.proc.exitcode is None:
-            self.proc.kill()
-            self.proc.join()
-
-
-class _Resources:
-    """The env's worker processes and shared-memory block (released by ``release``, also at GC)."""
-
-    def __init__(self) -> None:
-        self.workers: list[_Worker] = []
-        self.shm: _SharedMemory | None = None
-        self.linked = False  # the block still has its name in /dev/shm
-
-    def create_block(self, size: int) -> _SharedMemory:
-        self.shm, self.linked = _SharedMemory(create=True, size=size), True
-        return self.shm
-
-    def unlink(self) -> None:
-        """Remove the block's name (the mappings stay); done once every worker has mapped it."""
-        if self.shm is not None and self.linked:
-            self.linked = False
-            self.shm.unlink()
-
-    def release(self) -> None:
-        for w in self.workers:
-            w.stop()
-        for w in self.workers:
-            w.join()
-        self.workers.clear()
-        if self.shm is not None:
-            self.unlink()
-            self.shm.close()
-            self.shm = None
+def mujoco_shard(init: dict[str, Any], arrays: dict[str, np.ndarray]) -> _Shard:
+    """A worker's MuJoCo-engine shard (the ``factory`` of :func:`quadswarm_mj.envs.workers.worker_main`)."""
+    return _Shard(init["cfg"], init["lo"], init["hi"], arrays, init["info_keys"], init["backend"],
+                  init["chunk_worlds"])
 
 
 # ------------------------------------------------------------------------------------ the env
@@ -459,7 +249,8 @@ class QuadSwarmVectorEnv(VectorEnv):
     Args:
         cfg: the world config (keyword overrides as in ``QuadSwarmEnv``).
         num_envs: B, the number of worlds.
-        num_shards: processes sharing the worlds (default 2, or 1 below 16 worlds).
+        num_shards: processes sharing the worlds (default 2, or 1 below 16 worlds; engine "jax": see
+            the module doc).
         info_keys: which per-step ``info`` entries to fill (default: all of ``INFO_KEYS``); fewer
             keys make steps cheaper. Episode metrics and ``final_obs`` are always reported.
         copy: return copies (default) or read-only views of the shared arrays, valid until the next
@@ -467,7 +258,8 @@ class QuadSwarmVectorEnv(VectorEnv):
         backend, chunk_worlds: the shards' physics (``CpuSwarm``): "mjdata" (one MjData per shard,
             used up to ``chunk_worlds`` worlds) or "batch" (``mujoco.batch`` of ``chunk_worlds``-world
             models); "auto" picks.
-        engine: "mujoco" (default: CPU MuJoCo shards as above) or "jax" (MJX, all worlds in one jitted call).
+        engine: "mujoco" (default: CPU MuJoCo shards as above) or "jax" (MJX: jitted calls in this process
+            or, on CPU with many worlds, in one worker process per core).
 
     Workers are spawned processes that never import the user's script (no ``__main__`` guard
     needed). A failed worker raises :class:`WorkerError`; the env then needs ``reset()``.
@@ -486,10 +278,13 @@ class QuadSwarmVectorEnv(VectorEnv):
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be an int >= 1, got {num_envs!r}")
         B = self.num_envs = int(num_envs)
-        if num_shards is None:
-            num_shards = 2 if B >= 2 * MIN_WORLDS_PER_SHARD else 1
-        if not isinstance(num_shards, (int, np.integer)) or not 1 <= num_shards <= B:
+        if num_shards is not None and (not isinstance(num_shards, (int, np.integer)) or isinstance(num_shards, bool)
+                                       or not 1 <= num_shards <= B):
             raise ValueError(f"num_shards must be an int in [1, num_envs={B}], got {num_shards!r}")
+        if num_shards is None and self.engine == "jax":
+            num_shards = _default_jax_shards(B)
+        elif num_shards is None:
+            num_shards = 2 if B >= 2 * MIN_WORLDS_PER_SHARD else 1
         info_keys = INFO_KEYS if info_keys is None else tuple(info_keys)
         unknown = set(info_keys) - set(INFO_KEYS)
         if unknown:
@@ -516,17 +311,17 @@ class QuadSwarmVectorEnv(VectorEnv):
         if self.engine == "jax":
             from quadswarm_mj.envs.jax_engine import JaxVectorBackend
 
-            self._jax = JaxVectorBackend(self.cfg, B, info_keys=info_keys, copy=copy)
+            self._jax = JaxVectorBackend(self.cfg, B, info_keys=info_keys, copy=copy,
+                                         num_workers=0 if self.num_shards == 1 else self.num_shards)
             self._failure = None
             self._needs_reset, self._seeded, self.closed = True, False, False
-            self._res = _Resources()
-            self._finalizer = weakref.finalize(self, self._res.release)
+            self._finalizer = weakref.finalize(self, self._jax.close)
             return
         # shards: worlds [lo, hi) each; shard 0 here, the others in workers
         self._layout = _layout(self.cfg, B)
         bounds = np.linspace(0, B, self.num_shards + 1).round().astype(int)
         self._bounds = [(int(bounds[k]), int(bounds[k + 1])) for k in range(self.num_shards)]
-        self._res = _Resources()
+        self._res = Resources()
         self._finalizer = weakref.finalize(self, self._res.release)
         self.closed = False
         self._build()
@@ -534,13 +329,13 @@ class QuadSwarmVectorEnv(VectorEnv):
     # ------------------------------------------------------------------ plumbing
     def _build(self) -> None:
         """Create the shared arrays, start the workers and build shard 0 (also after a failure)."""
-        res, size = self._res, _layout_bytes(self._layout)
+        res, size = self._res, layout_bytes(self._layout)
         self._failure: BaseException | None = None
         self._needs_reset, self._seeded = True, False
         if self.num_shards == 1:
-            self._a = _map_arrays(bytearray(size), self._layout)
+            self._a = map_arrays(bytearray(size), self._layout)
         else:
-            self._a = _map_arrays(res.create_block(size).buf, self._layout)
+            self._a = map_arrays(res.create_block(size).buf, self._layout)
 
         def backend_for(n: int) -> str:
             if self._backend != "auto":
@@ -549,10 +344,11 @@ class QuadSwarmVectorEnv(VectorEnv):
 
         try:
             for k, (lo, hi) in enumerate(self._bounds[1:], start=1):  # workers build while shard 0 does
-                init = {"shm": res.shm.name if res.shm else None, "layout": self._layout, "cfg": self.cfg,
+                init = {"factory": mujoco_shard, "shm": res.shm.name if res.shm else None, "layout": self._layout,
+                        "cfg": self.cfg,
                         "lo": lo, "hi": hi, "info_keys": self.info_keys, "backend": backend_for(hi - lo),
                         "chunk_worlds": self._chunk_worlds}
-                res.workers.append(_Worker(k, lo, hi, init))
+                res.workers.append(Worker(k, lo, hi, init))
             lo, hi = self._bounds[0]
             self._shard = _Shard(self.cfg, lo, hi, self._a, self.info_keys, backend_for(hi - lo), self._chunk_worlds)
             error = None
@@ -573,25 +369,17 @@ class QuadSwarmVectorEnv(VectorEnv):
         """Run a message on every shard (``msg_for(k)`` gives shard k's): send it to the workers, run
         shard 0 here, then read every reply. Any failure marks the env as failed and raises."""
         try:
-            sent, error = [], None
-            for w in self._res.workers:
-                try:
-                    w.send(msg_for(w.index), what)
-                    sent.append(w)
-                except WorkerError as e:
-                    error = error or e
-            out: list[Any] = [None] * self.num_shards
-            try:
-                out[0] = self._shard.run(msg_for(0))
-            finally:  # read every reply, so the pipes stay in step
-                for w in sent:
-                    try:
-                        out[w.index] = w.result(what)
-                    except WorkerError as e:
-                        error = error or e
-            if error is not None:
-                raise error
-            return out
+            return run_on_workers(self._res.workers, what, msg_for, self.num_shards,
+                                  local=lambda: self._shard.run(msg_for(0)))
+        except BaseException as e:
+            self._failure, self._needs_reset = e, True
+            raise
+
+    def _call_jax(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """A JAX-engine call; any failure (a worker's, or an interrupt in the middle) marks the env as
+        failed: the next ``reset()`` rebuilds the worlds."""
+        try:
+            return fn(*args)
         except BaseException as e:
             self._failure, self._needs_reset = e, True
             raise
@@ -681,12 +469,15 @@ class QuadSwarmVectorEnv(VectorEnv):
         if self._failure is not None and self._jax is None:  # rebuild the workers and shard 0
             self._res.release()
             self._build()
+        elif self._failure is not None:  # the JAX engine's worlds (and workers) afresh
+            self._jax.start()
+            self._failure, self._seeded = None, False
         super().reset(seed=None if seed is None else int(seed))
         if self._jax is not None:
             if seed is not None or not self._seeded:
                 self._jax.seed(int(seed) if seed is not None else int(self.np_random.integers(2**63 - 1)))
                 self._seeded = True
-            obs, info = self._jax.reset(mask, state)
+            obs, info = self._call_jax(self._jax.reset, mask, state)
             self._needs_reset = False
             return obs, info
         if seed is not None or not self._seeded:
@@ -711,7 +502,7 @@ class QuadSwarmVectorEnv(VectorEnv):
             raise RuntimeError("call reset() before step()")
         a = check_action(actions, self.action_space.shape)
         if self._jax is not None:
-            return self._jax.step(a)
+            return self._call_jax(self._jax.step, a)
         self._a["actions"][...] = a
         self._run("step", lambda k: STEP)
         A = self._a

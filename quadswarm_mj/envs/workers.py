@@ -1,0 +1,309 @@
+"""Worker processes for the vector envs: spawned interpreters that each run one shard of worlds,
+commanded through a ``Pipe`` and sharing their arrays through one ``multiprocessing.shared_memory``
+block (see :mod:`quadswarm_mj.envs.vector_env` for the protocol and the lifetime rules).
+
+A worker builds its shard with ``init["factory"](init, arrays)`` (a module-level function, pickled by
+reference): :func:`quadswarm_mj.envs.vector_env.mujoco_shard` for the MuJoCo engine,
+:func:`quadswarm_mj.envs.jax_engine.jax_shard` for the JAX engine. A shard has ``step()`` (the
+one-byte ``STEP`` message), ``handle(command_tuple)`` (the rare commands) and, if it writes into one
+of several output blocks, ``step_into(block_index)`` (the ``STEP_INTO`` message)."""
+
+from __future__ import annotations
+
+import importlib
+import multiprocessing
+import os
+import pickle
+import signal
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from multiprocessing import shared_memory
+from typing import Any
+
+import numpy as np
+
+STEP, DONE = b"s", b"k"  # the step message and its reply (a pickled message never equals them)
+STEP_INTO = b"i"  # + a block index (little-endian): step, writing the outputs into that output block
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}  # defaults for workers (one core each)
+PARENT_CHECK_S = 1.0  # how often a worker checks that its parent process still exists (s)
+JOIN_TIMEOUT_S = 5.0  # how long close() waits for a worker to exit before terminating it (s)
+
+
+def map_arrays(buf: Any, layout: list) -> dict[str, np.ndarray]:
+    """NumPy views of ``buf`` for a layout of (name, shape, dtype), each 64-byte aligned."""
+    arrays, off = {}, 0
+    for name, shape, dtype in layout:
+        n = int(np.prod(shape)) * np.dtype(dtype).itemsize
+        arrays[name] = np.ndarray(shape, dtype=dtype, buffer=buf, offset=off)
+        off += -(-n // 64) * 64  # 64-byte aligned
+    return arrays
+
+
+def layout_bytes(layout: list) -> int:
+    """Bytes of a buffer holding ``layout`` (:func:`map_arrays`)."""
+    return sum(-(-int(np.prod(s)) * np.dtype(d).itemsize // 64) * 64 for _, s, d in layout)
+
+
+
+class WorkerError(RuntimeError):
+    """A vector-env worker failed: raised an exception (``traceback`` holds its text) or died."""
+
+    def __init__(self, message: str, worker: int, traceback_text: str | None = None):
+        super().__init__(message)
+        self.worker, self.traceback = worker, traceback_text
+
+
+class SharedBlock(shared_memory.SharedMemory):
+    """A ``SharedMemory`` block that NumPy views may outlive: ``close()`` cannot unmap while views
+    exist (BufferError); the mapping then goes with the last view and only the descriptor is closed."""
+
+    def close(self) -> None:
+        try:
+            super().close()
+        except BufferError:
+            fd = getattr(self, "_fd", -1)
+            if fd >= 0:
+                os.close(fd)
+                self._fd = -1
+
+
+def _exit_with_parent(parent_pid: int) -> None:
+    """Watchdog thread of a worker: end the process once its parent is gone."""
+    while os.getppid() == parent_pid:
+        time.sleep(PARENT_CHECK_S)
+    os._exit(1)
+
+
+def _error_reply(e: BaseException) -> tuple:
+    return ("error", type(e).__name__, str(e), traceback.format_exc())
+
+
+def worker_main(conn: Any, init: dict[str, Any], parent_pid: int) -> None:
+    """A worker process: pin it to CPU ``init["cpu"]`` (if given), map the shared arrays (``init["shm"]``,
+    ``init["layout"]``), build the shard (``init["factory"](init, arrays)``; the factory a function or
+    a ``"module:function"`` string), serve messages until the pipe closes.
+
+    ``STEP`` steps the shard and answers ``DONE``; a pickled command tuple is answered with
+    ``("ok", value)``; any exception is answered with ``("error", type, message, traceback)``."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is for the parent, which then ends us
+    threading.Thread(target=_exit_with_parent, args=(parent_pid,), name="parent-watchdog", daemon=True).start()
+    try:
+        if init.get("cpu") is not None and hasattr(os, "sched_setaffinity"):
+            os.sched_setaffinity(0, {init["cpu"]})  # before the factory's imports start thread pools
+        shm = SharedBlock(name=init["shm"])
+        arrays = map_arrays(shm.buf, init["layout"])
+        factory = init["factory"]
+        if isinstance(factory, str):  # "module:function", imported only now (after the pinning)
+            module, _, name = factory.partition(":")
+            factory = getattr(importlib.import_module(module), name)
+        shard = factory(init, arrays)
+        reply: tuple = ("ok", None)
+    except Exception as e:  # noqa: BLE001 - reported to the parent, which raises it
+        reply = _error_reply(e)
+    try:
+        conn.send(reply)
+        if reply[0] != "ok":
+            return
+        while True:
+            msg = conn.recv_bytes()
+            try:
+                if msg == STEP:
+                    shard.step()
+                    reply = None
+                elif msg[:1] == STEP_INTO:
+                    shard.step_into(int.from_bytes(msg[1:], "little"))
+                    reply = None
+                else:
+                    reply = ("ok", shard.handle(pickle.loads(msg)))
+            except Exception as e:  # noqa: BLE001 - reported to the parent, which raises it
+                reply = _error_reply(e)
+            if reply is None:
+                conn.send_bytes(DONE)
+                continue
+            try:
+                conn.send(reply)
+            except (EOFError, OSError):
+                raise
+            except Exception as e:  # noqa: BLE001 - e.g. a result that does not pickle (nothing was sent)
+                conn.send(_error_reply(e))
+    except (EOFError, OSError):  # the env closed its end (close(), garbage collection, its process died)
+        return
+
+
+@contextmanager
+def _worker_environ(overrides: Mapping[str, str | None]) -> Iterator[None]:
+    """``WORKER_ENV`` defaults and ``overrides`` (None: removed) in ``os.environ`` while a worker is
+    spawned (it inherits them); the parent's environment is restored afterwards."""
+    saved = {k: os.environ.get(k) for k in (*WORKER_ENV, *overrides)}
+    for k, v in WORKER_ENV.items():
+        os.environ.setdefault(k, v)
+    for k, v in overrides.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+@contextmanager
+def _main_module_hidden() -> Iterator[None]:
+    """Hide ``__main__``'s file and spec while a worker is spawned, so the worker does not import the
+    user's script (the "spawn" start method re-imports it by default, which would run a script's
+    top-level code, env creation included, in every worker). The worker's target and arguments live
+    in quadswarm_mj, so it never needs the main module; scripts need no ``__main__`` guard."""
+    main = sys.modules.get("__main__")
+    saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if main is not None and k in main.__dict__}
+    try:
+        if main is not None:
+            main.__dict__.pop("__file__", None)
+            main.__dict__["__spec__"] = None
+        yield
+    finally:
+        if main is not None:
+            main.__dict__.pop("__spec__", None)
+            main.__dict__.update(saved)
+
+
+class Worker:
+    """Parent-side handle of the worker process running shard ``index`` (worlds [lo, hi))."""
+
+    def __init__(self, index: int, lo: int, hi: int, init: dict[str, Any],
+                 environ: Mapping[str, str | None] | None = None):
+        ctx = multiprocessing.get_context("spawn")
+        self.index, self.lo, self.hi = index, lo, hi
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=worker_main, args=(child, init, os.getpid()), daemon=True,
+                                name=f"quadswarm-vector-worker-{index}")
+        try:
+            with _worker_environ(environ or {}), _main_module_hidden():
+                self.proc.start()
+        finally:
+            child.close()  # only the worker holds its end now: its death closes the pipe
+
+    def describe(self) -> str:
+        return f"vector env worker {self.index} (worlds [{self.lo}, {self.hi}), pid {self.proc.pid})"
+
+    def send(self, msg: Any, what: str) -> None:
+        """Send ``STEP``, a ``STEP_INTO`` message (bytes) or a command tuple; a dead worker raises WorkerError."""
+        try:
+            if isinstance(msg, bytes):
+                self.conn.send_bytes(msg)
+            else:
+                self.conn.send(msg)
+        except OSError:
+            raise self._died(what) from None
+
+    def result(self, what: str) -> Any:
+        """Wait for the reply to the last message; a failure raises WorkerError."""
+        try:
+            buf = self.conn.recv_bytes()
+        except (EOFError, OSError):
+            raise self._died(what) from None
+        if buf == DONE:
+            return None
+        status, *rest = pickle.loads(buf)
+        if status == "ok":
+            return rest[0]
+        name, text, tb = rest
+        raise WorkerError(f"{self.describe()} raised {name} during {what}: {text}\n\nWorker traceback:\n{tb}",
+                          self.index, tb)
+
+    def _died(self, what: str) -> WorkerError:
+        self.proc.join(timeout=2.0)
+        code = self.proc.exitcode
+        if code is None:
+            how = "closed its pipe"
+        elif code < 0:
+            try:
+                how = f"was killed by signal {signal.Signals(-code).name}"
+            except ValueError:
+                how = f"was killed by signal {-code}"
+        else:
+            how = f"exited with code {code}"
+        msg = f"{self.describe()} {how} during {what}"
+        if what == "start":
+            msg += " (its output above tells why)"
+        return WorkerError(msg, self.index)
+
+    def stop(self) -> None:
+        """Close the pipe (the worker exits); ``join`` then waits for it."""
+        self.conn.close()
+
+    def join(self) -> None:
+        self.proc.join(timeout=JOIN_TIMEOUT_S)
+        if self.proc.exitcode is None:
+            self.proc.terminate()
+            self.proc.join(timeout=1.0)
+        if self.proc.exitcode is None:
+            self.proc.kill()
+            self.proc.join()
+
+
+class Resources:
+    """The env's worker processes and shared-memory block (released by ``release``, also at GC)."""
+
+    def __init__(self) -> None:
+        self.workers: list[Worker] = []
+        self.shm: SharedBlock | None = None
+        self.linked = False  # the block still has its name in /dev/shm
+
+    def create_block(self, size: int) -> SharedBlock:
+        self.shm, self.linked = SharedBlock(create=True, size=size), True
+        return self.shm
+
+    def unlink(self) -> None:
+        """Remove the block's name (the mappings stay); done once every worker has mapped it."""
+        if self.shm is not None and self.linked:
+            self.linked = False
+            self.shm.unlink()
+
+    def release(self) -> None:
+        for w in self.workers:
+            w.stop()
+        for w in self.workers:
+            w.join()
+        self.workers.clear()
+        if self.shm is not None:
+            self.unlink()
+            self.shm.close()
+            self.shm = None
+
+
+
+
+def run_on_workers(workers: list[Worker], what: str, msg_for: Any, size: int,
+                   local: Any = None) -> list[Any]:
+    """Send ``msg_for(w.index)`` to every worker, run ``local()`` meanwhile (shard 0 in the calling
+    process; its result is entry 0), then read every reply (so the pipes stay in step) and raise the
+    first failure. Returns the ``size`` results by shard index."""
+    sent, error = [], None
+    for w in workers:
+        try:
+            w.send(msg_for(w.index), what)
+            sent.append(w)
+        except WorkerError as e:
+            error = error or e
+    out: list[Any] = [None] * size
+    try:
+        if local is not None:
+            out[0] = local()
+    finally:  # read every reply, so the pipes stay in step
+        for w in sent:
+            try:
+                out[w.index] = w.result(what)
+            except WorkerError as e:
+                error = error or e
+    if error is not None:
+        raise error
+    return out
