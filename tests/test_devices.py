@@ -83,7 +83,7 @@ _VECTOR = """
         if "final_obs" in info:
             out["final"].append([t, info["_final_obs"].tolist(), info["final_obs"].tolist()])
     out["devices"] = nd
-    out["shards"] = len(env._jax._bufs[0].addressable_shards)
+    out["shards"] = len(env._jax._worlds.bufs[0].addressable_shards)
     out["obs_dtype"], out["pos_dtype"] = str(obs.dtype), str(info["state"]["pos"].dtype)
     env.close()
     print(json.dumps(out))
