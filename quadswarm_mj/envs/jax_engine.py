@@ -228,13 +228,14 @@ class _Program:
 
     One world: ``step(bufs, action) -> (bufs, out)`` with everything the host reads in one packed
     float array (:attr:`step_layout`; resets return :attr:`layout`, which adds the episode constants:
-    parameters, column map). B worlds: ``step(leaves, actions) -> (leaves, obs, rest)`` WITHOUT
-    the auto-reset (``obs`` is the stepped observation, i.e. the final one where an episode ended;
-    ``rest`` the per-step outputs of :attr:`step_layout`), and ``renew(leaves) -> (leaves, obs, rest,
-    episode)``, which the host calls only after a step that ended an episode: the fresh episodes of
-    the finished worlds (:meth:`AutoResetWrapper.renew_finished`, the same function as inside
-    ``vstep``); ``episode`` holds the outputs fixed for an episode (:attr:`episode_layout`:
-    parameters, column map), which B worlds return only from resets and renewals."""
+    parameters, column map). B worlds: ``step(leaves, actions) -> (leaves, rest)`` WITHOUT
+    the auto-reset (the stepped observation, i.e. the final one where an episode ended, is the leaf
+    ``leaves[obs_leaf]``; ``rest`` the per-step outputs of :attr:`step_layout`), and
+    ``renew(leaves) -> (leaves, obs, rest, episode)``, which the host calls only after a step that
+    ended an episode: the fresh episodes of the finished worlds
+    (:meth:`AutoResetWrapper.renew_finished`, the same function as inside ``vstep``); ``episode``
+    holds the outputs fixed for an episode (:attr:`episode_layout`: parameters, column map), which
+    B worlds return only from resets and renewals."""
 
     def __init__(self, cfg: EnvConfig, batch: int | None):
         self.cfg, self.batch = cfg, batch
@@ -272,6 +273,16 @@ class _Program:
         # keep XLA's default runtime: the same wrapping measured 0.63x at 1024 worlds.
         step = loop_once(self._step_impl) if batch is None else self._step_impl
         self._step = self._jit(step, donate=True)
+        if batch is not None:
+            # B worlds: the host reads the stepped observations from the state's obs leaf (a separate
+            # output would be an XLA copy of it), and the carried random numbers of the next step are
+            # not donated: they are rewritten at the end of a step whose every stage still reads the
+            # old ones, so an aliased buffer costs XLA two copies of them (~20 % of a 512-world step
+            # on one core, BENCHMARKS.md; the other leaves stay donated)
+            paths = [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_flatten_with_path(struct)[0]]
+            self.obs_leaf = paths.index(".obs")
+            self._kept = tuple(i for i, q in enumerate(paths) if q == ".info['step_numbers']")
+            self._step = self._jit(self._split_step_impl, donate=True)
         self._renew = None if batch is None else self._jit(self._renew_impl, donate=True)
         self._resets: dict[Any, Any] = {}
 
@@ -363,16 +374,27 @@ class _Program:
             s = self.env.step(prev, action)
             return self._pack(s), self.step_layout.pack(self._outs(s, prev), self.float)
         s = jax.vmap(self.env.step)(prev, action)
-        return (self._pack(s),) + self._batch_outs(s, prev, episode=False)
+        return (self._pack(s),) + self._batch_outs(s, prev, episode=False)[1:]  # obs: the state's leaf
+
+    def _split_step_impl(self, donated: tuple, kept: tuple, action: jax.Array) -> tuple:
+        """B worlds: :meth:`_step_impl` with the state's leaves split into donated and kept ones."""
+        d, k = iter(donated), iter(kept)
+        n = len(donated) + len(kept)
+        return self._step_impl(tuple(next(k) if i in self._kept else next(d) for i in range(n)), action)
 
     def _renew_impl(self, bufs: tuple) -> tuple:
         s = self.auto.renew_finished(self._unpack(bufs))  # the rules of AutoResetWrapper (where done)
         return (self._pack(s),) + self._batch_outs(s, s, episode=True)
 
     def step(self, bufs: tuple, action: np.ndarray) -> tuple:
-        """One world: (state buffers, packed outputs); B worlds: (state leaves, obs (B, N, obs_dim),
-        per-step outputs (B, step_layout.size)) before any auto-reset. ``bufs`` are donated."""
-        return self._step(bufs, action)
+        """One world: (state buffers, packed outputs); B worlds: (state leaves, per-step outputs
+        (B, step_layout.size)) before any auto-reset, the stepped observations (B, N, obs_dim) being
+        the leaf ``leaves[obs_leaf]``. ``bufs`` are donated (B worlds: except the carried random
+        numbers)."""
+        if self.batch is None:
+            return self._step(bufs, action)
+        return self._step(tuple(b for i, b in enumerate(bufs) if i not in self._kept),
+                          tuple(bufs[i] for i in self._kept), action)
 
     def renew(self, bufs: tuple) -> tuple:
         """B worlds after a step that ended an episode: (state leaves, obs, per-step outputs, episode
@@ -541,7 +563,8 @@ class LocalWorlds:
         """One control step; writes ``obs`` and ``rest``. Where an episode ended, also ``final_obs``
         (the stepped observations), the fresh episodes' ``obs``, their :data:`RENEWED` columns of
         ``rest`` and ``episode``; returns whether that happened (SAME_STEP auto-reset)."""
-        self.bufs, obs, rest = self.prog.step(self.bufs, actions.astype(self.prog.float, copy=False))
+        self.bufs, rest = self.prog.step(self.bufs, actions.astype(self.prog.float, copy=False))
+        obs = self.bufs[self.prog.obs_leaf]  # read (copied out) before the next call donates it
         _copy_rows(out["rest"], rest)
         if not (out["rest"][:, self._done] > 0.5).any():
             _copy_rows(out["obs"], obs)
