@@ -661,7 +661,7 @@ class WorkerWorlds:
     def __init__(self, cfg: EnvConfig, num_worlds: int, num_workers: int):
         import os
 
-        from quadswarm_mj.envs.workers import Resources, Worker, WorkerError, layout_bytes, map_arrays
+        from quadswarm_mj.envs.workers import Resources, Worker, layout_bytes, map_arrays, wait_started
 
         self.cfg, self.B, self.n = cfg, int(num_worlds), int(num_workers)
         prog = _program(cfg, self.B)  # layouts only (traced, not compiled, in this process)
@@ -684,14 +684,7 @@ class WorkerWorlds:
                         "layout": self.layout, "out_layout": self.out_layout, "cfg": cfg, "lo": lo, "hi": hi,
                         "index": k, "cpu": cores[k % len(cores)]}
                 res.workers.append(Worker(k, lo, hi, init, environ=env))
-            error = None
-            for w in res.workers:  # read every reply, then raise the first error
-                try:
-                    w.result("start")
-                except WorkerError as e:
-                    error = error or e
-            if error is not None:
-                raise error
+            wait_started(res.workers)
             res.unlink()  # every worker has mapped the block: its name can go
             self._new_block()  # the scratch block
         except BaseException:

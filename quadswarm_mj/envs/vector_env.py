@@ -93,7 +93,18 @@ from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.control_modes import action_box_bounds
 from quadswarm_mj.envs.cpu_core import CpuSwarm
 from quadswarm_mj.envs.validation import check_action, check_engine, check_obstacles, check_state
-from quadswarm_mj.envs.workers import STEP, Resources, Worker, WorkerError, layout_bytes, map_arrays, run_on_workers
+from quadswarm_mj.envs.workers import (
+    STEP,
+    Resources,
+    Worker,
+    layout_bytes,
+    map_arrays,
+    run_on_workers,
+    wait_started,
+)
+from quadswarm_mj.envs.workers import (
+    WorkerError as WorkerError,  # re-exported: the error a failed worker raises
+)
 from quadswarm_mj.metrics import metric_keys
 from quadswarm_mj.observations import obs_bounds
 from quadswarm_mj.rewards import env_terms
@@ -351,14 +362,7 @@ class QuadSwarmVectorEnv(VectorEnv):
                 res.workers.append(Worker(k, lo, hi, init))
             lo, hi = self._bounds[0]
             self._shard = _Shard(self.cfg, lo, hi, self._a, self.info_keys, backend_for(hi - lo), self._chunk_worlds)
-            error = None
-            for w in res.workers:  # read every reply, then raise the first error
-                try:
-                    w.result("start")
-                except WorkerError as e:
-                    error = error or e
-            if error is not None:
-                raise error
+            wait_started(res.workers)
         except BaseException as e:
             res.release()
             self._failure = e  # reset() tries again

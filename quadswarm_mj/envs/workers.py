@@ -282,6 +282,18 @@ class Resources:
 
 
 
+def wait_started(workers: list[Worker]) -> None:
+    """Read every worker's start reply, then raise the first failure (WorkerError)."""
+    error = None
+    for w in workers:
+        try:
+            w.result("start")
+        except WorkerError as e:
+            error = error or e
+    if error is not None:
+        raise error
+
+
 def run_on_workers(workers: list[Worker], what: str, msg_for: Any, size: int,
                    local: Any = None) -> list[Any]:
     """Send ``msg_for(w.index)`` to every worker, run ``local()`` meanwhile (shard 0 in the calling
