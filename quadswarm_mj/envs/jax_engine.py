@@ -31,6 +31,7 @@ from the MuJoCo engine's; noise-free runs agree within the MJX parity tolerance 
 from __future__ import annotations
 
 import functools
+import os
 import types
 import weakref
 from typing import Any
@@ -43,6 +44,16 @@ from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.devices import loop_once, reuse_freed_memory
 from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv, State
 from quadswarm_mj.envs.sharding import WorldSharding
+from quadswarm_mj.envs.workers import (
+    STEP_INTO,
+    Resources,
+    SharedBlock,
+    Worker,
+    layout_bytes,
+    map_arrays,
+    run_on_workers,
+    wait_started,
+)
 from quadswarm_mj.metrics import METRIC_KEYS, OBSTACLE_METRIC_KEYS, metric_keys
 from quadswarm_mj.rewards import OBSTACLE_TERMS, TERMS, env_terms
 
@@ -610,8 +621,6 @@ class WorkerShard:
     def handle(self, msg: tuple) -> Any:
         """("map", block, name), ("reset", keys, mask, state, block) or ("call", fn, *args) (a test
         hook: fn(shard, *args))."""
-        from quadswarm_mj.envs.workers import SharedBlock, map_arrays
-
         if msg[0] == "map":  # a new output block of the env
             shm = SharedBlock(name=msg[2])
             arrays = map_arrays(shm.buf, self.out_layout)
@@ -634,8 +643,6 @@ def worker_environ() -> dict[str, str | None]:
     """The environment of a JAX-engine worker: JAX on CPU with ONE device (the parent's device count,
     e.g. from :func:`quadswarm_mj.use_cpu_cores` or ``--xla_force_host_platform_device_count``, is
     not inherited)."""
-    import os
-
     flags = [f for f in os.environ.get("XLA_FLAGS", "").split()
              if not f.startswith("--xla_force_host_platform_device_count")]
     return {"JAX_PLATFORMS": "cpu", "JAX_NUM_CPU_DEVICES": "1", "XLA_FLAGS": " ".join(flags) or None}
@@ -659,10 +666,6 @@ class WorkerWorlds:
     scratch block and is copied out."""
 
     def __init__(self, cfg: EnvConfig, num_worlds: int, num_workers: int):
-        import os
-
-        from quadswarm_mj.envs.workers import Resources, Worker, layout_bytes, map_arrays, wait_started
-
         self.cfg, self.B, self.n = cfg, int(num_worlds), int(num_workers)
         prog = _program(cfg, self.B)  # layouts only (traced, not compiled, in this process)
         N, D = cfg.num_quads, cfg.obs_dim
@@ -692,13 +695,9 @@ class WorkerWorlds:
             raise
 
     def _run(self, what: str, msg_for: Any) -> None:
-        from quadswarm_mj.envs.workers import run_on_workers
-
         run_on_workers(self.res.workers, what, msg_for, self.n)
 
     def _new_block(self) -> int:
-        from quadswarm_mj.envs.workers import SharedBlock
-
         block = SharedBlock(create=True, size=self._out_bytes)
         try:
             k = len(self.blocks)
@@ -720,8 +719,6 @@ class WorkerWorlds:
 
     def _outputs(self, k: int) -> dict[str, np.ndarray]:
         """``obs`` and ``rest`` of block k as new arrays (scratch) or views that free the block when gone."""
-        from quadswarm_mj.envs.workers import map_arrays
-
         carrier = np.frombuffer(self.blocks[k].buf, np.uint8, count=self._out_bytes)
         out = map_arrays(carrier, self.out_layout)
         if k == 0:
@@ -761,8 +758,6 @@ class WorkerWorlds:
     def step(self, actions: np.ndarray) -> tuple[dict[str, np.ndarray], bool]:
         """Step every worker: (``obs`` and ``rest``, with ``final_obs`` and ``episode`` if an episode
         ended anywhere; every world's stepped observation in ``final_obs``), and whether one ended."""
-        from quadswarm_mj.envs.workers import STEP_INTO
-
         a = self.a
         np.copyto(a["actions"], actions, casting="same_kind")
         block = self._acquire()
