@@ -39,9 +39,10 @@ min of 5 runs, the old hand-written transport -> this one) was 2.2-2.4 -> 2.2-2.
 x 1 quad, 10.3 -> 10.4-10.8 ms at 256 x 8 and 34.5-38.5 -> 35.2-35.3 ms at 1024 x 8; wall times
 agreed within the run-to-run noise (up to 30 % there).
 
-Workers are spawned with the main module hidden (:func:`_main_module_hidden`): the "spawn" start
-method would otherwise import the user's script in every worker, running its top-level code, so a
-plain script without an ``if __name__ == "__main__":`` guard works like a REPL or a notebook.
+Workers (:mod:`quadswarm_mj.envs.workers`, shared with the JAX engine's worker processes) are
+spawned with the main module hidden: the "spawn" start method would otherwise import the user's
+script in every worker, running its top-level code, so a plain script without an
+``if __name__ == "__main__":`` guard works like a REPL or a notebook.
 
 Worker lifetime follows the env and its process, not the creating thread: a worker exits when its
 pipe closes (``close()``, garbage collection, or the parent's exit or death, which closes the
