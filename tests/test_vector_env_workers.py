@@ -229,3 +229,24 @@ def test_script_without_main_guard_works(tmp_path):
     assert out.returncode == 0, out.stderr
     assert out.stdout.count("script body ran") == 1  # not re-run in the worker
     assert "stepped (2, 1, " in out.stdout
+
+
+def test_send_order_puts_the_worker_on_this_cpu_last(monkeypatch):
+    """A message wakes its worker on that worker's core; the one sharing the caller's core goes last,
+    so it cannot preempt the caller before the other messages are out."""
+    from types import SimpleNamespace
+
+    from quadswarm_mj.envs import workers
+
+    cpu = workers.current_cpu()  # this thread's CPU now (Linux), else None
+    assert cpu is None or cpu in os.sched_getaffinity(0)
+    ws = [SimpleNamespace(index=k, cpu=k) for k in range(3)]
+    monkeypatch.setattr(workers, "current_cpu", lambda: 0)
+    assert [w.index for w in workers.send_order(ws)] == [1, 2, 0]
+    monkeypatch.setattr(workers, "current_cpu", lambda: 2)
+    assert [w.index for w in workers.send_order(ws)] == [0, 1, 2]
+    monkeypatch.setattr(workers, "current_cpu", lambda: None)  # unknown CPU, or unpinned workers: as given
+    assert workers.send_order(ws) == ws
+    monkeypatch.setattr(workers, "current_cpu", lambda: 1)
+    unpinned = [SimpleNamespace(index=k, cpu=None) for k in range(2)]
+    assert workers.send_order(unpinned) == unpinned

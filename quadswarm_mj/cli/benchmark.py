@@ -14,8 +14,9 @@ of 200 Hz), paper defaults (collisions, noise, K = 6 neighbours, static_same_goa
   physics steps per 100 Hz sample) when ``crazyflow`` is installed (``pip install crazyflow``; the
   rows are skipped with a note otherwise): jitted scan (as ``benchmark_mjx``) and Python loop (as a
   Gymnasium env), so every ratio to it is of figures of the same run; with ``--alternate R`` also the
-  JAX engine against crazyflow's scan in R alternating rounds of fresh processes (the median of the
-  per-round ratios: robust on a machine whose speed drifts within a run);
+  JAX engine against crazyflow's scan in R alternating rounds of fresh processes, and the JAX-engine
+  vector env against the bare-MuJoCo floor in R alternating windows (the medians of the per-round
+  ratios: robust on a machine whose speed drifts within a run);
 * for every row, the bare-MuJoCo ceiling for the same number of bodies: free bodies with the
   Crazyflie's inertia, contacts off, Euler, 2 sub-steps per control step; ``1 core`` steps one model
   holding all bodies with ``mj_step``, ``rollout`` steps them split in equal models on both cores
@@ -385,6 +386,41 @@ def alternating_peer_ratio(worlds: int, devices: int, rounds: int, steps: int, r
             "ours": ours, "peer": peer}
 
 
+def alternating_floor_ratio(B: int, rounds: int, seconds: float) -> dict[str, Any]:
+    """``QuadSwarmVectorEnv(engine="jax")`` (B x 8, hover actions, auto-reset) against the bare-MuJoCo
+    floor (:func:`ceiling_rollout`, 2 threads) in ``rounds`` alternating windows of ``seconds`` each, in
+    this process. The env is warmed up past its first episode end (which compiles the renewal
+    program), and each window times every ``step`` call it makes. On a machine whose speed drifts by
+    tens of per cent within seconds, the median of the per-round ratios is the robust figure.
+    Returns ``ratios``, ``median``, ``min``, ``max`` and the per-round samples/s (``env``, ``floor``)."""
+    import statistics
+
+    cfg = EnvConfig(num_quads=8)
+    env = QuadSwarmVectorEnv(cfg, num_envs=B, engine="jax")
+    try:
+        env.reset(seed=0)
+        hover = hover_like(env.action_space.shape)
+        for _ in range(cfg.episode_steps + 2):
+            env.step(hover)
+        rates, floors, ratios = [], [], []
+        for r in range(rounds):
+            n, busy, t_end = 0, 0.0, time.perf_counter() + seconds
+            while time.perf_counter() < t_end:
+                t = time.perf_counter()
+                env.step(hover)
+                busy += time.perf_counter() - t
+                n += 1
+            rates.append(8 * B * n / busy)
+            floors.append(ceiling_rollout(8 * B, seconds, 1))
+            ratios.append(rates[-1] / floors[-1])
+            print(f"  alternating vector env {B} x 8 vs floor, round {r + 1}/{rounds}: env {fmt(rates[-1])}, "
+                  f"floor {fmt(floors[-1])}, ratio {ratios[-1]:.2f}", flush=True)
+    finally:
+        env.close()
+    return {"ratios": ratios, "median": statistics.median(ratios), "min": min(ratios), "max": max(ratios),
+            "env": rates, "floor": floors}
+
+
 # -------------------------------------------------------------------------------------- ceiling
 def bare_model(bodies: int) -> mujoco.MjModel:
     """``bodies`` free bodies with the Crazyflie's inertia and no geoms; contacts off, Euler, 5 ms."""
@@ -714,6 +750,14 @@ def _jax_rows(rows: set[str], args: Any, seconds: float, repeat: int, steps: int
             out.append((f"QuadSwarmVectorEnv(engine='jax'), {B} x 8", jx, "",
                         f"{jx / floor:.2f} of the bare-MuJoCo floor (mujoco.rollout, 2 threads: {fmt(floor)})"))
             out.append((f"QuadSwarmVectorEnv(engine='mujoco'), {B} x 8", mj, "", f"{mj / floor:.2f} of the floor"))
+            if getattr(args, "alternate", 0):
+                import statistics
+
+                res = alternating_floor_ratio(B, args.alternate, seconds)
+                out.append((f"QuadSwarmVectorEnv(engine='jax'), {B} x 8, {args.alternate} alternating rounds with the "
+                            f"floor (median of the env's)", statistics.median(res["env"]), "",
+                            f"median {res['median']:.2f} of the floor (range {res['min']:.2f} to {res['max']:.2f}; "
+                            f"floor median {fmt(statistics.median(res['floor']))})"))
     for W, peer in peers.items():
         if peer:
             tag = functools.partial(_peer_tag, peer.get("setup", {}))
@@ -838,7 +882,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--peer-worlds", default="1,512,2048", help="worlds of the crazyflow peer rows ('peers')")
     p.add_argument("--alternate", type=int, default=0, metavar="R",
                    help="also measure the JAX engine against crazyflow's scan in R alternating rounds of fresh "
-                        "processes (rows 'jax' and 'peers'; 1 device and all devices): the median ratio, robust "
+                        "processes (rows 'jax' and 'peers'; 1 device and all devices) and the JAX-engine vector "
+                        "env against the floor in R alternating windows (row 'jaxvector'): median ratios, robust "
                         "to a machine whose speed drifts within a run (default 0: off)")
     p.add_argument("--alternate-worlds", default="512", help="worlds of the --alternate rounds (default 512)")
     p.add_argument("--ablations", action="store_true",

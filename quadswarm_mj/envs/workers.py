@@ -10,6 +10,7 @@ of several output blocks, ``step_into(block_index)`` (the ``STEP_INTO`` message)
 
 from __future__ import annotations
 
+import ctypes
 import importlib
 import multiprocessing
 import os
@@ -182,6 +183,7 @@ class Worker:
                  environ: Mapping[str, str | None] | None = None):
         ctx = multiprocessing.get_context("spawn")
         self.index, self.lo, self.hi = index, lo, hi
+        self.cpu: int | None = init.get("cpu")  # the core it is pinned to (None: not pinned)
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=worker_main, args=(child, init, os.getpid()), daemon=True,
                                 name=f"quadswarm-vector-worker-{index}")
@@ -294,13 +296,41 @@ def wait_started(workers: list[Worker]) -> None:
         raise error
 
 
+def _libc_sched_getcpu() -> Any:
+    try:
+        return ctypes.CDLL(None, use_errno=True).sched_getcpu
+    except (OSError, AttributeError):  # not glibc/Linux: no ordering
+        return None
+
+
+_SCHED_GETCPU = _libc_sched_getcpu()
+
+
+def current_cpu() -> int | None:
+    """The CPU the calling thread runs on now (Linux), else None."""
+    if _SCHED_GETCPU is None:
+        return None
+    cpu = int(_SCHED_GETCPU())
+    return cpu if cpu >= 0 else None
+
+
+def send_order(workers: list[Worker]) -> list[Worker]:
+    """``workers`` with the one pinned to the caller's current CPU last: the message wakes it on this
+    CPU, where it preempts the caller before the other messages are out (measured on 2 cores, 1024 x 8
+    on the JAX engine: median 1.17x the env's steps/s of sending in index order, 8 alternating rounds)."""
+    cpu = current_cpu()
+    if cpu is None or not any(w.cpu == cpu for w in workers):
+        return workers
+    return sorted(workers, key=lambda w: w.cpu == cpu)
+
+
 def run_on_workers(workers: list[Worker], what: str, msg_for: Any, size: int,
                    local: Any = None) -> list[Any]:
-    """Send ``msg_for(w.index)`` to every worker, run ``local()`` meanwhile (shard 0 in the calling
-    process; its result is entry 0), then read every reply (so the pipes stay in step) and raise the
-    first failure. Returns the ``size`` results by shard index."""
+    """Send ``msg_for(w.index)`` to every worker (:func:`send_order`), run ``local()`` meanwhile (shard 0
+    in the calling process; its result is entry 0), then read every reply (so the pipes stay in step)
+    and raise the first failure. Returns the ``size`` results by shard index."""
     sent, error = [], None
-    for w in workers:
+    for w in send_order(workers):
         try:
             w.send(msg_for(w.index), what)
             sent.append(w)
