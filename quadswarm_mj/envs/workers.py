@@ -299,7 +299,7 @@ def wait_started(workers: list[Worker]) -> None:
 def _libc_sched_getcpu() -> Any:
     try:
         return ctypes.CDLL(None, use_errno=True).sched_getcpu
-    except (OSError, AttributeError):  # not glibc/Linux: no ordering
+    except (OSError, AttributeError, TypeError):  # not glibc/Linux: no ordering
         return None
 
 
