@@ -38,3 +38,41 @@ def test_negative_alternate_is_rejected(capsys: pytest.CaptureFixture[str]) -> N
     with pytest.raises(SystemExit):
         benchmark.main(["--alternate", "-1", "--no-write"])
     assert "--alternate must be >= 0" in capsys.readouterr().err
+
+
+def test_alternating_floor_ratio_warms_up_past_an_episode_and_closes(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The vector-env-vs-floor rounds: warm-up past the first episode end, one floor per round, the
+    median of the per-round ratios, and the env closed afterwards (env and floor stubbed)."""
+    import statistics
+    from types import SimpleNamespace
+
+    calls = {"steps": 0, "closed": False, "floors": 0}
+
+    class FakeEnv:
+        def __init__(self, cfg, num_envs, engine):
+            assert engine == "jax" and num_envs == 4
+            self.action_space = SimpleNamespace(shape=(num_envs, cfg.num_quads, 4))
+
+        def reset(self, seed):
+            calls["steps"] = 0
+
+        def step(self, actions):
+            calls["steps"] += 1
+
+        def close(self):
+            calls["closed"] = True
+
+    def fake_floor(bodies, seconds, repeat):
+        assert bodies == 32
+        calls["floors"] += 1
+        return 1e6 * calls["floors"]
+
+    monkeypatch.setattr(benchmark, "QuadSwarmVectorEnv", FakeEnv)
+    monkeypatch.setattr(benchmark, "ceiling_rollout", fake_floor)
+    res = benchmark.alternating_floor_ratio(4, rounds=3, seconds=0.01)
+    assert calls["closed"] and calls["floors"] == 3
+    assert calls["steps"] > benchmark.EnvConfig().episode_steps  # the warm-up alone passes an episode end
+    assert res["floor"] == [1e6, 2e6, 3e6]
+    assert res["ratios"] == [e / f for e, f in zip(res["env"], res["floor"])]
+    assert res["median"] == statistics.median(res["ratios"])
+    assert res["min"] <= res["median"] <= res["max"]
