@@ -282,8 +282,6 @@ class Resources:
             self.shm = None
 
 
-
-
 def wait_started(workers: list[Worker]) -> None:
     """Read every worker's start reply, then raise the first failure (WorkerError)."""
     error = None
