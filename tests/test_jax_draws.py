@@ -12,6 +12,7 @@ from quadswarm_mj.envs.mjx_env import (
     _materialized_numbers,
     _unit_numbers,
     erf_inv_f32,
+    step_key_and_numbers,
     step_words,
     threefry_2x32_unrolled,
 )
@@ -93,3 +94,30 @@ def test_step_words_keeps_the_key_type():
     assert jax.dtypes.issubdtype(step_words(typed, 4)[0].dtype, jax.dtypes.prng_key)
     nxt = step_words(raw, 4)[0]
     assert nxt.dtype == jnp.uint32 and nxt.shape == (2,)
+
+
+@pytest.mark.parametrize("total", [1, 2, 3, 6, 204])
+@pytest.mark.parametrize("typed", [True, False])
+def test_step_key_and_numbers_is_step_words_then_unit_numbers_bit_for_bit(total, typed):
+    """One pass over the threefry rounds (the two words of a block leave one kernel as a complex64)
+    gives exactly the next key and numbers of step_words + unit_numbers, batched over worlds too
+    (random words include NaN and denormal bit patterns, which must pass unchanged)."""
+    mask = np.random.default_rng(total).random(total) < 0.7
+    spec = {f"d{i}": (Normal() if m else Uniform(0.0, 1.0)) for i, m in enumerate(mask)}
+
+    def old(key):
+        k, w = step_words(key, total)
+        return (jax.random.key_data(k) if typed else k), FusedJaxSampler.unit_numbers(spec, w)
+
+    def new(key):
+        k, x = step_key_and_numbers(key, mask)
+        return (jax.random.key_data(k) if typed else k), x
+
+    keys = jax.random.split(jax.random.key(5), 300)
+    if not typed:
+        keys = jax.random.key_data(keys)
+    (k_old, x_old), (k_new, x_new) = jax.jit(jax.vmap(old))(keys), jax.jit(jax.vmap(new))(keys)
+    assert np.asarray(x_new).tobytes() == np.asarray(x_old).tobytes()
+    assert np.asarray(k_new).tobytes() == np.asarray(k_old).tobytes()
+    k1, _ = step_key_and_numbers(jax.random.key(1) if typed else jax.random.PRNGKey(1), mask)
+    assert jax.dtypes.issubdtype(k1.dtype, jax.dtypes.prng_key) == typed

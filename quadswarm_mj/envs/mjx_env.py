@@ -255,6 +255,63 @@ def _unit_numbers(words: jax.Array) -> tuple[jax.Array, jax.Array]:
     return u01, np.sqrt(2.0).astype(np.float32) * erf_inv_f32(jnp.maximum(lo_n, lo_n + (1.0 - lo_n) * u01))
 
 
+def step_key_and_numbers(key: jax.Array, normal_mask: np.ndarray) -> tuple[jax.Array, jax.Array]:
+    """(next key, float32 unit numbers) equal to ``step_words`` followed by
+    :meth:`FusedJaxSampler.unit_numbers` (the same bits), in ONE pass over the threefry rounds.
+
+    An elementwise XLA:CPU kernel makes one output per element, so the block words x0 and x1 of
+    :func:`threefry_2x32_unrolled` come out of two kernels that each run all 20 rounds. Here each
+    block's two results (its two unit numbers, or the next key's raw words) leave the kernel as the
+    two halves of one complex64 (bit casts and selects only: no arithmetic on the carried bits),
+    made in a two-trip loop over halves of the blocks (a loop's result is a buffer XLA cannot fuse
+    back into its consumers; a one-trip loop would be inlined). ``normal_mask`` (total,) bool: the
+    positions of normals (N(0, 1)); the others are U[0, 1)."""
+    total = int(normal_mask.shape[0])
+    n = total + 2
+    n += n % 2
+    half = n // 2
+    q = (half + 1) // 2  # blocks per trip
+    # block m: x0 is word m, x1 is word half + m (threefry_2x32 pairs the counter's two halves)
+    full = np.zeros(2 * half, bool)
+    full[2:2 + total] = normal_mask
+    count = np.arange(2 * half, dtype=np.uint32) + _COUNTER_BASE
+
+    def padded(x: np.ndarray) -> np.ndarray:
+        return np.concatenate([x, np.zeros(2 * q - x.shape[0], x.dtype)])
+
+    count0, count1 = padded(count[:half]), padded(count[half:])
+    normal0, normal1 = padded(full[:half]), padded(full[half:])
+    is_key = padded(np.arange(half) < 2)
+    kd = jax.random.key_data(key)
+    k0, k1 = kd[0], kd[1]
+    ks = (k0, k1, k0 ^ k1 ^ jnp.uint32(0x1BD11BDA))
+
+    def body(i: jax.Array, acc: jax.Array) -> jax.Array:
+        def pick(c: np.ndarray) -> jax.Array:
+            return jnp.where(i == 0, c[:q], c[q:])
+
+        x0, x1 = pick(count0) + ks[0], pick(count1) + ks[1]
+        for group in range(5):
+            for r in _ROTATIONS[group % 2]:
+                x0 = x0 + x1
+                x1 = (x1 << jnp.uint32(r)) | (x1 >> jnp.uint32(32 - r))
+                x1 = x1 ^ x0
+            x0 = x0 + ks[(group + 1) % 3]
+            x1 = x1 + ks[(group + 2) % 3] + jnp.uint32(group + 1)
+        u0, n0 = _unit_numbers(x0)
+        u1, n1 = _unit_numbers(x1)
+        v0 = jnp.where(pick(is_key), jax.lax.bitcast_convert_type(x0, jnp.float32), jnp.where(pick(normal0), n0, u0))
+        v1 = jnp.where(pick(normal1), n1, u1)
+        return jax.lax.dynamic_update_slice(acc, jax.lax.complex(v0, v1), (i * q,))
+
+    pairs = jax.lax.fori_loop(0, 2, body, jnp.zeros((2 * q,), jnp.complex64))[:half]
+    flat = jnp.concatenate([jnp.real(pairs), jnp.imag(pairs)])
+    key_words = jax.lax.bitcast_convert_type(flat[:2], jnp.uint32)
+    if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
+        key_words = jax.random.wrap_key_data(key_words, impl=jax.random.key_impl(key))
+    return key_words, flat[2:2 + total]
+
+
 _ERF_INV_SMALL = np.array([2.81022636e-08, 3.43273939e-07, -3.5233877e-06, -4.39150654e-06, 0.00021858087,
                            -0.00125372503, -0.00417768164, 0.246640727, 1.50140941], np.float32)
 _ERF_INV_LARGE = np.array([-0.000200214257, 0.000100950558, 0.00134934322, -0.00367342844, 0.00573950773,
@@ -533,8 +590,8 @@ class MjxQuadSwarmEnv:
         threefry hash, :func:`step_words`); empty where the numbers are not carried."""
         if not self._carry_numbers:
             return {}
-        k_next, words = step_words(key, FusedJaxSampler.num_words(self._step_spec))
-        return {"rng": k_next, "step_numbers": FusedJaxSampler.unit_numbers(self._step_spec, words)}
+        k_next, numbers = step_key_and_numbers(key, FusedJaxSampler.normal_mask(self._step_spec))
+        return {"rng": k_next, "step_numbers": numbers}
 
     def _read(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
         """The quads' free joints: qpos (N, 7) (pos m world, quat wxyz body->world), qvel (N, 6)
