@@ -121,14 +121,34 @@ def _sorted_position_rows_first(xp: Any, key: Any) -> Any:
     return xp.sum(less.astype(xp.int32), axis=2)
 
 
+def _sorted_position_bits(key: Any) -> Any:
+    """:func:`_sorted_position_rows_first` (the same integers) for a float ``key`` under JAX, on integer
+    sort keys: the float bits mapped to integers of the same order (negative floats' magnitude bits
+    flipped, then moved up by one so that -0.0 and +0.0 are both 0), every NaN to one value just above
+    +inf. A stable sort's "l before j" is then ``key[l] < key[j] + (l < j)`` (an add and a compare per
+    pair, no NaN logic)."""
+    import jax
+    import jax.numpy as jnp
+
+    n = key.shape[0]
+    itype = jnp.int32 if key.dtype == jnp.float32 else jnp.int64
+    bits = jax.lax.bitcast_convert_type(key, itype)
+    negative = bits >> (8 * jnp.dtype(itype).itemsize - 1)  # -1 where the sign bit is set, else 0
+    inf_bits = jax.lax.bitcast_convert_type(jnp.asarray(np.inf, key.dtype), itype)
+    order = jnp.where(jnp.isnan(key), inf_bits + 1, (bits ^ (negative & jnp.iinfo(itype).max)) - negative)
+    tail = (1,) * (key.ndim - 2)
+    before = (np.arange(n)[None, :] < np.arange(n)[:, None]).reshape((1, n, n) + tail).astype(np.int32)
+    kl, kj = order[:, None, :], order[:, :, None]  # [i, j, l] = key[i, l], key[i, j]
+    return jnp.sum((kl < kj + before.astype(itype)).astype(jnp.int32), axis=2)
+
+
 @functools.cache
 def _sorted_position_jax() -> Any:
     """:func:`_sorted_position_rows_first` for one (N, N) ``key`` under JAX, vmapped with the worlds
     axis last (:func:`quadswarm_mj._xp.worlds_last`): the N^3 comparisons and the sum then run along
-    contiguous worlds (the rank kernel of a 512-world step 318 -> ~55 us, BENCHMARKS.md; the same integers)."""
-    import jax.numpy as jnp
-
-    return worlds_last(lambda key: _sorted_position_rows_first(jnp, key))
+    contiguous worlds (the rank kernel of a 512-world step 318 -> ~55 us, BENCHMARKS.md; the same
+    integers), on integer sort keys (:func:`_sorted_position_bits`)."""
+    return worlds_last(_sorted_position_bits)
 
 
 def _nearest_one_hot(xp: Any, key: Any, k: int) -> Any:

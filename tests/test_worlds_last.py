@@ -10,7 +10,7 @@ import numpy as np
 
 from quadswarm_mj._xp import worlds_last
 from quadswarm_mj.collisions import pairwise_contacts
-from quadswarm_mj.observations import _nearest_one_hot
+from quadswarm_mj.observations import _nearest_one_hot, _sorted_position_bits, _sorted_position_rows_first
 from quadswarm_mj.spatial import norm_last
 
 
@@ -41,6 +41,23 @@ def test_ranks_match_a_stable_argsort_everywhere():
     np.testing.assert_array_equal(np.asarray(jax.jit(jax.vmap(jax.vmap(one)))(k)), want)  # nested
     np.testing.assert_array_equal(np.asarray(_nearest_one_hot(jnp, k, 6)), want)  # batched array
     np.testing.assert_array_equal(_nearest_one_hot(np, key, 6), want)  # NumPy
+
+
+def test_integer_sort_keys_give_the_float_comparisons_ranks():
+    """The JAX ranks on integer sort keys equal the float comparison form on keys with negative
+    values, -0.0 and +0.0 (equal), +-inf, NaNs of both signs and payloads (equal, last) and ties."""
+    rng = np.random.default_rng(3)
+    vals = np.array([-2.5, -1.0, -0.0, 0.0, 0.5, 1.0, 1.0, 3.0, np.inf, -np.inf], np.float32)
+    key = rng.choice(vals, size=(8, 8, 400)).astype(np.float32)
+    bits = key.view(np.uint32)
+    nan_at = rng.random(key.shape) < 0.08
+    nans = rng.choice(np.array([0x7FC00000, 0xFFC00000, 0x7F800001, 0xFFFFFFFF], np.uint32), size=key.shape)
+    key = np.where(nan_at, nans, bits).view(np.float32)
+    want = _sorted_position_rows_first(np, key)
+    got = jax.jit(_sorted_position_bits)(jnp.asarray(key))
+    np.testing.assert_array_equal(np.asarray(got), want)
+    # a permutation of 0..N-1 in every row (a stable sort's positions)
+    np.testing.assert_array_equal(np.sort(want, axis=1), np.broadcast_to(np.arange(8)[None, :, None], want.shape))
 
 
 def test_pair_distances_values_and_gradient():
