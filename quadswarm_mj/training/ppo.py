@@ -332,11 +332,33 @@ class DrawnEntropyNormals:
     def __getattr__(self, name: str) -> Any:
         return getattr(self._dist, name)
 
+    def create_dist(self, parameters: jax.Array) -> Any:
+        return _MeanKL(self._dist.create_dist(parameters))
+
     def entropy(self, parameters: jax.Array, eps: jax.Array) -> jax.Array:
         d = self._dist
         normal = d.create_dist(parameters)
         ent = normal.entropy() + d._postprocessor.forward_log_det_jacobian(eps * normal.scale + normal.loc)
         return jnp.sum(ent, axis=-1) if d._event_ndims == 1 else ent
+
+
+class _MeanKL:
+    """A Brax normal distribution whose ``kl_divergence(old)`` returns the MEAN of the per-sample KL
+    as a (1,) array (Brax's loss only takes ``jnp.mean`` of it for its ``kl_mean`` metric, which
+    then has the same value up to float rounding). The per-sample terms are reduced by a dot with
+    ones: XLA:CPU had fused the KL's logs and divisions into the scalar reduction as scalar code
+    (~130 us of each minibatch step, ~5 % of the update; BENCHMARKS.md)."""
+
+    def __init__(self, dist: Any):
+        self._dist = dist
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._dist, name)
+
+    def kl_divergence(self, old: Any) -> jax.Array:
+        old = old._dist if isinstance(old, _MeanKL) else old
+        per = self._dist.kl_divergence(old).reshape(-1)
+        return (jnp.dot(per, jnp.ones_like(per)) / per.shape[0]).reshape(1)
 
 
 def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PPOConfig,
@@ -358,8 +380,8 @@ def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PP
                                 clipping_epsilon=p.clipping_epsilon, normalize_advantage=True)
     grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
 
-    def minibatch_step(carry: Any, batch: Any, normalizer: Any, lr_scale: Any) -> tuple[Any, Any]:
-        opt_state, params = carry
+    def minibatch_step(carry: Any, batch: Any, normalizer: Any, lr_scale: Any) -> tuple[Any, None]:
+        opt_state, params, msum = carry
         data, eps = batch
         (_, metrics), grads = grad_fn(params, normalizer, data, eps)
         if axis_name is not None:  # one all-reduce of one flat vector (each collective is a rendezvous)
@@ -367,10 +389,14 @@ def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PP
             grads, metrics = unravel(jax.lax.pmean(flat, axis_name))
         upd, opt_state = optimizer.update(grads, opt_state)
         upd = jax.tree_util.tree_map(lambda u: u * lr_scale, upd)  # learning-rate schedule
-        return (opt_state, optax.apply_updates(params, upd)), metrics
+        # the metrics are summed in the carry, not stacked per minibatch: XLA:CPU fused the loss
+        # metrics' reductions (the KL's logs and divisions over the minibatch) into the stacking's
+        # dynamic-update-slice, where they ran as scalar code (~5 % of the update; BENCHMARKS.md)
+        msum = jax.tree_util.tree_map(jnp.add, msum, metrics)
+        return (opt_state, optax.apply_updates(params, upd), msum), None
 
-    def epoch(carry: Any, _: Any, data: Any, normalizer: Any, lr_scale: Any) -> tuple[Any, Any]:
-        opt_state, params, key = carry
+    def epoch(carry: Any, _: Any, data: Any, normalizer: Any, lr_scale: Any) -> tuple[Any, None]:
+        opt_state, params, msum, key = carry
         key, kperm, keps = jax.random.split(key, 3)
 
         def shuffle(x: jax.Array) -> jax.Array:
@@ -381,10 +407,10 @@ def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PP
         raw = batches.extras["policy_extras"]["raw_action"]  # (minibatches, agents, T, action)
         m_, a_, t_, d_ = raw.shape
         eps = jax.random.normal(keps, (m_, t_, a_, d_), raw.dtype)  # time-major, as the loss sees the actions
-        (opt_state, params), m = jax.lax.scan(functools.partial(minibatch_step, normalizer=normalizer,
-                                                                lr_scale=lr_scale),
-                                              (opt_state, params), (batches, eps))
-        return (opt_state, params, key), m
+        (opt_state, params, msum), _ = jax.lax.scan(functools.partial(minibatch_step, normalizer=normalizer,
+                                                                      lr_scale=lr_scale),
+                                                    (opt_state, params, msum), (batches, eps))
+        return (opt_state, params, msum, key), None
 
     def update(state: TrainState, data: brax_types.Transition, key: jax.Array,
                lr_scale: jax.Array) -> tuple[TrainState, Any]:
@@ -392,10 +418,15 @@ def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PP
         normalizer = state.normalizer
         if p.normalize_observations:
             normalizer = running_statistics.update(normalizer, data.observation, pmap_axis_name=axis_name)
-        (opt_state, params, _), m = jax.lax.scan(
+        # the metrics' structure and types (one minibatch's loss, traced abstractly: no computation)
+        first = jax.tree_util.tree_map(lambda x: x[: x.shape[0] // p.num_minibatches], data)  # [A / M, T]
+        eps0 = jnp.zeros_like(first.extras["policy_extras"]["raw_action"].swapaxes(0, 1))  # time-major
+        shapes = jax.eval_shape(lambda: grad_fn(state.params, normalizer, first, eps0)[0][1])
+        msum = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+        (opt_state, params, msum, _), _ = jax.lax.scan(
             functools.partial(epoch, data=data, normalizer=normalizer, lr_scale=lr_scale),
-            (state.opt_state, state.params, key), None, length=p.num_epochs)
-        m = jax.tree_util.tree_map(jnp.mean, m)
+            (state.opt_state, state.params, msum, key), None, length=p.num_epochs)
+        m = jax.tree_util.tree_map(lambda x: x / (p.num_epochs * p.num_minibatches), msum)
         m["learning_rate"] = lr_scale * p.learning_rate
         return TrainState(params=params, opt_state=opt_state, normalizer=normalizer), m
 
