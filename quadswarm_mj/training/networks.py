@@ -172,16 +172,17 @@ def make_policy_network(arch: dict[str, Any], layout: dict[str, Any],
 def make_ppo_networks(arch: dict[str, Any], layout: dict[str, Any],
                       preprocess_observations_fn: Callable[..., jax.Array] | None = None,
                       value_hidden_layer_sizes: Sequence[int] = (256, 256), activation: str = "tanh") -> Any:
-    """Brax ``PPONetworks`` with an encoder policy (tanh-normal, 4 actions) and an MLP value network."""
-    from brax.training import networks as brax_networks
+    """Brax ``PPONetworks`` with an encoder policy (tanh-normal, 4 actions) and an MLP value network
+    (Brax's, on :mod:`quadswarm_mj.training.dense` layers: the same parameters)."""
     from brax.training import types as brax_types
     from brax.training.agents.ppo import networks as ppo_networks
     from brax.training.distribution import NormalTanhDistribution
 
+    from quadswarm_mj.training.dense import make_mlp_network
+
     pre = preprocess_observations_fn or brax_types.identity_observation_preprocessor
-    value = brax_networks.make_value_network(layout_obs_dim(layout), preprocess_observations_fn=pre,
-                                             hidden_layer_sizes=value_hidden_layer_sizes,
-                                             activation=ACTIVATION_FNS[activation])
+    value = make_mlp_network(layout_obs_dim(layout), list(value_hidden_layer_sizes) + [1],
+                             ACTIVATION_FNS[activation], pre, squeeze=True)
     return ppo_networks.PPONetworks(policy_network=make_policy_network(arch, layout, pre), value_network=value,
                                     parametric_action_distribution=NormalTanhDistribution(event_size=4))
 

@@ -277,10 +277,11 @@ def make_networks(ppo: PPOConfig, layout: dict[str, int]) -> tuple[Any, dict[str
     normalize = (running_statistics.normalize if ppo.normalize_observations
                  else brax_types.identity_observation_preprocessor)
     if ppo.arch == "mlp":
-        nets = ppo_networks.make_ppo_networks(
-            layout_obs_dim(layout), 4, preprocess_observations_fn=normalize,
-            policy_hidden_layer_sizes=ppo.policy_hidden, value_hidden_layer_sizes=ppo.value_hidden,
-            activation=ACTIVATIONS[ppo.activation])
+        from quadswarm_mj.training.dense import make_mlp_ppo_networks
+
+        # Brax's make_ppo_networks (same parameters) on Dense layers with a faster weight gradient
+        nets = make_mlp_ppo_networks(layout_obs_dim(layout), 4, normalize, ppo.policy_hidden, ppo.value_hidden,
+                                     ACTIVATIONS[ppo.activation])
         return nets, None
     arch = encoder_arch(ppo.arch, ppo.arch_width, ppo.activation)
     nets = enc_networks.make_ppo_networks(arch, layout, normalize, value_hidden_layer_sizes=ppo.value_hidden,
