@@ -210,6 +210,18 @@ def _sub(draws: dict[str, Any], prefix: str) -> dict[str, Any]:
 _ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
 
 
+def _threefry_rounds(x0: jax.Array, x1: jax.Array, ks: tuple[jax.Array, ...]) -> tuple[jax.Array, jax.Array]:
+    """Threefry-2x32's 20 rounds and key injections on the keyed block words (x0, x1)."""
+    for group in range(5):
+        for r in _ROTATIONS[group % 2]:
+            x0 = x0 + x1
+            x1 = (x1 << jnp.uint32(r)) | (x1 >> jnp.uint32(32 - r))
+            x1 = x1 ^ x0
+        x0 = x0 + ks[(group + 1) % 3]
+        x1 = x1 + ks[(group + 2) % 3] + jnp.uint32(group + 1)
+    return x0, x1
+
+
 def threefry_2x32_unrolled(key_data: jax.Array, count: jax.Array) -> jax.Array:
     """``jax.extend.random.threefry_2x32(key_data, count)`` (same words) as straight-line code.
 
@@ -220,13 +232,7 @@ def threefry_2x32_unrolled(key_data: jax.Array, count: jax.Array) -> jax.Array:
     ks = (k0, k1, k0 ^ k1 ^ jnp.uint32(0x1BD11BDA))
     half = count.shape[0] // 2
     x0, x1 = count[:half] + ks[0], count[half:] + ks[1]
-    for group in range(5):
-        for r in _ROTATIONS[group % 2]:
-            x0 = x0 + x1
-            x1 = (x1 << jnp.uint32(r)) | (x1 >> jnp.uint32(32 - r))
-            x1 = x1 ^ x0
-        x0 = x0 + ks[(group + 1) % 3]
-        x1 = x1 + ks[(group + 2) % 3] + jnp.uint32(group + 1)
+    x0, x1 = _threefry_rounds(x0, x1, ks)
     return jnp.concatenate([x0, x1])
 
 
@@ -291,13 +297,7 @@ def step_key_and_numbers(key: jax.Array, normal_mask: np.ndarray) -> tuple[jax.A
             return jnp.where(i == 0, c[:q], c[q:])
 
         x0, x1 = pick(count0) + ks[0], pick(count1) + ks[1]
-        for group in range(5):
-            for r in _ROTATIONS[group % 2]:
-                x0 = x0 + x1
-                x1 = (x1 << jnp.uint32(r)) | (x1 >> jnp.uint32(32 - r))
-                x1 = x1 ^ x0
-            x0 = x0 + ks[(group + 1) % 3]
-            x1 = x1 + ks[(group + 2) % 3] + jnp.uint32(group + 1)
+        x0, x1 = _threefry_rounds(x0, x1, ks)
         u0, n0 = _unit_numbers(x0)
         u1, n1 = _unit_numbers(x1)
         v0 = jnp.where(pick(is_key), jax.lax.bitcast_convert_type(x0, jnp.float32), jnp.where(pick(normal0), n0, u0))
