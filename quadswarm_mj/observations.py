@@ -137,7 +137,7 @@ def _sorted_position_bits(key: Any) -> Any:
     inf_bits = jax.lax.bitcast_convert_type(jnp.asarray(np.inf, key.dtype), itype)
     order = jnp.where(jnp.isnan(key), inf_bits + 1, (bits ^ (negative & jnp.iinfo(itype).max)) - negative)
     tail = (1,) * (key.ndim - 2)
-    before = (np.arange(n)[None, :] < np.arange(n)[:, None]).reshape((1, n, n) + tail).astype(np.int32)
+    before = (np.arange(n)[None, :] < np.arange(n)[:, None]).reshape((1, n, n) + tail)  # [j, l] = l < j
     kl, kj = order[:, None, :], order[:, :, None]  # [i, j, l] = key[i, l], key[i, j]
     return jnp.sum((kl < kj + before.astype(itype)).astype(jnp.int32), axis=2)
 
