@@ -10,11 +10,12 @@ and the ``info`` keys of its docstring.
 Speed: a step is ONE jitted call with the state donated (one world: one XLA:CPU kernel, see
 :func:`quadswarm_mj.devices.loop_once`). The state (with the free-body physics only
 the changing fields of ``mjx.Data``: qpos, qvel, time, mocap_pos; the rest is rebuilt from constants
-inside the jit) is kept between calls as a few flat buffers, one per dtype (PRNG keys as their key
-data), so a call passes a handful of arrays instead of ~150 leaves; everything the host needs
-(observations, rewards, reward terms, state, goals, parameters, episode metrics, flags) is packed
-inside the jit into one flat float array per world and split on the host with NumPy views. Compiled
-programs are cached per (config, number of worlds), so envs of the same config share compiles.
+inside the jit) is kept between calls as one flat uint32 buffer (float32 and int32 leaves as their
+bits, bools as 0/1, PRNG keys as their key data), so a call passes one array instead of ~150 leaves;
+everything the host needs (observations, rewards, reward terms, state, goals, parameters, episode
+metrics, flags) is packed inside the jit into one flat float array per world and split on the host
+with NumPy views. Compiled programs are cached per (config, number of worlds), so envs of the same
+config share compiles.
 B worlds are sharded over every device whose count divides B (``shard_map``: each device steps its
 own worlds; :func:`quadswarm_mj.use_cpu_cores` gives JAX one CPU device per core), with results
 bit-identical to one device when each device's worlds x quads fill XLA:CPU's vector loops (a multiple
@@ -84,45 +85,62 @@ class KeyStream:
 
 # ------------------------------------------------------------------------------- state packing
 class StatePacker:
-    """Flatten a state pytree with leading axes ``lead`` into one buffer per dtype and back
-    (under jit: the slices and the concatenation are cheap XLA ops; the host sees few arrays)."""
+    """Flatten a state pytree with leading axes ``lead`` into one uint32 buffer and back: float32 and
+    int32 leaves as their bits, bools as 0/1, PRNG keys as their key data (a leaf of another width,
+    e.g. float64 under ``jax_enable_x64``, gets a buffer of its own dtype). Under jit the bit casts,
+    slices and the concatenation are cheap XLA ops; the host passes one array per call instead of
+    one per leaf (~70) or per dtype (4: measured ~3 us more per call of one world)."""
+
+    WORD = np.dtype(np.uint32)
 
     def __init__(self, struct: Any, lead: tuple[int, ...]):
         leaves, self.treedef = jax.tree.flatten(struct)
         self.lead = tuple(lead)
-        self.entries: list[tuple[str, int, int, tuple[int, ...], Any, bool]] = []  # group, start, size, shape, dtype
+        # (group dtype name, start, size, shape, leaf dtype, is_key)
+        self.entries: list[tuple[str, int, int, tuple[int, ...], Any, bool]] = []
         sizes: dict[str, int] = {}
-        self.group_dtype: dict[str, Any] = {}
         for leaf in leaves:
             is_key = jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key)
             shape = tuple(leaf.shape[len(self.lead):])
+            dt = self.WORD if is_key else np.dtype(leaf.dtype)
             if is_key:
-                dt = np.dtype(np.uint32)
                 shape = shape + _key_shape()
-            else:
-                dt = np.dtype(leaf.dtype)
-            g = dt.name
+            g = self.WORD.name if dt.itemsize <= 4 else dt.name
             size = int(np.prod(shape))
-            self.group_dtype[g] = dt
             self.entries.append((g, sizes.get(g, 0), size, shape, dt, is_key))
             sizes[g] = sizes.get(g, 0) + size
         self.groups = tuple(sorted(sizes))
         self.sizes = sizes
 
+    def _to_group(self, x: jax.Array, g: str) -> jax.Array:
+        if g != self.WORD.name or x.dtype == self.WORD:
+            return x
+        if x.dtype.itemsize == 4:
+            return jax.lax.bitcast_convert_type(x, self.WORD)
+        return x.astype(self.WORD)  # bool, 8/16-bit integers: by value
+
+    def _from_group(self, x: jax.Array, dt: np.dtype) -> jax.Array:
+        if x.dtype == dt:
+            return x
+        if dt.itemsize == 4:
+            return jax.lax.bitcast_convert_type(x, dt)
+        return x.astype(dt)
+
     def pack(self, state: Any) -> tuple[jax.Array, ...]:
         leaves = jax.tree.leaves(state)
         parts: dict[str, list[jax.Array]] = {g: [] for g in self.groups}
-        for leaf, (g, _, _, _, dt, is_key) in zip(leaves, self.entries):
+        for leaf, (g, _, _, _, _, is_key) in zip(leaves, self.entries):
             x = jax.random.key_data(leaf) if is_key else leaf
-            parts[g].append(jnp.reshape(x, x.shape[:len(self.lead)] + (-1,)).astype(dt))  # local lead under shard_map
+            x = jnp.reshape(x, x.shape[:len(self.lead)] + (-1,))  # local lead under shard_map
+            parts[g].append(self._to_group(x, g))
         return tuple(jnp.concatenate(parts[g], axis=-1) for g in self.groups)
 
     def unpack(self, bufs: tuple[jax.Array, ...]) -> Any:
         by_group = dict(zip(self.groups, bufs))
         leaves = []
-        for g, start, size, shape, _, is_key in self.entries:
+        for g, start, size, shape, dt, is_key in self.entries:
             buf = by_group[g]
-            x = buf[..., start:start + size].reshape(buf.shape[:-1] + shape)
+            x = self._from_group(buf[..., start:start + size], dt).reshape(buf.shape[:-1] + shape)
             leaves.append(_wrap_keys(x) if is_key else x)
         return jax.tree.unflatten(self.treedef, leaves)
 
@@ -267,8 +285,8 @@ class _Program:
         struct = self._shrink(struct)
         outs = jax.eval_shape(lambda s: self._outs(s, s), one)
         if batch is None:
-            # one world: the state as flat buffers, one per dtype (a handful of arrays instead of ~70
-            # leaves: measured ~4x faster per call), all outputs in one packed array (one transfer)
+            # one world: the state as one flat uint32 buffer (one array instead of ~70 leaves: measured
+            # ~4x faster per call), all outputs in one packed array (one transfer)
             self.packer: StatePacker | LeafPacker = StatePacker(struct, self.lead)
             self.layout = OutputLayout(outs)  # resets: everything
             # steps: without the episode constants (parameters, column map), which the host keeps from the reset
