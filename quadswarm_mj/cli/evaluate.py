@@ -18,7 +18,9 @@ and mean distance to goal over the last 5 steps < 0.5 m), collisions per quad pe
 collision, obstacles included), obstacle collisions per quad per episode (with obstacles),
 goal-reach rate (fraction of goal segments of >= 3 s in which the quad came within 0.3 m of its
 goal), mean distance to goal (m), floor hits per quad per episode, each with the standard error
-over episodes. ``--json FILE`` writes the same numbers (and wall and ceiling hits).
+over episodes. ``--json FILE`` writes the same numbers (and wall and ceiling hits): the file is checked
+to be writable before the evaluation and replaced atomically; if the write fails anyway, the JSON is
+printed on stdout and the exit status is 1.
 
 Episodes run with the environment defaults (motor_start "zero", all noise on) unless ``--env``
 overrides them. ``--mode gym`` steps ``QuadSwarmEnv`` one episode at a time; the default
@@ -75,9 +77,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", help="write the results to this file")
     args = p.parse_args(argv)
 
+    from quadswarm_mj.outfiles import atomic_write_text, check_writable
     from quadswarm_mj.policies import load_policy
     from quadswarm_mj.training.evaluation import evaluate
 
+    if args.json:  # before the work: a results file that cannot be written is known now, not after it
+        try:
+            check_writable(args.json, "--json")
+        except ValueError as e:
+            raise SystemExit(f"error: {e}") from None
     try:
         policy = load_policy(args.policy, seed=args.seed)
     except ValueError as e:
@@ -110,10 +118,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{s:<20} {r.num_quads:>3} {r.episodes:>4} " + " ".join(f(k, w) for k, _, w in COLUMNS)
               + f" {sm['seconds']:>5.0f}s", flush=True)
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump({"policy": args.policy, "episodes": args.episodes, "seed": args.seed, "mode": args.mode,
-                       "env": {k: (list(v) if isinstance(v, tuple) else v) for k, v in _kv(args.env).items()},
-                       "results": results}, fh, indent=1)
+        text = json.dumps({"policy": args.policy, "episodes": args.episodes, "seed": args.seed, "mode": args.mode,
+                           "env": {k: (list(v) if isinstance(v, tuple) else v) for k, v in _kv(args.env).items()},
+                           "results": results}, indent=1)
+        try:
+            atomic_write_text(args.json, text)
+        except OSError as e:  # e.g. the disk filled up or the directory went away during the evaluation
+            print(f"error: could not write --json {args.json!r} ({e.strerror or e}); the results follow on stdout",
+                  file=sys.stderr)
+            print(text, flush=True)
+            return 1
     return 0
 
 
