@@ -539,3 +539,12 @@ def test_shipped_policies_still_load():
 
     for name in list_pretrained():
         assert load_pretrained(name).obs_dim > 0
+
+
+def test_evaluate_unknown_env_field_is_a_clear_error():
+    from quadswarm_mj.cli import evaluate as cli
+
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--policy", "controller", "--num-quads", "1", "--scenarios", "static_same_goal", "--episodes", "1",
+                  "--env", "no_such_field=3"])
+    assert "no_such_field" in str(e.value.code) and str(e.value.code).startswith("error:")
