@@ -85,6 +85,11 @@ def test_release_of_a_bad_file_keeps_the_shipped_policy(tmp_path, capsys):
     assert rc == 2
     assert "error" in capsys.readouterr().err
     assert _snapshot(d) == before
+    for missing in (tmp_path / "missing.npz", tmp_path):  # no such file; a directory
+        rc = release.main(["--name", "toy", "--policy", str(missing), "--scenarios", "static_same_goal",
+                           "--episodes", "1", "--out", str(d)])
+        assert rc == 2 and "does not exist" in capsys.readouterr().err
+    assert _snapshot(d) == before
 
 
 def test_release_with_a_typo_in_the_scenarios_keeps_the_shipped_policy(tmp_path, capsys, monkeypatch):

@@ -66,6 +66,8 @@ def release(name: str, policy_path: str | Path, scenarios: list[str], directory:
         raise ValueError(f"scenarios must be a non-empty list of scenario names, got {scenarios!r}")
     if not isinstance(episodes, int) or isinstance(episodes, bool) or episodes < 1:
         raise ValueError(f"episodes must be an int >= 1, got {episodes!r}")
+    if not Path(policy_path).is_file():
+        raise ValueError(f"policy file {str(policy_path)!r} does not exist")
     d = Path(directory)
     if d.exists() and not d.is_dir():
         raise ValueError(f"--out {str(d)!r} is not a directory")
