@@ -270,6 +270,25 @@ def test_evaluate_checks_the_json_path_before_evaluating(tmp_path, monkeypatch):
         assert "cannot write" in str(e.value.code)
 
 
+def test_evaluate_refuses_to_overwrite_a_file_that_is_not_json(tmp_path, monkeypatch):
+    from quadswarm_mj.cli import evaluate as cli
+    from quadswarm_mj.training import evaluation
+
+    monkeypatch.setattr(evaluation, "evaluate", lambda policy, scenario, **k: _fake_result(scenario))
+    policy = tmp_path / "mine.npz"
+    _policy_file(policy)
+    before = policy.read_bytes()
+    with pytest.raises(SystemExit) as e:  # a typo: --json names the policy
+        cli.main(["--policy", str(policy), "--scenarios", "static_same_goal", "--episodes", "1", "--json", str(policy)])
+    assert "not a JSON file" in str(e.value.code)
+    assert policy.read_bytes() == before
+    old = tmp_path / "old.json"  # earlier results are replaced
+    old.write_text('{"results": []}')
+    assert cli.main(["--policy", str(policy), "--scenarios", "static_same_goal", "--episodes", "2", "--json",
+                     str(old)]) == 0
+    assert json.loads(old.read_text())["results"][0]["success"] == 0.5
+
+
 def test_evaluate_prints_the_results_when_the_json_write_fails(tmp_path, monkeypatch, capsys):
     from quadswarm_mj.cli import evaluate as cli
     from quadswarm_mj.training import evaluation
@@ -295,7 +314,7 @@ def test_evaluate_json_is_written_after_a_real_evaluation(tmp_path):
     from quadswarm_mj.cli import evaluate as cli
 
     target = tmp_path / "r.json"
-    target.write_text("old")
+    target.write_text('{"old": true}')
     assert cli.main(["--policy", "controller", "--num-quads", "1", "--scenarios", "static_same_goal",
                      "--episodes", "1", "--env", "episode_seconds=0.5", "--json", str(target)]) == 0
     res = json.loads(target.read_text())

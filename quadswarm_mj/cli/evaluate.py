@@ -19,7 +19,8 @@ collision, obstacles included), obstacle collisions per quad per episode (with o
 goal-reach rate (fraction of goal segments of >= 3 s in which the quad came within 0.3 m of its
 goal), mean distance to goal (m), floor hits per quad per episode, each with the standard error
 over episodes. ``--json FILE`` writes the same numbers (and wall and ceiling hits): the file is checked
-to be writable before the evaluation and replaced atomically; if the write fails anyway, the JSON is
+to be writable before the evaluation (an existing file that is not JSON is refused) and replaced
+atomically; if the write fails anyway, the JSON is
 printed on stdout and the exit status is 1.
 
 Episodes run with the environment defaults (motor_start "zero", all noise on) unless ``--env``
@@ -33,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Any
 
 #: the eleven paper scenarios (the ten named ones and their ``mix``) and the obstacle scenarios (with ``mix``)
@@ -63,6 +65,21 @@ def _kv(items: list[str] | None) -> dict[str, Any]:
     return out
 
 
+def _check_not_other_file(path: str) -> None:
+    """``ValueError`` if ``path`` is an existing regular file that is not a JSON document (a policy, a
+    video, notes: ``--json`` replaces only earlier results)."""
+    p = Path(path)
+    if not p.is_file() or p.stat().st_size == 0:
+        return
+    try:
+        if p.stat().st_size > (64 << 20):
+            raise ValueError("larger than 64 MiB")
+        json.loads(p.read_bytes().decode("utf-8"))
+    except (ValueError, RecursionError, OSError):
+        raise ValueError(f"--json {path!r} exists and is not a JSON file; refusing to overwrite it: choose another "
+                         "file or remove it") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--policy", default="pretrained:single",
@@ -84,6 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:  # before the work: a results file that cannot be written is known now, not after it
         try:
             check_writable(args.json, "--json")
+            _check_not_other_file(args.json)
         except ValueError as e:
             raise SystemExit(f"error: {e}") from None
     try:
