@@ -110,6 +110,8 @@ def release(name: str, policy_path: str | Path, scenarios: list[str], directory:
         if run_info is not None:
             entry["train"]["run"] = run_info
         entry["env"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in entry["env"].items()}
+        if mp.exists():  # re-read: keep entries another release added during the evaluation
+            man = read_manifest(d)
         man["policies"][name] = entry
         tmp_manifest.write_text(json.dumps(man, indent=1, sort_keys=True) + "\n")
     return entry
