@@ -94,11 +94,15 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically (temporary file, fsync, ``os.replace``)."""
-    with replacing(path) as tmp, open(tmp, "wb") as f:
+    target = _target(path)
+    if _in_place(target):  # /dev/stdout, a FIFO: written as they are
+        with open(target, "wb") as f:
+            f.write(data)
+        return
+    with replacing(target) as tmp, open(tmp, "wb") as f:
         f.write(data)
         f.flush()
-        with contextlib.suppress(OSError):  # not every target (a pipe) can be synced
-            os.fsync(f.fileno())
+        os.fsync(f.fileno())  # the bytes are on disk before the name points at them
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:

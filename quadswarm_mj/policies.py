@@ -67,6 +67,8 @@ from typing import Any
 
 import numpy as np
 
+from quadswarm_mj.outfiles import atomic_write_bytes
+
 FORMAT = "quadswarm_mj.mlp_policy/1"
 PRETRAINED_PREFIX = "pretrained:"
 MANIFEST = "manifest.json"
@@ -839,9 +841,8 @@ def _write_npz(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> str:
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as f:
-        f.write(buf.getvalue())
-    return sha256_file(path)
+    atomic_write_bytes(path, buf.getvalue())  # a failed save leaves an earlier file (a checkpoint) whole
+    return hashlib.sha256(buf.getvalue()).hexdigest()
 
 
 def save_encoder_policy(path: str | os.PathLike, policy: EncoderPolicy, meta: dict[str, Any] | None = None,

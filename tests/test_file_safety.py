@@ -572,3 +572,42 @@ def test_evaluate_unknown_env_field_is_a_clear_error():
         cli.main(["--policy", "controller", "--num-quads", "1", "--scenarios", "static_same_goal", "--episodes", "1",
                   "--env", "no_such_field=3"])
     assert "no_such_field" in str(e.value.code) and str(e.value.code).startswith("error:")
+
+
+# ---------------------------------------------------------------------------- atomic writes
+def test_failed_save_keeps_the_earlier_checkpoint(tmp_path, monkeypatch):
+    import os
+
+    ck = tmp_path / "final.npz"
+    sha = _policy_file(ck, seed=0)
+
+    def disk_full(fd):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", disk_full)
+    with pytest.raises(OSError, match="No space"):
+        _policy_file(ck, seed=1)
+    monkeypatch.undo()
+    assert sha256_file(ck) == sha and load_policy_file(ck).obs_dim == 18
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["final.npz"]
+
+
+def test_atomic_write_keeps_links_and_permissions(tmp_path):
+    import os
+    import stat
+
+    from quadswarm_mj.outfiles import atomic_write_text, replacing
+
+    real = tmp_path / "results.json"
+    real.write_text("{}")
+    os.chmod(real, 0o640)
+    link = tmp_path / "latest.json"
+    link.symlink_to(real.name)
+    atomic_write_text(link, '{"new": 1}')
+    assert link.is_symlink() and json.loads(real.read_text()) == {"new": 1}
+    assert stat.S_IMODE(real.stat().st_mode) == 0o640
+    with pytest.raises(RuntimeError), replacing(real) as tmp:  # an error while writing: the target is untouched
+        tmp.write_text("half")
+        raise RuntimeError("interrupted")
+    assert json.loads(real.read_text()) == {"new": 1}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["latest.json", "results.json"]
