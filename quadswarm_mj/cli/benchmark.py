@@ -1051,13 +1051,15 @@ def existing_report(path: str | os.PathLike) -> str:
     """The text of the benchmark report at ``path`` ('' if there is none); ``ValueError`` if the file exists
     and is not one."""
     p = Path(path)
-    if not p.exists():
-        return ""
+    if not p.is_file():
+        return ""  # missing, or a device/pipe (written in place)
     try:
+        if p.stat().st_size > (16 << 20):
+            raise ValueError("larger than 16 MiB")
         old = p.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise ValueError(f"--out {str(p)!r} exists and cannot be read as a benchmark report ({e}); choose another "
-                         "file") from None
+    except (OSError, ValueError) as e:  # incl. UnicodeDecodeError: a binary file
+        raise ValueError(f"--out {str(p)!r} exists and is not a benchmark report ({e}); refusing to overwrite it: "
+                         "choose another file or remove it") from None
     if old.strip() and NOTES_MARKER not in old:
         raise ValueError(f"--out {str(p)!r} exists and is not a benchmark report (it lacks the line "
                          f"{NOTES_MARKER!r}); refusing to overwrite it: choose another file or remove it")

@@ -20,8 +20,7 @@ goal-reach rate (fraction of goal segments of >= 3 s in which the quad came with
 goal), mean distance to goal (m), floor hits per quad per episode, each with the standard error
 over episodes. ``--json FILE`` writes the same numbers (and wall and ceiling hits): the file is checked
 to be writable before the evaluation (an existing file that is not JSON is refused) and replaced
-atomically; if the write fails anyway, the JSON is
-printed on stdout and the exit status is 1.
+atomically; if the write fails anyway, the JSON is printed on stdout and the exit status is 1.
 
 Episodes run with the environment defaults (motor_start "zero", all noise on) unless ``--env``
 overrides them. ``--mode gym`` steps ``QuadSwarmEnv`` one episode at a time; the default
