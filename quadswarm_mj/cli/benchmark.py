@@ -60,6 +60,7 @@ import numpy as np
 from quadswarm_mj import EnvConfig, QuadSwarmEnv, QuadSwarmVectorEnv
 from quadswarm_mj.controllers import PositionController
 from quadswarm_mj.devices import LOOP_KERNEL_FLAG
+from quadswarm_mj.outfiles import atomic_write_text, check_writable
 
 WORKLOADS = ("hover", "random", "controller")
 NOTES_MARKER = "<!-- notes: kept by scripts/benchmark.py -->"
@@ -910,6 +911,11 @@ def main(argv: list[str] | None = None) -> int:
         p.error(str(e))
     if args.alternate < 0:
         p.error("--alternate must be >= 0")
+    if not args.no_write:  # before the work: a report that cannot be written is known now, not after it
+        try:
+            check_report_target(args.out)
+        except ValueError as e:
+            p.error(str(e))
     if not args.skip_mjx:
         try:
             use_cpu_cores(cpu_devices, strict=False)
@@ -1014,12 +1020,50 @@ def main(argv: list[str] | None = None) -> int:
         doc += ["## Where the time goes", "", prof, ""]
     if comp:
         doc += ["## Design measurements (same run)", "", comp, ""]
-    out = Path(args.out)
-    old = out.read_text() if out.exists() else ""
+    try:
+        old = existing_report(args.out)
+    except ValueError as e:  # the file changed during the run
+        print("\n".join(doc) + "\n", flush=True)
+        print(f"error: {e}; the report is printed above", file=sys.stderr)
+        return 1
     doc.append(old[old.index(NOTES_MARKER):] if NOTES_MARKER in old else NOTES_MARKER + "\n")
-    out.write_text("\n".join(doc))
+    text = "\n".join(doc)
+    try:
+        atomic_write_text(args.out, text)
+    except OSError as e:  # e.g. the disk filled up or the directory went away during the run
+        print(text, flush=True)
+        print(f"error: could not write the report to {args.out!r} ({e.strerror or e}); it is printed above",
+              file=sys.stderr)
+        return 1
     print(f"\nwrote {args.out}")
     return 0
+
+
+def check_report_target(path: str | os.PathLike) -> str:
+    """The text of the benchmark report at ``path`` ('' if there is none yet), after checking that it
+    can be rewritten: ``ValueError`` if it cannot be written or if it exists and is not a benchmark
+    report (it lacks the notes marker this command writes), so no other file is ever overwritten."""
+    check_writable(path, "--out")
+    return existing_report(path)
+
+
+def existing_report(path: str | os.PathLike) -> str:
+    """The text of the benchmark report at ``path`` ('' if there is none); ``ValueError`` if the file exists
+    and is not one."""
+    p = Path(path)
+    if not p.is_file():
+        return ""  # missing, or a device/pipe (written in place)
+    try:
+        if p.stat().st_size > (16 << 20):
+            raise ValueError("larger than 16 MiB")
+        old = p.read_text(encoding="utf-8")
+    except (OSError, ValueError) as e:  # incl. UnicodeDecodeError: a binary file
+        raise ValueError(f"--out {str(p)!r} exists and is not a benchmark report ({e}); refusing to overwrite it: "
+                         "choose another file or remove it") from None
+    if old.strip() and NOTES_MARKER not in old:
+        raise ValueError(f"--out {str(p)!r} exists and is not a benchmark report (it lacks the line "
+                         f"{NOTES_MARKER!r}); refusing to overwrite it: choose another file or remove it")
+    return old
 
 
 if __name__ == "__main__":

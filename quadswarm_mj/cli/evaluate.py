@@ -18,7 +18,9 @@ and mean distance to goal over the last 5 steps < 0.5 m), collisions per quad pe
 collision, obstacles included), obstacle collisions per quad per episode (with obstacles),
 goal-reach rate (fraction of goal segments of >= 3 s in which the quad came within 0.3 m of its
 goal), mean distance to goal (m), floor hits per quad per episode, each with the standard error
-over episodes. ``--json FILE`` writes the same numbers (and wall and ceiling hits).
+over episodes. ``--json FILE`` writes the same numbers (and wall and ceiling hits): the file is checked
+to be writable before the evaluation (an existing file that is not JSON is refused) and replaced
+atomically; if the write fails anyway, the JSON is printed on stdout and the exit status is 1.
 
 Episodes run with the environment defaults (motor_start "zero", all noise on) unless ``--env``
 overrides them. ``--mode gym`` steps ``QuadSwarmEnv`` one episode at a time; the default
@@ -31,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Any
 
 #: the eleven paper scenarios (the ten named ones and their ``mix``) and the obstacle scenarios (with ``mix``)
@@ -61,6 +64,21 @@ def _kv(items: list[str] | None) -> dict[str, Any]:
     return out
 
 
+def _check_not_other_file(path: str) -> None:
+    """``ValueError`` if ``path`` is an existing regular file that is not a JSON document (a policy, a
+    video, notes: ``--json`` replaces only earlier results)."""
+    p = Path(path)
+    if not p.is_file() or p.stat().st_size == 0:
+        return
+    try:
+        if p.stat().st_size > (64 << 20):
+            raise ValueError("larger than 64 MiB")
+        json.loads(p.read_bytes().decode("utf-8"))
+    except (ValueError, RecursionError, OSError):
+        raise ValueError(f"--json {path!r} exists and is not a JSON file; refusing to overwrite it: choose another "
+                         "file or remove it") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--policy", default="pretrained:single",
@@ -75,9 +93,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", help="write the results to this file")
     args = p.parse_args(argv)
 
+    from quadswarm_mj.outfiles import atomic_write_text, check_writable
     from quadswarm_mj.policies import load_policy
     from quadswarm_mj.training.evaluation import evaluate
 
+    if args.json:  # before the work: a results file that cannot be written is known now, not after it
+        try:
+            check_writable(args.json, "--json")
+            _check_not_other_file(args.json)
+        except ValueError as e:
+            raise SystemExit(f"error: {e}") from None
     try:
         policy = load_policy(args.policy, seed=args.seed)
     except ValueError as e:
@@ -110,10 +135,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{s:<20} {r.num_quads:>3} {r.episodes:>4} " + " ".join(f(k, w) for k, _, w in COLUMNS)
               + f" {sm['seconds']:>5.0f}s", flush=True)
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump({"policy": args.policy, "episodes": args.episodes, "seed": args.seed, "mode": args.mode,
-                       "env": {k: (list(v) if isinstance(v, tuple) else v) for k, v in _kv(args.env).items()},
-                       "results": results}, fh, indent=1)
+        text = json.dumps({"policy": args.policy, "episodes": args.episodes, "seed": args.seed, "mode": args.mode,
+                           "env": {k: (list(v) if isinstance(v, tuple) else v) for k, v in _kv(args.env).items()},
+                           "results": results}, indent=1)
+        try:
+            atomic_write_text(args.json, text)
+        except OSError as e:  # e.g. the disk filled up or the directory went away during the evaluation
+            print(f"error: could not write --json {args.json!r} ({e.strerror or e}); the results follow on stdout",
+                  file=sys.stderr)
+            print(text, flush=True)
+            return 1
     return 0
 
 

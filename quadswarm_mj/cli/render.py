@@ -12,6 +12,10 @@ Policies: ``controller`` (``quadswarm_mj.controllers.PositionController``, defau
 or a policy ``.npz`` path, loaded by ``quadswarm_mj.policies.load_policy`` (the env then takes the
 observation settings the policy was trained with).
 
+Outputs are safe to point at existing files: ``--out`` and ``--still`` are checked to be writable
+before the flight, and each replaces its target only once complete. If writing the still fails anyway,
+the metrics are printed and the exit status is 1.
+
 Obstacles: ``--obstacles`` turns the columns on (``ObstacleConfig()``: 12 columns of 0.6 m on the
 8 x 8 m area, a new map per episode) for any scenario; the ``o_*`` scenarios turn them on by
 themselves. The columns are drawn and the controller steers around them (a potential-field term,
@@ -36,6 +40,7 @@ import quadswarm_mj
 from quadswarm_mj import QuadSwarmEnv
 from quadswarm_mj.config import ObstacleConfig
 from quadswarm_mj.controllers import PositionController
+from quadswarm_mj.outfiles import check_writable, replacing
 from quadswarm_mj.policies import baseline_gains
 from quadswarm_mj.render import SwarmRenderer
 
@@ -126,6 +131,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     import mediapy
     from tqdm import tqdm
 
+    # before the work: outputs that cannot be written are known now, not after the flight
+    check_writable(args.out, "--out", make_parents=True)
+    if args.still is not None:
+        check_writable(args.still, "--still", make_parents=True)
     mediapy.set_ffmpeg(imageio_ffmpeg.get_ffmpeg_exe())
     external = None if args.policy in BUILTIN_POLICIES else load_external_policy(args.policy)
     env_kwargs: dict[str, Any] = {"num_quads": args.num_quads}
@@ -148,7 +157,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.still is not None:
         t = args.seconds if args.still_at is None else args.still_at
         still_step = int(shots[np.argmin(np.abs(shots - t * cfg.control_hz))])
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     codec = "gif" if args.out.suffix.lower() == ".gif" else "h264"
     t_sim = t_policy = t_render = 0.0
     metrics: dict[str, float] | None = None
@@ -157,7 +165,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     shot_iter = iter(shots.tolist())
     next_shot = next(shot_iter, None)
     frames = 0
-    with mediapy.VideoWriter(args.out, shape=(args.height, args.width), fps=args.fps, codec=codec) as video, \
+    still_frame = None
+    # the video goes to a temporary file that replaces --out only once it is complete
+    with replacing(args.out) as video_tmp, \
+            mediapy.VideoWriter(video_tmp, shape=(args.height, args.width), fps=args.fps, codec=codec) as video, \
             tqdm(total=n_steps, unit="step", desc=f"{args.scenario} x{args.num_quads}", file=sys.stderr) as bar:
         for k in range(n_steps):
             if k == next_shot:  # the state at time k / control_hz
@@ -167,8 +178,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 video.add_image(frame)
                 frames += 1
                 if k == still_step:
-                    args.still.parent.mkdir(parents=True, exist_ok=True)
-                    mediapy.write_image(args.still, frame)
+                    still_frame = frame
                 next_shot = next(shot_iter, None)
             t0 = time.perf_counter()
             action = policy(obs, info)
@@ -186,11 +196,18 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         metrics = {k: float(v[0]) for k, v in env.core.episode_metrics().items()}
     renderer.close()
     env.close()
+    write_error = None
+    if still_frame is not None:
+        try:
+            with replacing(args.still) as still_tmp:
+                mediapy.write_image(still_tmp, still_frame)
+        except OSError as e:  # e.g. the disk filled up: the results are still reported
+            write_error = f"could not write --still {str(args.still)!r} ({e.strerror or e})"
     steps = k + 1
     samples = steps * args.num_quads
     return {"metrics": metrics, "steps": steps, "sim_seconds": steps * cfg.control_dt, "frames": frames,
             "samples": samples, "t_sim": t_sim,
-            "t_policy": t_policy, "t_render": t_render, "wall": wall}
+            "t_policy": t_policy, "t_render": t_render, "wall": wall, "write_error": write_error}
 
 
 def report(args: argparse.Namespace, r: dict[str, Any]) -> str:
@@ -207,7 +224,7 @@ def report(args: argparse.Namespace, r: dict[str, Any]) -> str:
                  f"(rendering {r['frames']} frames took {r['t_render']:.1f} s, "
                  f"{r['frames'] / max(r['t_render'], 1e-9):.1f} frames/s at {args.width}x{args.height})")
     lines.append(f"wrote {args.out} ({r['frames']} frames, {args.fps:g} fps)"
-                 + (f" and {args.still}" if args.still is not None else ""))
+                 + (f" and {args.still}" if args.still is not None and not r.get("write_error") else ""))
     return "\n".join(lines)
 
 
@@ -221,7 +238,14 @@ def main(argv: list[str] | None = None) -> int:
     except RuntimeError as e:  # the renderer could not start: the message names the fix
         print(f"error: {e}", file=sys.stderr)
         return 1
+    except OSError as e:  # writing the video failed during the run (e.g. the disk filled up)
+        print(f"error: could not write --out {str(args.out)!r} ({e.strerror or e}); it was left as it was",
+              file=sys.stderr)
+        return 1
     print(report(args, result))
+    if result.get("write_error"):
+        print(f"error: {result['write_error']}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -15,6 +15,7 @@ say otherwise; a trained policy's observation layout (``policy.env_kwargs``) is 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -66,6 +67,10 @@ def make_eval_config(policy: Any, scenario: str, num_quads: int | None = None,
         kw["num_quads"] = num_quads
     kw.update(env or {})
     kw["scenario"] = scenario
+    fields = {f.name for f in dataclasses.fields(EnvConfig)}
+    unknown = sorted(str(k) for k in kw if k not in fields)
+    if unknown:
+        raise ValueError(f"unknown EnvConfig field(s) {', '.join(unknown)}; known: {', '.join(sorted(fields))}")
     return EnvConfig(**kw)
 
 
