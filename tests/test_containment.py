@@ -1,0 +1,156 @@
+"""The room contains every quad (issue 32, item 1) and coincident quads separate (item 8).
+
+Every collision model on both engines: a quad driven into a wall, the ceiling or the floor at any
+speed that ``reset`` accepts (up to ~50 m/s) or the dynamics reach (full thrust) stays inside the
+room, and its observation still tells where it is. All cases run as the worlds of one batch (one
+vector env per collision model on the CPU engine, one compiled rollout per physics on the JAX
+engine), so the JAX compiles stay few.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from quadswarm_mj import EnvConfig, QuadSwarmEnv, QuadSwarmVectorEnv
+from quadswarm_mj.observations import obs_scale
+
+N = 2  # quads per world: the second one is parked in the room's far corner unless a case moves it
+STEPS = 200
+SPEED = 49.5  # m/s: just under the reset speed bound (50 m/s)
+HOVER = EnvConfig().quad.hover_action
+FLIP = np.diag([1.0, -1.0, -1.0])  # upside down (rolled by pi)
+PARK = [-4.0, 4.0, 5.0]
+
+
+def _unit(*v: float) -> np.ndarray:
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v)
+
+
+def _case(pos0, vel0, action=HOVER, rot0=None, pos1=PARK, vel1=(0.0, 0.0, 0.0), action1=HOVER) -> dict:
+    rot = np.tile(np.eye(3), (N, 1, 1))
+    if rot0 is not None:
+        rot[0] = rot0
+    return {"pos": np.array([pos0, pos1], float), "vel": np.array([vel0, vel1], float), "rot": rot,
+            "action": np.array([[action] * 4, [action1] * 4], float)}
+
+
+#: name -> start state and constant action of one world (quad 0 is the one driven at the room)
+CASES = {
+    "wall_15": _case([3.0, 0.0, 2.0], [15.0, 0.0, 0.0]),
+    "wall_50": _case([3.0, 0.0, 2.0], [SPEED, 0.0, 0.0]),
+    "walls_diagonal": _case([-3.0, -3.0, 2.0], SPEED * _unit(-1.0, -1.0, 0.0)),
+    "ceiling_corner_diagonal": _case([3.0, 3.0, 8.0], SPEED * _unit(1.0, 1.0, 1.0)),
+    "floor_corner_diagonal": _case([3.0, -3.0, 1.0], SPEED * _unit(1.0, -1.0, -1.0)),
+    "head_on_pair_x": _case([-1.0, 0.0, 2.0], [SPEED, 0.0, 0.0], pos1=[1.0, 0.0, 2.0], vel1=[-SPEED, 0.0, 0.0]),
+    "head_on_pair_z": _case([0.0, 0.0, 1.0], [0.0, 0.0, SPEED], pos1=[0.0, 0.0, 9.0], vel1=[0.0, 0.0, -SPEED]),
+    "ceiling_full_thrust": _case([0.0, 2.0, 8.0], [0.0, 0.0, SPEED], action=1.0),
+    "floor_full_thrust_upside_down": _case([0.0, -2.0, 1.0], [0.0, 0.0, -SPEED], action=1.0, rot0=FLIP),
+    "floor_full_thrust_from_rest": _case([2.0, 2.0, 0.3], [0.0, 0.0, 0.0], action=1.0, rot0=FLIP),
+    "tilted_full_thrust": _case([0.0, 0.0, 2.0], [0.0, 0.0, 0.0], action=1.0,
+                                rot0=np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])),
+}
+NAMES = list(CASES)
+W = len(CASES)
+
+
+def _batched(key: str) -> np.ndarray:
+    return np.stack([CASES[name][key] for name in NAMES])
+
+
+def _check_inside(cfg: EnvConfig, pos: np.ndarray, tol: float, where: str) -> None:
+    """Every quad centre inside the closed room box [room_low, room_high] (floor z = 0)."""
+    lo, hi = np.asarray(cfg.room_low), np.asarray(cfg.room_high)
+    assert np.isfinite(pos).all(), where
+    out = (pos < lo - tol) | (pos > hi + tol)
+    if out.any():
+        w, q, _ = np.argwhere(out)[0]
+        raise AssertionError(f"{where}: world {NAMES[w]!r} quad {q} left the room at {pos[w, q]}")
+
+
+def _check_obs_sees_position(cfg: EnvConfig, obs: np.ndarray, pos: np.ndarray, goals: np.ndarray, atol: float,
+                             where: str) -> None:
+    """The observation's first block is p - goal, unsaturated (noise off): a policy can tell where it is."""
+    rel = obs[..., :3] * (obs_scale(cfg)[:3] if cfg.normalize_obs else 1.0)
+    np.testing.assert_allclose(rel, pos - goals, rtol=0, atol=atol, err_msg=where)
+
+
+# ------------------------------------------------------------------------------------- CPU engine
+
+
+@pytest.mark.parametrize("collision_model", ["paper", "mujoco", "blend"])
+def test_room_contains_every_quad_cpu(collision_model):
+    """CPU engine (multi-world vector env): 200 steps of every case, every quad inside the room
+    after every control step, observations unsaturated. Before the fix, "mujoco"/"blend" let a quad
+    at 15 m/s through the wall (x = 17.4 m after 200 steps) and full thrust sank it into the floor."""
+    cfg = EnvConfig(num_quads=N, collision_model=collision_model).without_noise()
+    vec = QuadSwarmVectorEnv(cfg, num_envs=W, num_shards=1)
+    try:
+        state = {k: _batched(k) for k in ("pos", "vel", "rot")}
+        state["omega"] = np.zeros((W, N, 3))
+        state["motors"] = "hover"
+        vec.reset(seed=0, options={"state": state})
+        action = _batched("action")
+        for t in range(STEPS):
+            obs, _, _, _, info = vec.step(action)
+            pos = info["state"]["pos"]
+            _check_inside(cfg, pos, 1e-9, f"{collision_model} step {t}")
+            _check_obs_sees_position(cfg, obs, pos, info["goals"], 1e-4, f"{collision_model} step {t}")
+    finally:
+        vec.close()
+
+
+@pytest.mark.parametrize("collision_model", ["mujoco", "blend"])
+def test_single_env_wall_reproduction(collision_model):
+    """The issue's reproduction through QuadSwarmEnv: pos [[3, 0, 2]], vel [[15, 0, 0]], 200 hover steps."""
+    env = QuadSwarmEnv(EnvConfig(num_quads=1, collision_model=collision_model).without_noise())
+    env.reset(seed=0, options={"state": {"pos": [[3.0, 0.0, 2.0]], "vel": [[15.0, 0.0, 0.0]], "motors": "hover"}})
+    xs = []
+    for _ in range(STEPS):
+        info = env.step(np.full(4, HOVER))[4]
+        xs.append(info["state"]["pos"][0, 0])
+    assert max(xs) <= env.cfg.room_high[0]
+    assert min(xs) >= env.cfg.room_low[0]
+
+
+# ------------------------------------------------------------------------------------- JAX engine
+
+ENGINES = [("freebody", "paper"), ("mjx", "mujoco"), ("mjx", "blend")]
+
+
+@pytest.fixture(scope="module", params=ENGINES, ids=[f"{p}-{m}" for p, m in ENGINES])
+def jax_rollout(request):
+    """One compiled reset and 200-step rollout of every case (worlds) per (physics, collision model)."""
+    jax = pytest.importorskip("jax")
+    pytest.importorskip("mujoco.mjx")
+    import jax.numpy as jnp
+
+    from quadswarm_mj.envs.mjx_env import MjxQuadSwarmEnv
+
+    physics, model = request.param
+    cfg = EnvConfig(num_quads=N, collision_model=model).without_noise()
+    env = MjxQuadSwarmEnv(cfg, physics=physics)
+    init = {k: jnp.asarray(_batched(k), jnp.float32) for k in ("pos", "vel", "rot")}
+    init["omega"] = jnp.zeros((W, N, 3), jnp.float32)
+    reset = jax.vmap(lambda k, st: env.reset(k, {**st, "motors": "hover"}))
+    step = jax.vmap(env.step)
+
+    def run(keys, init, action):
+        def body(s, _):
+            s = step(s, action)
+            return s, (s.info["state"]["pos"], s.obs, s.info["goals"])
+        return jax.lax.scan(body, reset(keys, init), None, length=STEPS)[1]
+
+    pos, obs, goals = jax.jit(run)(jax.random.split(jax.random.key(0), W), init,
+                                   jnp.asarray(_batched("action"), jnp.float32))
+    return cfg, np.asarray(pos, np.float64), np.asarray(obs, np.float64), np.asarray(goals, np.float64)
+
+
+def test_room_contains_every_quad_jax(jax_rollout):
+    """JAX engine (free-body physics with the paper's model; MJX contacts with "mujoco"/"blend"):
+    every quad inside the room after every control step (float32: 1e-5 m), observations unsaturated."""
+    cfg, pos, obs, goals = jax_rollout
+    for t in range(STEPS):
+        _check_inside(cfg, pos[t], 1e-5, f"{cfg.collision_model} step {t}")
+        _check_obs_sees_position(cfg, obs[t], pos[t], goals[t], 1e-3, f"{cfg.collision_model} step {t}")
