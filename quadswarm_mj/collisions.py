@@ -171,6 +171,52 @@ def wall_collisions(pos: Any, vel: Any, omega: Any, prev_wall: Any, prev_ceiling
     }
 
 
+# ------------------------------------------------------------------------------- room guard
+
+
+def outside_room(pos: Any, room_low: Any, room_high: Any) -> tuple[Any, Any]:
+    """(beyond, below) (..., N) masks of quad centres ``pos`` (m, world-local) that have left the
+    closed room box: ``beyond`` a wall or above the ceiling, ``below`` the floor (z < room_low z)."""
+    xp = array_namespace(pos)
+    lo = xp.asarray(room_low, dtype=pos.dtype)
+    hi = xp.asarray(room_high, dtype=pos.dtype)
+    beyond = xp.any((pos[..., :2] < lo[:2]) | (pos[..., :2] > hi[:2]), axis=-1) | (pos[..., 2] > hi[2])
+    return beyond, pos[..., 2] < lo[2]
+
+
+def room_guard(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, room_low: Any, room_high: Any,
+               arm: float, wall_draws: dict[str, Any], speed_limits: tuple[float, float], yaw_draw: Any = None,
+               yaw_draw_cs: tuple[Any, Any] | None = None) -> dict[str, Any]:
+    """Backstop of the MuJoCo-contact collision models ("mujoco", "blend"), once per control step
+    after the physics: MuJoCo's soft contacts let a fast quad sink deep into a surface or tunnel
+    through a wall within one sub-step; a quad whose *centre* has left the room gets the paper's
+    response instead (quads inside are unchanged, so MuJoCo's contacts keep acting on them).
+
+    * beyond a wall or above the ceiling: :func:`wall_collisions` as a new hit, with the room shrunk
+      by ``arm`` (the hitbox sphere ends touching the surface, not half inside it): position
+      clipped, bounce away from the surface at ``decay * |v|`` within ``speed_limits``, spin kick;
+    * below the floor (z < 0): :func:`floor_impact` as a landing at z = ``arm`` (velocity and spin
+      0, yaw-only rotation, motor state ``u`` 0).
+
+    ``pos`` m world-local, ``vel`` m/s world, ``omega`` rad/s body, ``quat``/``R`` body->world,
+    ``u`` (..., N, 4); ``wall_draws``: :func:`wall_draw_spec`'s draws, ``yaw_draw`` (or its
+    ``yaw_draw_cs``) the landing yaw draws, per quad. Returns ``pos, vel, omega, quat, R, u`` and
+    the masks ``beyond``, ``below``.
+    """
+    xp = array_namespace(pos, vel)
+    beyond, below = outside_room(pos, room_low, room_high)
+    lo = xp.asarray(room_low, dtype=pos.dtype) + arm
+    hi = xp.asarray(room_high, dtype=pos.dtype) - arm
+    w = wall_collisions(pos, vel, omega, ~beyond, ~beyond, lo, hi, wall_draws, speed_limits)
+    b = beyond[..., None]
+    pos, vel, omega = xp.where(b, w["pos"], pos), xp.where(b, w["vel"], vel), xp.where(b, w["omega"], omega)
+    f = floor_impact(pos, vel, omega, quat, R, u, xp.zeros_like(below), arm, yaw_draw, yaw_draw_cs=yaw_draw_cs)
+    d = below[..., None]
+    return {"pos": xp.where(d, f["pos"], pos), "vel": xp.where(d, f["vel"], vel),
+            "omega": xp.where(d, f["omega"], omega), "quat": xp.where(d, f["quat"], quat),
+            "R": xp.where(d[..., None], f["R"], R), "u": xp.where(d, f["u"], u), "beyond": beyond, "below": below}
+
+
 # ------------------------------------------------------------------------------------ quad-quad
 
 

@@ -129,9 +129,11 @@ from quadswarm_mj.collisions import (
     floor_draw_spec,
     floor_impact,
     floor_wrench,
+    outside_room,
     pairwise_contacts,
     quad_collision_slot_spec,
     quad_collisions_budgeted,
+    room_guard,
     wall_bounces,
     wall_collisions,
     wall_draw_spec,
@@ -831,6 +833,14 @@ class MjxQuadSwarmEnv:
                                 expand_per_quad(bounce, _sub(rnd, "wall")), cfg.collision.wall_speed_limits)
             pos, vel, omega = w["pos"], w["vel"], w["omega"]
         else:  # MuJoCo resolves floor/walls/ceiling; flags from proximity to the surfaces (as CpuSwarm)
+            # the room guard: a quad centre outside the room gets the paper's wall bounce or floor landing
+            beyond, below = outside_room(pos, room_low, room_high)
+            yaw = rnd["floor/yaw"][-1]  # the last sub-step's landing slots (unused without the paper's floor)
+            g = room_guard(pos, vel, omega, q[:, 3:7], R, u, room_low, room_high, cfg.quad.arm,
+                           expand_per_quad(beyond, _sub(rnd, "wall")), cfg.collision.wall_speed_limits,
+                           yaw_draw_cs=tuple(expand_per_quad(below, {"c": jnp.cos(yaw), "s": jnp.sin(yaw)}).values()))
+            pos, vel, omega, R, u = g["pos"], g["vel"], g["omega"], g["R"], g["u"]
+            q = jnp.concatenate([pos, g["quat"]], -1)
             margin = cfg.quad.arm + 0.005
             on_floor_now = pos[:, 2] <= margin
             at_wall = jnp.any((pos[:, :2] <= room_low[:2] + margin) | (pos[:, :2] >= room_high[:2] - margin), -1)
