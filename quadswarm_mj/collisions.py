@@ -233,6 +233,22 @@ def quad_collision_draw_spec(num_quads: int, tries: int, shared_std: float, own_
     }
 
 
+#: m/s: the normal speed at which a new quad-quad pair separates when the paper's response leaves it
+#: none (equal velocities, e.g. two quads started at one point with one velocity: nothing to exchange)
+SEPARATION_SPEED = 0.5
+
+
+@functools.lru_cache(maxsize=64)
+def coincident_normals(n: int) -> np.ndarray:
+    """(n, n, 3) constant normals of pairs at the same point (zero-length p_i - p_j): +x for i < j,
+    -x for i > j (antisymmetric, like unit(p_i - p_j)), 0 on the diagonal."""
+    i = np.arange(n)
+    out = np.zeros((n, n, 3))
+    out[..., 0] = np.sign(i[None, :] - i[:, None])
+    out.setflags(write=False)
+    return out
+
+
 def pairwise_contacts(pos: Any, hitbox: float) -> tuple[Any, Any]:
     """(..., N, N) contact mask (||p_i - p_j|| <= hitbox, i != j) and distances."""
     if is_jax_array(pos) and pos.ndim == 2:  # one world under JAX: vmapped with the worlds axis last
@@ -305,6 +321,7 @@ def quad_collisions(pos: Any, vel: Any, omega: Any, prev_contact: Any, hitbox: f
     new = contact & ~prev_contact
     rel = pos[..., :, None, :] - pos[..., None, :, :]
     n = rel / xp.where(dist > 0, dist, 1.0)[..., None]
+    n = xp.where((dist == 0)[..., None], xp.asarray(coincident_normals(pos.shape[-2]), dtype=n.dtype), n)
     v_i = vel[..., :, None, :]
     v_j = vel[..., None, :, :]
     vin = xp.sum(v_i * n, axis=-1)
@@ -329,6 +346,12 @@ def quad_collisions(pos: Any, vel: Any, omega: Any, prev_contact: Any, hitbox: f
     s_new = xp.sqrt(xp.sum(v_new * v_new, axis=-1))
     scale = xp.minimum(1.0, vmax / xp.where(s_new > 0, s_new, 1.0))
     v_new = v_new * scale[..., None]
+    # a pair the response leaves without a separating normal speed (equal velocities: nothing to
+    # exchange) gets +-SEPARATION_SPEED / 2 along n
+    dv_rel = v_new[..., :, None, :] - v_new[..., None, :, :]
+    stuck = new & (xp.sum(dv_rel * n, axis=-1) <= 0.0)
+    push = xp.sum(xp.where(stuck[..., None], (0.5 * SEPARATION_SPEED) * n, 0.0), axis=-2)
+    v_new = xp.where(xp.any(stuck, axis=-1)[..., None], v_new + push, v_new)
     kick = _antisymmetric(xp, safe_normalize(xp, draws["kick_dir"]) * draws["kick_mag"][..., None])
     d_omega = xp.sum(xp.where(newf, kick, 0.0), axis=-2)
     inv = involved[..., None]
@@ -468,6 +491,7 @@ def quad_collisions_budgeted(pos: Any, vel: Any, omega: Any, prev_contact: Any, 
     rel = p_i - p_j
     d = xp.sqrt(xp.sum(rel * rel, axis=-1))
     nrm = rel / xp.where(d > 0, d, 1.0)[:, None]  # (S, 3) unit(p_i - p_j)
+    nrm = xp.where((d == 0)[:, None], xp.asarray(coincident_normals(2)[0, 1], dtype=nrm.dtype), nrm)  # i < j: +x
     vin = xp.sum(v_i * nrm, axis=-1)
     vjn = xp.sum(v_j * nrm, axis=-1)
     change = (vjn - vin)[:, None] * nrm
@@ -490,6 +514,12 @@ def quad_collisions_budgeted(pos: Any, vel: Any, omega: Any, prev_contact: Any, 
     s_new = xp.sqrt(xp.sum(v_new * v_new, axis=-1))
     scale = xp.minimum(1.0, vmax / xp.where(s_new > 0, s_new, 1.0))
     v_new = v_new * scale[:, None]
+    # as quad_collisions: a resolved pair left without a separating normal speed gets +-SEPARATION_SPEED / 2
+    used = xp.any(hi, axis=0)  # (S,) slots holding a pair
+    stuck = used & (xp.sum((gather(v_new, hi) - gather(v_new, hj)) * nrm, axis=-1) <= 0.0)
+    push = xp.where(stuck[:, None], (0.5 * SEPARATION_SPEED) * nrm, 0.0)
+    any_stuck = xp.any((hi | hj) & stuck[None, :], axis=-1)
+    v_new = xp.where(any_stuck[:, None], v_new + (scatter(push, hi) - scatter(push, hj)), v_new)
     kick = safe_normalize(xp, slots["kick_dir"]) * slots["kick_mag"][:, None]  # (S, 3): +w for i, -w for j
     d_omega = scatter(kick, hi) - scatter(kick, hj)
     inv = involved[:, None]

@@ -505,8 +505,9 @@ class CpuSwarm:
                                                       (cur_pos[..., :2] >= self.room_high[:2]), -1))
         self.at_ceiling = _put(self.at_ceiling, idx, cur_pos[..., 2] >= self.room_high[2])
         self._sync_flags()
-        contact, _ = pairwise_contacts(cur_pos, self.cfg.hitbox)
-        self.contact = _put(self.contact, idx, contact)
+        # no pair is 'already colliding' at the start: one overlapping at reset is a new contact at the
+        # first step (the paper's response separates it), as in the original
+        self.contact = _put(self.contact, idx, False)
         self.steps = _put(self.steps, idx, 0)
         fresh = metrics_lib.init(np.zeros((M, N)), (M,), N)
         self.metrics = {k: _put(v, idx, fresh[k]) for k, v in self.metrics.items()}

@@ -73,7 +73,8 @@ passes thrust, torque and motor constants to the actuation functions.
   ``info["state"]``; ``params`` (per-quad dynamics parameters, see
   :mod:`quadswarm_mj.randomization`; gravity excluded); ``goals``, ``goal_vel`` (N, 3); ``motor_u``
   (N, 4) normalized rotor speed; ``motor_eps`` (N, 4) OU motor noise; ``on_floor``, ``at_wall``,
-  ``at_ceiling`` (N,) bool; ``contact`` (N, N) bool (pairs inside the hitbox);
+  ``at_ceiling`` (N,) bool; ``contact`` (N, N) bool (pairs inside the hitbox at the last control
+  step; none after reset: a pair overlapping at the start is a new contact at the first step);
   ``scenario`` (:class:`~quadswarm_mj.scenarios.ScenarioState`); ``metrics_acc`` (accumulators of
   :mod:`quadswarm_mj.metrics`); ``episode_metrics`` (episode metrics so far, per world);
   ``step`` () int control steps in this episode; ``time`` () s;
@@ -739,7 +740,8 @@ class MjxQuadSwarmEnv:
         pos, vel, omega = q[:, :3].astype(f), v[:, :3].astype(f), v[:, 3:].astype(f)
         R = quat_to_rotmat(q[:, 3:7]).astype(f)
         on_floor, at_wall, at_ceiling = self._surface_flags(pos, vel, omega)
-        contact, dist = pairwise_contacts(pos, cfg.hitbox)
+        _, dist = pairwise_contacts(pos, cfg.hitbox)
+        contact = jnp.zeros((n, n), bool)  # none 'already colliding' at the start (as CpuSwarm.reset)
         acc = metrics_lib.init(jnp.zeros((n,), f), (), n)
         f_norm = u0 * u0
         obs = self._observe(pos, vel, R, omega, goals, rnd, dist, omap)
