@@ -93,7 +93,10 @@ passes thrust, torque and motor constants to the actuation functions.
 ``collision_model`` "mujoco" and "blend" run with ``physics="mjx"`` (MJX's contact solver: the quads'
 hitbox spheres against each other and the room's floor plane and wall/ceiling boxes; "blend" keeps
 the paper's quad-quad response), gated as in ``CpuSwarm``: MuJoCo resolves the surfaces and the
-flags come from the proximity to them.
+flags come from the proximity to them; the room guard (:func:`quadswarm_mj.collisions.room_guard`,
+once per control step) gives a quad whose centre left the room the paper's wall bounce or floor
+landing, so the room holds at any speed (MuJoCo's soft contacts alone let a quad through a wall or
+into the floor from about 10 m/s on).
 """
 
 from __future__ import annotations
