@@ -208,3 +208,38 @@ def test_coincident_quads_are_separated_jax():
     s = jax.jit(run)(jax.random.split(jax.random.key(0), len(COINCIDENT_VEL)), init)
     p = np.asarray(s.info["state"]["pos"])
     assert (np.linalg.norm(p[:, 0] - p[:, 1], axis=-1) > cfg.hitbox).all(), p
+
+
+def test_room_guard_leaves_quads_inside_unchanged():
+    """The guard acts only on quad centres outside the room: the others (touching or slightly
+    penetrating surfaces, which MuJoCo's contacts handle) keep their state bit for bit."""
+    from quadswarm_mj.collisions import room_guard, wall_draw_spec
+    from quadswarm_mj.random_draws import MeanSampler
+    from quadswarm_mj.spatial import yaw_quat, yaw_rotmat
+
+    cfg = EnvConfig()
+    arm = cfg.quad.arm
+    pos = np.array([[0.0, 0.0, 2.0], [5.0 - 0.5 * arm, 0.0, 2.0], [0.0, 0.0, 0.5 * arm], [5.2, -5.3, 1.0],
+                    [1.0, 1.0, -0.05], [0.0, 0.0, 10.4]])
+    n = len(pos)
+    vel = np.tile([3.0, -2.0, 1.0], (n, 1))
+    omega = np.tile([0.1, 0.2, 0.3], (n, 1))
+    yaw = np.linspace(-1.0, 1.0, n)
+    R, quat, u = yaw_rotmat(yaw), yaw_quat(yaw), np.full((n, 4), 0.7)
+    R[4] = R[4] @ FLIP  # the one below the floor is upside down
+    draws = MeanSampler().draw(wall_draw_spec(n, cfg.collision_decay, cfg.collision.kick_omega))
+    r = room_guard(pos, vel, omega, quat, R, u, cfg.room_low, cfg.room_high, arm, draws,
+                   cfg.collision.wall_speed_limits, np.zeros(n))
+    inside = np.array([True, True, True, False, False, False])
+    np.testing.assert_array_equal(r["beyond"], [False, False, False, True, False, True])
+    np.testing.assert_array_equal(r["below"], [False, False, False, False, True, False])
+    for k, v in (("pos", pos), ("vel", vel), ("omega", omega), ("quat", quat), ("R", R), ("u", u)):
+        np.testing.assert_array_equal(r[k][inside], v[inside], err_msg=k)
+    lo, hi = np.asarray(cfg.room_low) + arm, np.asarray(cfg.room_high) - arm
+    np.testing.assert_allclose(r["pos"][3], [hi[0], lo[1], 1.0])  # the sphere touches both walls
+    assert r["vel"][3, 0] < 0 < r["vel"][3, 1] and r["vel"][3, 2] < 0  # bounced away, downward (SPEC §4)
+    np.testing.assert_allclose(r["pos"][4], [1.0, 1.0, arm])  # landed: at the arm height, at rest, upright
+    np.testing.assert_array_equal(r["vel"][4], 0.0)
+    np.testing.assert_array_equal(r["u"][4], 0.0)
+    assert r["R"][4][2, 2] == pytest.approx(1.0)
+    assert r["pos"][5, 2] == pytest.approx(hi[2]) and r["vel"][5, 2] < 0
