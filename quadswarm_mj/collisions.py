@@ -309,10 +309,13 @@ def quad_collisions(pos: Any, vel: Any, omega: Any, prev_contact: Any, hitbox: f
                     draws: dict[str, Any]) -> dict[str, Any]:
     """Velocity response of pairs that newly entered each other's hitbox (SPEC §5).
 
-    For a new pair (i, j) with n = unit(p_i - p_j): dv = ((v_j.n) - (v_i.n)) n; i gets
+    For a new pair (i, j) with n = unit(p_i - p_j) (:func:`coincident_normals` for a pair at one
+    point): dv = ((v_j.n) - (v_i.n)) n; i gets
     dv + c + e_i, j gets -dv - c + e_j, with the first of the candidate noises that separates the
     pair (the last one if none does). Each involved quad's new speed is scaled by its ``decay``
-    draw and capped at the larger pre-collision speed of its pairs; omega gets +w / -w. A quad in
+    draw and capped at the larger pre-collision speed of its pairs; a pair then left without a
+    separating normal speed ((v_i' - v_j').n <= 0, e.g. equal velocities with noise off) gets
+    +-``SEPARATION_SPEED`` / 2 along n; omega gets +w / -w. A quad in
     several new pairs at once receives the sum of their changes. Returns ``vel, omega, contact,
     new_contact`` (contact masks are (..., N, N), symmetric).
     """
