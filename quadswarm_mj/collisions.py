@@ -171,6 +171,52 @@ def wall_collisions(pos: Any, vel: Any, omega: Any, prev_wall: Any, prev_ceiling
     }
 
 
+# ------------------------------------------------------------------------------- room guard
+
+
+def outside_room(pos: Any, room_low: Any, room_high: Any) -> tuple[Any, Any]:
+    """(beyond, below) (..., N) masks of quad centres ``pos`` (m, world-local) that have left the
+    closed room box: ``beyond`` a wall or above the ceiling, ``below`` the floor (z < room_low z)."""
+    xp = array_namespace(pos)
+    lo = xp.asarray(room_low, dtype=pos.dtype)
+    hi = xp.asarray(room_high, dtype=pos.dtype)
+    beyond = xp.any((pos[..., :2] < lo[:2]) | (pos[..., :2] > hi[:2]), axis=-1) | (pos[..., 2] > hi[2])
+    return beyond, pos[..., 2] < lo[2]
+
+
+def room_guard(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, room_low: Any, room_high: Any,
+               arm: float, wall_draws: dict[str, Any], speed_limits: tuple[float, float], yaw_draw: Any = None,
+               yaw_draw_cs: tuple[Any, Any] | None = None) -> dict[str, Any]:
+    """Backstop of the MuJoCo-contact collision models ("mujoco", "blend"), once per control step
+    after the physics: MuJoCo's soft contacts let a fast quad sink deep into a surface or tunnel
+    through a wall within one sub-step; a quad whose *centre* has left the room gets the paper's
+    response instead (quads inside are unchanged, so MuJoCo's contacts keep acting on them).
+
+    * beyond a wall or above the ceiling: :func:`wall_collisions` as a new hit, with the room shrunk
+      by ``arm`` (the hitbox sphere ends touching the surface, not half inside it): position
+      clipped, bounce away from the surface at ``decay * |v|`` within ``speed_limits``, spin kick;
+    * below the floor (z < 0): :func:`floor_impact` as a landing at z = ``arm`` (velocity and spin
+      0, yaw-only rotation, motor state ``u`` 0).
+
+    ``pos`` m world-local, ``vel`` m/s world, ``omega`` rad/s body, ``quat``/``R`` body->world,
+    ``u`` (..., N, 4); ``wall_draws``: :func:`wall_draw_spec`'s draws, ``yaw_draw`` (or its
+    ``yaw_draw_cs``) the landing yaw draws, per quad. Returns ``pos, vel, omega, quat, R, u`` and
+    the masks ``beyond``, ``below``.
+    """
+    xp = array_namespace(pos, vel)
+    beyond, below = outside_room(pos, room_low, room_high)
+    lo = xp.asarray(room_low, dtype=pos.dtype) + arm
+    hi = xp.asarray(room_high, dtype=pos.dtype) - arm
+    w = wall_collisions(pos, vel, omega, ~beyond, ~beyond, lo, hi, wall_draws, speed_limits)
+    b = beyond[..., None]
+    pos, vel, omega = xp.where(b, w["pos"], pos), xp.where(b, w["vel"], vel), xp.where(b, w["omega"], omega)
+    f = floor_impact(pos, vel, omega, quat, R, u, xp.zeros_like(below), arm, yaw_draw, yaw_draw_cs=yaw_draw_cs)
+    d = below[..., None]
+    return {"pos": xp.where(d, f["pos"], pos), "vel": xp.where(d, f["vel"], vel),
+            "omega": xp.where(d, f["omega"], omega), "quat": xp.where(d, f["quat"], quat),
+            "R": xp.where(d[..., None], f["R"], R), "u": xp.where(d, f["u"], u), "beyond": beyond, "below": below}
+
+
 # ------------------------------------------------------------------------------------ quad-quad
 
 
@@ -185,6 +231,22 @@ def quad_collision_draw_spec(num_quads: int, tries: int, shared_std: float, own_
         "kick_dir": Normal(0.0, 1.0, (n, n, 3)),
         "kick_mag": Uniform(kick_omega[0], kick_omega[1], (n, n)),
     }
+
+
+#: m/s: the normal speed at which a new quad-quad pair separates when the paper's response leaves it
+#: none (equal velocities, e.g. two quads started at one point with one velocity: nothing to exchange)
+SEPARATION_SPEED = 0.5
+
+
+@functools.lru_cache(maxsize=64)
+def coincident_normals(n: int) -> np.ndarray:
+    """(n, n, 3) constant normals of pairs at the same point (zero-length p_i - p_j): +x for i < j,
+    -x for i > j (antisymmetric, like unit(p_i - p_j)), 0 on the diagonal."""
+    i = np.arange(n)
+    out = np.zeros((n, n, 3))
+    out[..., 0] = np.sign(i[None, :] - i[:, None])
+    out.setflags(write=False)
+    return out
 
 
 def pairwise_contacts(pos: Any, hitbox: float) -> tuple[Any, Any]:
@@ -247,10 +309,13 @@ def quad_collisions(pos: Any, vel: Any, omega: Any, prev_contact: Any, hitbox: f
                     draws: dict[str, Any]) -> dict[str, Any]:
     """Velocity response of pairs that newly entered each other's hitbox (SPEC §5).
 
-    For a new pair (i, j) with n = unit(p_i - p_j): dv = ((v_j.n) - (v_i.n)) n; i gets
+    For a new pair (i, j) with n = unit(p_i - p_j) (:func:`coincident_normals` for a pair at one
+    point): dv = ((v_j.n) - (v_i.n)) n; i gets
     dv + c + e_i, j gets -dv - c + e_j, with the first of the candidate noises that separates the
     pair (the last one if none does). Each involved quad's new speed is scaled by its ``decay``
-    draw and capped at the larger pre-collision speed of its pairs; omega gets +w / -w. A quad in
+    draw and capped at the larger pre-collision speed of its pairs; a pair then left without a
+    separating normal speed ((v_i' - v_j').n <= 0, e.g. equal velocities with noise off) gets
+    +-``SEPARATION_SPEED`` / 2 along n; omega gets +w / -w. A quad in
     several new pairs at once receives the sum of their changes. Returns ``vel, omega, contact,
     new_contact`` (contact masks are (..., N, N), symmetric).
     """
@@ -259,6 +324,7 @@ def quad_collisions(pos: Any, vel: Any, omega: Any, prev_contact: Any, hitbox: f
     new = contact & ~prev_contact
     rel = pos[..., :, None, :] - pos[..., None, :, :]
     n = rel / xp.where(dist > 0, dist, 1.0)[..., None]
+    n = xp.where((dist == 0)[..., None], xp.asarray(coincident_normals(pos.shape[-2]), dtype=n.dtype), n)
     v_i = vel[..., :, None, :]
     v_j = vel[..., None, :, :]
     vin = xp.sum(v_i * n, axis=-1)
@@ -283,6 +349,12 @@ def quad_collisions(pos: Any, vel: Any, omega: Any, prev_contact: Any, hitbox: f
     s_new = xp.sqrt(xp.sum(v_new * v_new, axis=-1))
     scale = xp.minimum(1.0, vmax / xp.where(s_new > 0, s_new, 1.0))
     v_new = v_new * scale[..., None]
+    # a pair the response leaves without a separating normal speed (equal velocities: nothing to
+    # exchange) gets +-SEPARATION_SPEED / 2 along n
+    dv_rel = v_new[..., :, None, :] - v_new[..., None, :, :]
+    stuck = new & (xp.sum(dv_rel * n, axis=-1) <= 0.0)
+    push = xp.sum(xp.where(stuck[..., None], (0.5 * SEPARATION_SPEED) * n, 0.0), axis=-2)
+    v_new = xp.where(xp.any(stuck, axis=-1)[..., None], v_new + push, v_new)
     kick = _antisymmetric(xp, safe_normalize(xp, draws["kick_dir"]) * draws["kick_mag"][..., None])
     d_omega = xp.sum(xp.where(newf, kick, 0.0), axis=-2)
     inv = involved[..., None]
@@ -422,6 +494,7 @@ def quad_collisions_budgeted(pos: Any, vel: Any, omega: Any, prev_contact: Any, 
     rel = p_i - p_j
     d = xp.sqrt(xp.sum(rel * rel, axis=-1))
     nrm = rel / xp.where(d > 0, d, 1.0)[:, None]  # (S, 3) unit(p_i - p_j)
+    nrm = xp.where((d == 0)[:, None], xp.asarray(coincident_normals(2)[0, 1], dtype=nrm.dtype), nrm)  # i < j: +x
     vin = xp.sum(v_i * nrm, axis=-1)
     vjn = xp.sum(v_j * nrm, axis=-1)
     change = (vjn - vin)[:, None] * nrm
@@ -444,6 +517,12 @@ def quad_collisions_budgeted(pos: Any, vel: Any, omega: Any, prev_contact: Any, 
     s_new = xp.sqrt(xp.sum(v_new * v_new, axis=-1))
     scale = xp.minimum(1.0, vmax / xp.where(s_new > 0, s_new, 1.0))
     v_new = v_new * scale[:, None]
+    # as quad_collisions: a resolved pair left without a separating normal speed gets +-SEPARATION_SPEED / 2
+    used = xp.any(hi, axis=0)  # (S,) slots holding a pair
+    stuck = used & (xp.sum((gather(v_new, hi) - gather(v_new, hj)) * nrm, axis=-1) <= 0.0)
+    push = xp.where(stuck[:, None], (0.5 * SEPARATION_SPEED) * nrm, 0.0)
+    any_stuck = xp.any((hi | hj) & stuck[None, :], axis=-1)
+    v_new = xp.where(any_stuck[:, None], v_new + (scatter(push, hi) - scatter(push, hj)), v_new)
     kick = safe_normalize(xp, slots["kick_dir"]) * slots["kick_mag"][:, None]  # (S, 3): +w for i, -w for j
     d_omega = scatter(kick, hi) - scatter(kick, hj)
     inv = involved[:, None]

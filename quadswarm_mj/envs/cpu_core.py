@@ -57,8 +57,10 @@ from quadswarm_mj.collisions import (
     collision_draw_specs,
     floor_impact,
     floor_wrench,
+    outside_room,
     pairwise_contacts,
     quad_collisions,
+    room_guard,
     wall_collisions,
 )
 from quadswarm_mj.config import EnvConfig
@@ -293,6 +295,7 @@ class CpuSwarm:
         # one compare finds quads outside the walls or above the ceiling (the floor is separate)
         self._out_lo = np.array([cfg.room_low[0], cfg.room_low[1], -np.inf])
         self._out_hi = np.asarray(cfg.room_high, dtype=np.float64)
+        self._room_low_z0 = np.asarray(cfg.room_low, dtype=np.float64)  # floor at z = 0 (the room guard)
         self.rng = np.random.default_rng()
         self.total_steps = 0  # across episodes, for reward annealing
         # draw specs, built once
@@ -502,8 +505,9 @@ class CpuSwarm:
                                                       (cur_pos[..., :2] >= self.room_high[:2]), -1))
         self.at_ceiling = _put(self.at_ceiling, idx, cur_pos[..., 2] >= self.room_high[2])
         self._sync_flags()
-        contact, _ = pairwise_contacts(cur_pos, self.cfg.hitbox)
-        self.contact = _put(self.contact, idx, contact)
+        # no pair is 'already colliding' at the start: one overlapping at reset is a new contact at the
+        # first step (the paper's response separates it), as in the original
+        self.contact = _put(self.contact, idx, False)
         self.steps = _put(self.steps, idx, 0)
         fresh = metrics_lib.init(np.zeros((M, N)), (M,), N)
         self.metrics = {k: _put(v, idx, fresh[k]) for k, v in self.metrics.items()}
@@ -578,6 +582,9 @@ class CpuSwarm:
             else:
                 hit_wall = hit_ceiling = np.zeros((B, N), bool)
         else:  # MuJoCo resolves floor/walls/ceiling; flags from proximity to the surfaces
+            if ((pos < self._room_low_z0) | (pos > self._out_hi)).any():  # the room guard's backstop
+                R = self._room_guard(pos, vel, omega, R)
+                changed = True
             margin = cfg.quad.arm + 0.005
             on_floor = pos[..., 2] <= margin
             at_wall = ((pos[..., :2] <= self.room_low[:2] + margin)
@@ -621,6 +628,28 @@ class CpuSwarm:
             self.u, action, cmd, self.motor_eps, self.params, pos, self.qvel[..., :3].copy(),
             R, self.qvel[..., 3:].copy(), self.ctrl_state, self.rotor_pos, self._mix, self._torque_spin)
         return force, torque
+
+    def _room_guard(self, pos: np.ndarray, vel: np.ndarray, omega: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """MuJoCo-contact models: :func:`~quadswarm_mj.collisions.room_guard` on the worlds with a quad
+        centre outside the room (the paper's wall bounce or floor landing, drawn for those worlds only).
+        Writes ``pos``/``vel``/``omega`` (world-local copies) in place, the quaternions into ``qpos`` and
+        ``u``; returns the rotations (B, N, 3, 3) after the guard."""
+        cfg = self.cfg
+        beyond, below = outside_room(pos, self.room_low, self.room_high)
+        w = self._worlds(beyond | below)
+        M, stoch = self._count(w), cfg.noise.stochastic_collisions
+        draws = self._sampler(stoch).draw(self._spec_wall, (M,))
+        d = self._spec_floor["yaw"]
+        yaw = self.rng.uniform(d.low, d.high, size=(M, self.N)) if stoch else np.full((M, self.N), d.mean)
+        r = room_guard(pos[w], vel[w], omega[w], self.qpos[w, :, 3:7], R[w], self.u[w], self.room_low,
+                       self.room_high, cfg.quad.arm, draws, cfg.collision.wall_speed_limits, yaw)
+        pos[w], vel[w], omega[w] = r["pos"], r["vel"], r["omega"]
+        self.qpos[w, :, 3:7] = r["quat"]
+        self.u = _put(self.u, w, r["u"])
+        R = R.copy()
+        R[w] = r["R"]
+        self._R = R
+        return R
 
     def _worlds(self, flags: np.ndarray) -> Any:
         """Index of the worlds with any flag set: a slice when that is every world (views, no copy)."""

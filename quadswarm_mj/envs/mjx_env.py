@@ -73,7 +73,8 @@ passes thrust, torque and motor constants to the actuation functions.
   ``info["state"]``; ``params`` (per-quad dynamics parameters, see
   :mod:`quadswarm_mj.randomization`; gravity excluded); ``goals``, ``goal_vel`` (N, 3); ``motor_u``
   (N, 4) normalized rotor speed; ``motor_eps`` (N, 4) OU motor noise; ``on_floor``, ``at_wall``,
-  ``at_ceiling`` (N,) bool; ``contact`` (N, N) bool (pairs inside the hitbox);
+  ``at_ceiling`` (N,) bool; ``contact`` (N, N) bool (pairs inside the hitbox at the last control
+  step; none after reset: a pair overlapping at the start is a new contact at the first step);
   ``scenario`` (:class:`~quadswarm_mj.scenarios.ScenarioState`); ``metrics_acc`` (accumulators of
   :mod:`quadswarm_mj.metrics`); ``episode_metrics`` (episode metrics so far, per world);
   ``step`` () int control steps in this episode; ``time`` () s;
@@ -92,7 +93,10 @@ passes thrust, torque and motor constants to the actuation functions.
 ``collision_model`` "mujoco" and "blend" run with ``physics="mjx"`` (MJX's contact solver: the quads'
 hitbox spheres against each other and the room's floor plane and wall/ceiling boxes; "blend" keeps
 the paper's quad-quad response), gated as in ``CpuSwarm``: MuJoCo resolves the surfaces and the
-flags come from the proximity to them.
+flags come from the proximity to them; the room guard (:func:`quadswarm_mj.collisions.room_guard`,
+once per control step) gives a quad whose centre left the room the paper's wall bounce or floor
+landing, so the room holds at any speed (MuJoCo's soft contacts alone let a quad through a wall or
+into the floor from about 10 m/s on).
 """
 
 from __future__ import annotations
@@ -129,9 +133,11 @@ from quadswarm_mj.collisions import (
     floor_draw_spec,
     floor_impact,
     floor_wrench,
+    outside_room,
     pairwise_contacts,
     quad_collision_slot_spec,
     quad_collisions_budgeted,
+    room_guard,
     wall_bounces,
     wall_collisions,
     wall_draw_spec,
@@ -737,7 +743,8 @@ class MjxQuadSwarmEnv:
         pos, vel, omega = q[:, :3].astype(f), v[:, :3].astype(f), v[:, 3:].astype(f)
         R = quat_to_rotmat(q[:, 3:7]).astype(f)
         on_floor, at_wall, at_ceiling = self._surface_flags(pos, vel, omega)
-        contact, dist = pairwise_contacts(pos, cfg.hitbox)
+        _, dist = pairwise_contacts(pos, cfg.hitbox)
+        contact = jnp.zeros((n, n), bool)  # none 'already colliding' at the start (as CpuSwarm.reset)
         acc = metrics_lib.init(jnp.zeros((n,), f), (), n)
         f_norm = u0 * u0
         obs = self._observe(pos, vel, R, omega, goals, rnd, dist, omap)
@@ -831,6 +838,14 @@ class MjxQuadSwarmEnv:
                                 expand_per_quad(bounce, _sub(rnd, "wall")), cfg.collision.wall_speed_limits)
             pos, vel, omega = w["pos"], w["vel"], w["omega"]
         else:  # MuJoCo resolves floor/walls/ceiling; flags from proximity to the surfaces (as CpuSwarm)
+            # the room guard: a quad centre outside the room gets the paper's wall bounce or floor landing
+            beyond, below = outside_room(pos, room_low, room_high)
+            yaw = rnd["floor/yaw"][-1]  # the last sub-step's landing slots (unused without the paper's floor)
+            g = room_guard(pos, vel, omega, q[:, 3:7], R, u, room_low, room_high, cfg.quad.arm,
+                           expand_per_quad(beyond, _sub(rnd, "wall")), cfg.collision.wall_speed_limits,
+                           yaw_draw_cs=tuple(expand_per_quad(below, {"c": jnp.cos(yaw), "s": jnp.sin(yaw)}).values()))
+            pos, vel, omega, R, u = g["pos"], g["vel"], g["omega"], g["R"], g["u"]
+            q = jnp.concatenate([pos, g["quat"]], -1)
             margin = cfg.quad.arm + 0.005
             on_floor_now = pos[:, 2] <= margin
             at_wall = jnp.any((pos[:, :2] <= room_low[:2] + margin) | (pos[:, :2] >= room_high[:2] - margin), -1)
