@@ -272,7 +272,7 @@ def test_parallel_and_vector_envs_reject_non_numeric_actions():
 def test_mjx_env_reset_checks_the_bounds():
     import jax
 
-    from quadswarm_mj import MjxQuadSwarmEnv
+    from quadswarm_mj.envs.mjx_env import MjxQuadSwarmEnv
 
     mjx_env = MjxQuadSwarmEnv(EnvConfig(num_quads=2))
     with pytest.raises(ValueError, match=rf"init_state\['omega'\].*{OMEGA_LIMIT:g} rad/s"):
