@@ -66,10 +66,11 @@ MAX_EPISODE_SECONDS = 86400.0
 #: The most control steps in an episode, 2^24: the JAX engine counts steps in int32 and takes the
 #: time as float32(steps) * control_dt, exact in the step count up to 2^24 (one day at 100 Hz is 8.64e6).
 MAX_EPISODE_STEPS = 2**24
-#: m, the longest room side. The JAX engine holds positions in float32: 50 m from the room's centre
-#: float32 resolves 3.8e-6 m, the distance a quad at 1 mm/s moves in a 5 ms sub-step; the
-#: Crazyflie's spaces are a few metres (the paper's room is 10 m).
-MAX_ROOM_SIDE = 100.0
+#: m, the longest room side: 200 m, the original's "no walls" room (its motor-step recording,
+#: tests/reference_data/golden_b_motor0_step.npz). The JAX engine holds positions in float32: 100 m
+#: from the room's centre float32 resolves 7.6e-6 m, the distance a quad at 1.5 mm/s moves in a 5 ms
+#: sub-step; much larger rooms would freeze slow quads far out. The paper's room is 10 m.
+MAX_ROOM_SIDE = 200.0
 
 
 def _is_real(x: Any) -> bool:

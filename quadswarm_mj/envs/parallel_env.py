@@ -21,6 +21,8 @@ from quadswarm_mj.envs.gym_env import QuadSwarmEnv, make_config
 from quadswarm_mj.envs.validation import as_real_array
 
 STATE_PER_QUAD = 21
+#: the reset option key PettingZoo's ``parallel_api_test`` passes (ignored; any other unknown key raises)
+PETTINGZOO_PROBE = "options"
 
 
 class QuadSwarmParallelEnv(ParallelEnv):
@@ -73,7 +75,11 @@ class QuadSwarmParallelEnv(ParallelEnv):
         return out
 
     def reset(self, seed: int | None = None, options: dict[str, Any] | None = None):
-        """Start an episode (``options`` as ``QuadSwarmEnv.reset``; other keys raise ValueError)."""
+        """Start an episode (``options`` as ``QuadSwarmEnv.reset``; other keys raise ValueError, except
+        ``"options"``: PettingZoo's ``parallel_api_test`` passes ``{"options": 1}`` to see that reset takes
+        options, and that key alone is ignored)."""
+        if isinstance(options, dict) and PETTINGZOO_PROBE in options:
+            options = {k: v for k, v in options.items() if k != PETTINGZOO_PROBE}
         obs, info = self.env.reset(seed=seed, options=options)
         self.agents = list(self.possible_agents)
         self._last_info = info
