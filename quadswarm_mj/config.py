@@ -71,6 +71,10 @@ MAX_EPISODE_STEPS = 2**24
 #: from the room's centre float32 resolves 7.6e-6 m, the distance a quad at 1.5 mm/s moves in a 5 ms
 #: sub-step; much larger rooms would freeze slow quads far out. The paper's room is 10 m.
 MAX_ROOM_SIDE = 200.0
+#: The largest reward scale (every term of ``RewardScales``, ``ObstacleConfig.collision_reward``):
+#: 2e5 times the paper's largest (5.0); larger scales only rescale the return, and keep the JAX
+#: engine's float32 rewards far from overflow.
+MAX_REWARD_SCALE = 1e6
 
 
 def _is_real(x: Any) -> bool:
@@ -316,7 +320,7 @@ class RewardScales:
 
     def __post_init__(self) -> None:
         for n in self.TERMS:
-            _check_range(f"rewards.{n}", getattr(self, n), 0.0)
+            _check_range(f"rewards.{n}", getattr(self, n), 0.0, MAX_REWARD_SCALE)
         _check_range("rewards.proximity_falloff_arms", self.proximity_falloff_arms, 0.0, lo_open=True)
         object.__setattr__(self, "anneal_steps", _as_int("rewards.anneal_steps", self.anneal_steps, 0))
 
@@ -459,7 +463,7 @@ class ObstacleConfig:
         for n in ("density_random", "size_random"):
             if not isinstance(getattr(self, n), bool):
                 raise ValueError(f"obstacles.{n} must be a bool, got {getattr(self, n)!r}")
-        _check_range("obstacles.collision_reward", self.collision_reward, 0.0)
+        _check_range("obstacles.collision_reward", self.collision_reward, 0.0, MAX_REWARD_SCALE)
         need = self.columns_needed
         if self.max_columns is not None:
             m = self.max_columns
@@ -588,16 +592,22 @@ class EnvConfig:
             raise ValueError(f"control_mode must be one of {CONTROL_MODES}, got {self.control_mode!r}")
         if self.neighbor_sort not in NEIGHBOR_SORTS:
             raise ValueError(f"neighbor_sort must be one of {NEIGHBOR_SORTS}, got {self.neighbor_sort!r}")
-        object.__setattr__(self, "collision_decay", _check_pair("collision_decay", self.collision_decay, 0.0))
+        # a collision never speeds a quad up (decay multiplies the speed)
+        object.__setattr__(self, "collision_decay", _check_pair("collision_decay", self.collision_decay, 0.0, 1.0))
         if self.num_neighbors is not None:
             k = self.num_neighbors
             if not (isinstance(k, numbers.Integral) and _is_real(k) and 0 <= k <= self.num_quads - 1):
                 raise ValueError(f"num_neighbors must be an int in [0, num_quads - 1] = [0, {self.num_quads - 1}] "
                                  f"(each quad has num_quads - 1 neighbors), got {k!r}")
             object.__setattr__(self, "num_neighbors", int(k))
-        _check_range("neighbor_vel_clip", self.neighbor_vel_clip, 0.0, lo_open=True)
-        _check_range("grace_period_s", self.grace_period_s, 0.0)
+        # two quads at SPEED_LIMIT close at 2 SPEED_LIMIT; a grace period longer than the longest episode means
+        # nothing; the formation centre is a point of a room no side of which exceeds MAX_ROOM_SIDE
+        _check_range("neighbor_vel_clip", self.neighbor_vel_clip, 0.0, 2 * SPEED_LIMIT, lo_open=True)
+        _check_range("grace_period_s", self.grace_period_s, 0.0, MAX_EPISODE_SECONDS)
         fc = _numbers("formation_center", self.formation_center, 3, "3 finite numbers (m)")
+        if max(abs(x) for x in fc) > MAX_ROOM_SIDE:
+            raise ValueError(f"formation_center must be 3 numbers (m) within +-{MAX_ROOM_SIDE:g} m (MAX_ROOM_SIDE), "
+                             f"got {self.formation_center!r}")
         object.__setattr__(self, "formation_center", fc)
         for n in ("downwash", "randomize", "normalize_obs"):
             if not isinstance(getattr(self, n), bool):

@@ -170,6 +170,14 @@ def test_instability_in_the_single_env_needs_a_reset():
     ({"aero": {"ground_effect_max_gain": 1e300}}, ["aero.ground_effect_max_gain", "<= 2"]),
     ({"aero": {"drag": True, "drag_coeff": (1.0, 1.0, 1.0)}}, ["aero.drag_coeff", "sim_dt"]),
     ({"aero": {"drag": True, "thrust_coeff": 1e-300}}, ["aero.thrust_coeff", "sim_dt"]),
+    # values that overflow float32 (the JAX engine) or blow a state up, beyond any physical meaning
+    ({"noise": {"sensor_pos_std": 1e300}}, ["noise.sensor_pos_std", "<= 200"]),
+    ({"noise": {"sensor_omega_std": 1e300}}, ["noise.sensor_omega_std", f"<= {OMEGA_LIMIT:g}"]),
+    ({"rewards": {"pos": 1e300}}, ["rewards.pos", "<= 1000000"]),
+    ({"collision_decay": (0.5, 1e300)}, ["collision_decay[1]", "<= 1"]),
+    ({"neighbor_vel_clip": 1e300}, ["neighbor_vel_clip", f"<= {2 * SPEED_LIMIT:g}"]),
+    ({"formation_center": (1e300, 0.0, 2.0)}, ["formation_center", f"{MAX_ROOM_SIDE:g} m"]),
+    ({"collision": {"wall_speed_limits": (0.1, 1e300)}}, ["collision.wall_speed_limits[1]", f"<= {SPEED_LIMIT:g}"]),
 ])
 def test_airframe_beyond_the_physical_bounds_is_rejected(kwargs, words):
     with pytest.raises(ValueError) as e:
