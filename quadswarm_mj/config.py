@@ -111,7 +111,10 @@ def _check_range(name: str, value: float, lo: float | None = None, hi: float | N
     """ValueError naming ``name`` and the allowed range unless ``value`` is a finite real in it."""
     bounds = [f"{'>' if lo_open else '>='} {lo}" if lo is not None else "", f"<= {hi}" if hi is not None else ""]
     rng = " and ".join(b for b in bounds if b)
-    ok = _is_real(value) and math.isfinite(value)
+    try:
+        ok = _is_real(value) and math.isfinite(value)
+    except OverflowError:  # a Python int beyond the float range
+        ok = False
     if ok and lo is not None and (value < lo or (lo_open and value == lo)):
         ok = False
     if ok and hi is not None and value > hi:

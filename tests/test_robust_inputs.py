@@ -130,6 +130,29 @@ def test_instability_names_the_world_and_quad_and_resets_no_other(backend):
     assert np.isfinite(moved[others]).all() and moved[others].max() < 0.05, moved
 
 
+def _spin_up(shard, world: int, quad: int) -> None:
+    """(runs in the shard's process) omega 1e6 rad/s on env world ``world`` if this shard holds it."""
+    if shard.lo <= world < shard.hi:
+        shard.core.qvel[world - shard.lo, quad, 3:] = 1e6
+        shard.core.phys.touch()
+
+
+def test_instability_in_a_vector_env_worker_names_the_env_world():
+    vec = QuadSwarmVectorEnv(num_quads=2, num_envs=4, num_shards=2)
+    try:
+        vec.reset(seed=0)
+        vec._call_shards(_spin_up, 3, 1)  # world 3 is in the worker's shard (worlds 2, 3)
+        with pytest.raises(RuntimeError, match=r"world 3, quad 1\b"):
+            vec.step(np.zeros((4, 2, 4)))
+        with pytest.raises(RuntimeError, match=r"reset\(\)"):
+            vec.step(np.zeros((4, 2, 4)))
+        vec.reset(seed=0)
+        obs, reward, *_ = vec.step(np.zeros((4, 2, 4)))
+        assert np.isfinite(obs).all() and np.isfinite(reward).all()
+    finally:
+        vec.close()
+
+
 def test_instability_in_the_single_env_needs_a_reset():
     env = QuadSwarmEnv(num_quads=N)
     env.reset(seed=0)
@@ -211,6 +234,13 @@ def test_huge_finite_actions_are_clipped(env, big):
     assert np.isfinite(reward) and reward == reward_clipped
     for k, v in info_clipped["reward_terms"].items():
         np.testing.assert_array_equal(info["reward_terms"][k], v, err_msg=k)
+
+
+@pytest.mark.parametrize("kwargs", [{"episode_seconds": 10**400}, {"quad": {"mass": 10**400}},
+                                    {"room_size": (10**400, 10, 10)}, {"randomization": {"mass_scale": (1, 10**400)}}])
+def test_python_int_beyond_float64_in_the_config_is_a_value_error(kwargs):
+    with pytest.raises(ValueError, match=list(kwargs)[0]):
+        EnvConfig(**kwargs)
 
 
 def test_python_int_beyond_float64_is_a_value_error(env):
