@@ -25,13 +25,96 @@ MIN_ROOM_SIDE = 2 * SPAWN_MARGIN  # 1.0 m
 CONTROL_MODES = ("rotor", "ctbr", "attitude", "velocity")
 QUAD_PRESETS = ("quadswarm", "crazyflie21_identified")
 
+# ---- physical bounds (issue 32): every accepted state and airframe stays finite and stable in float32
+#: m/s, the largest speed a reset state may give a quad (|v|). Racing quadrotors top out near 50 m/s
+#: (180 km/h); a Crazyflie reaches ~20 m/s at full thrust across the default room. At 50 m/s a quad
+#: moves 0.25 m per 200 Hz physics sub-step, already 5.4 arms: beyond that no contact or collision
+#: model resolves a crossing.
+SPEED_LIMIT = 50.0
+#: rad/s, the largest body rate per axis a reset state, ``quad.max_omega`` or a collision kick may
+#: give (2.5x the default ``max_omega`` 40, above the paper's largest collision kick 20 pi = 62.8;
+#: racing quadrotors flip at ~35 rad/s). At 100 rad/s a 200 Hz sub-step turns a quad by 0.5 rad: the
+#: rotation is still resolved, and the gyroscopic acceleration |I^-1 (w x I w)| <= ~1e4 rad/s^2 stays
+#: far below MuJoCo's instability threshold (1e10).
+OMEGA_LIMIT = 100.0
+#: rad/s^2, the largest angular acceleration the rotors may give an airframe: 4 arm thrust_max /
+#: min(Ixx, Iyy) (roll, pitch: all four rotors at the full arm, an upper bound) and 4 torque_max / Izz
+#: (yaw). 2e4 = OMEGA_LIMIT / 5 ms: from rest to the spin limit within one default physics sub-step;
+#: stronger airframes are not resolved by the simulation step. The Crazyflie: ~1750 (roll), ~120 (yaw).
+MAX_ANGULAR_ACCEL = OMEGA_LIMIT / 0.005
+#: The largest thrust-to-weight ratio of an airframe (all rotors at full thrust over the weight, also
+#: of the strongest quad the randomization ranges can draw): the strongest racing quadrotors reach
+#: ~10 (the Crazyflie 1.9-2.3); beyond, full thrust reaches SPEED_LIMIT within a second.
+MAX_THRUST_TO_WEIGHT = 10.0
+#: kg, the airframe mass range (a 1 g micro flyer .. a 10 kg heavy-lift multirotor; the Crazyflie 0.028).
+MASS_RANGE = (1e-3, 10.0)
+#: kg m^2, the range of each principal inertia (a 1 g mass 1 mm off the axis .. 1 kg m^2, a heavy-lift
+#: multirotor; the Crazyflie ~1.4e-5, 2.7e-5). MAX_ANGULAR_ACCEL usually binds first.
+INERTIA_RANGE = (1e-9, 1.0)
+#: m/s^2, the largest gravity (Jupiter's is 24.8).
+MAX_GRAVITY = 100.0
+#: The largest multiplier of a randomization scale range (``*_scale``) and the smallest of the mass
+#: and inertia scales: a 10x heavier or 10x lighter quad is another airframe, not a perturbation.
+MAX_RANDOM_SCALE = 10.0
+MIN_MASS_INERTIA_SCALE = 0.1
+#: The largest ground-effect thrust gain: the Cheeseman-Bennett form reaches 2 at h = r / (2 sqrt 2),
+#: well under the rotor radius where no measurement supports it (small rotors measure <= ~1.5).
+MAX_GROUND_EFFECT_GAIN = 2.0
+#: s, the longest episode: one day (a Crazyflie flies 7 minutes on a battery; the paper's episodes are
+#: 15 s). Its control steps must also be <= MAX_EPISODE_STEPS.
+MAX_EPISODE_SECONDS = 86400.0
+#: The most control steps in an episode, 2^24: the JAX engine counts steps in int32 and takes the
+#: time as float32(steps) * control_dt, exact in the step count up to 2^24 (one day at 100 Hz is 8.64e6).
+MAX_EPISODE_STEPS = 2**24
+#: m, the longest room side: 200 m, the original's "no walls" room (its motor-step recording,
+#: tests/reference_data/golden_b_motor0_step.npz). The JAX engine holds positions in float32: 100 m
+#: from the room's centre float32 resolves 7.6e-6 m, the distance a quad at 1.5 mm/s moves in a 5 ms
+#: sub-step; much larger rooms would freeze slow quads far out. The paper's room is 10 m.
+MAX_ROOM_SIDE = 200.0
+#: The largest reward scale (every term of ``RewardScales``, ``ObstacleConfig.collision_reward``):
+#: 2e5 times the paper's largest (5.0); larger scales only rescale the return, and keep the JAX
+#: engine's float32 rewards far from overflow.
+MAX_REWARD_SCALE = 1e6
+
+
+def _is_real(x: Any) -> bool:
+    """True for a real number (Python or NumPy int or float), False for bools, strings, complex..."""
+    return isinstance(x, numbers.Real) and not isinstance(x, bool) and type(x).__name__ != "bool_"
+
+
+def _as_int(name: str, value: Any, lo: int, what: str = "") -> int:
+    """``value`` as a Python int (NumPy integers accepted) if it is an integer >= ``lo``, else ValueError."""
+    if isinstance(value, numbers.Integral) and _is_real(value) and value >= lo:
+        return int(value)
+    raise ValueError(f"{name} must be an int >= {lo}{what}, got {value!r}")
+
+
+def _numbers(name: str, value: Any, n: int, what: str) -> tuple[float, ...]:
+    """``value`` as a tuple of ``n`` finite floats; ValueError ``"{name} must be {what}, got ..."``
+    for strings, bools, non-numbers, a wrong length or NaN/inf."""
+    try:
+        if isinstance(value, (str, bytes)):
+            raise TypeError
+        items = list(value)
+        if len(items) != n or not all(_is_real(x) for x in items):
+            raise TypeError
+        out = tuple(float(x) for x in items)
+        if not all(math.isfinite(x) for x in out):
+            raise TypeError
+    except (TypeError, ValueError, OverflowError) as e:
+        raise ValueError(f"{name} must be {what}, got {value!r}") from e
+    return out
+
 
 def _check_range(name: str, value: float, lo: float | None = None, hi: float | None = None,
                  lo_open: bool = False) -> None:
     """ValueError naming ``name`` and the allowed range unless ``value`` is a finite real in it."""
     bounds = [f"{'>' if lo_open else '>='} {lo}" if lo is not None else "", f"<= {hi}" if hi is not None else ""]
     rng = " and ".join(b for b in bounds if b)
-    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+    try:
+        ok = _is_real(value) and math.isfinite(value)
+    except OverflowError:  # a Python int beyond the float range
+        ok = False
     if ok and lo is not None and (value < lo or (lo_open and value == lo)):
         ok = False
     if ok and hi is not None and value > hi:
@@ -41,10 +124,7 @@ def _check_range(name: str, value: float, lo: float | None = None, hi: float | N
 
 
 def _check_pair(name: str, pair: Any, lo: float | None = None, hi: float | None = None) -> tuple:
-    try:
-        a, b = (float(x) for x in pair)
-    except Exception as e:  # noqa: BLE001
-        raise ValueError(f"{name} must be a (low, high) pair of numbers, got {pair!r}") from e
+    a, b = _numbers(name, pair, 2, "a (low, high) pair of finite numbers")
     _check_range(f"{name}[0]", a, lo, hi)
     _check_range(f"{name}[1]", b, lo, hi)
     if a > b:
@@ -70,21 +150,33 @@ class QuadParams:
     thrust_map_quadratic: float = 0.0
 
     def __post_init__(self) -> None:
-        for n in ("mass", "arm", "thrust_to_weight", "torque_to_thrust", "motor_settling_time",
-                  "max_omega", "gravity"):
+        for n in ("arm", "torque_to_thrust", "motor_settling_time"):
             _check_range(f"quad.{n}", getattr(self, n), 0.0, lo_open=True)
+        _check_range("quad.mass", self.mass, *MASS_RANGE)  # kg
+        _check_range("quad.thrust_to_weight", self.thrust_to_weight, 0.0, MAX_THRUST_TO_WEIGHT, lo_open=True)
+        _check_range("quad.max_omega", self.max_omega, 0.0, OMEGA_LIMIT, lo_open=True)  # rad/s
+        _check_range("quad.gravity", self.gravity, 0.0, MAX_GRAVITY, lo_open=True)  # m/s^2
         _check_range("quad.thrust_map_quadratic", self.thrust_map_quadratic, 0.0, 1.0)
         if self.arm >= SPAWN_MARGIN:
             raise ValueError(f"quad.arm must be < {SPAWN_MARGIN} m (the spawn margin from walls and ceiling), "
                              f"got {self.arm!r}")
         _check_range("quad.rotor_z", self.rotor_z, -self.arm, self.arm)
-        try:
-            inertia = tuple(float(i) for i in self.inertia)
-        except Exception as e:  # noqa: BLE001
-            raise ValueError(f"quad.inertia must be 3 finite numbers > 0 (kg m^2), got {self.inertia!r}") from e
-        if len(inertia) != 3 or not all(math.isfinite(i) and i > 0 for i in inertia):
-            raise ValueError(f"quad.inertia must be 3 finite numbers > 0 (kg m^2), got {self.inertia!r}")
+        lo, hi = INERTIA_RANGE
+        what = f"3 finite numbers >= {lo:g} and <= {hi:g} (kg m^2, Ixx, Iyy, Izz)"
+        inertia = _numbers("quad.inertia", self.inertia, 3, what)
+        if not all(lo <= i <= hi for i in inertia):
+            raise ValueError(f"quad.inertia must be {what}, got {self.inertia!r}")
         object.__setattr__(self, "inertia", inertia)
+        check_angular_accel(self, "quad")
+
+    def angular_accel(self, thrust_scale: float = 1.0, torque_scale: float = 1.0,
+                      inertia_scale: float = 1.0) -> tuple[float, float]:
+        """Upper bounds (rad/s^2) of the (roll/pitch, yaw) angular acceleration the rotors can give:
+        4 arm thrust_max / min(Ixx, Iyy) and 4 torque_max / Izz, with thrust_max, torque_max and the
+        inertia multiplied by the given scales (the extremes of the randomization ranges)."""
+        t = self.thrust_max * thrust_scale
+        Ixx, Iyy, Izz = (i * inertia_scale for i in self.inertia)
+        return 4.0 * self.arm * t / min(Ixx, Iyy), 4.0 * self.torque_to_thrust * torque_scale * t / Izz
 
     @property
     def thrust_max(self) -> float:
@@ -137,6 +229,22 @@ class QuadParams:
         return 2.0 * self.hover_command - 1.0
 
 
+def check_angular_accel(quad: QuadParams, where: str, thrust_scale: float = 1.0, torque_scale: float = 1.0,
+                        inertia_scale: float = 1.0) -> None:
+    """ValueError unless the airframe's angular accelerations (:meth:`QuadParams.angular_accel`) are
+    <= MAX_ANGULAR_ACCEL; ``where`` says which ranges gave the scales."""
+    roll, yaw = quad.angular_accel(thrust_scale, torque_scale, inertia_scale)
+    if roll > MAX_ANGULAR_ACCEL:
+        raise ValueError(f"{where}: quad.inertia {quad.inertia} kg m^2 is too small for quad.arm, quad.mass and "
+                         f"quad.thrust_to_weight: the roll/pitch angular acceleration reaches {roll:.4g} rad/s^2 "
+                         f"(4 arm thrust_max / min(Ixx, Iyy)); it must be <= MAX_ANGULAR_ACCEL = "
+                         f"{MAX_ANGULAR_ACCEL:g} rad/s^2 (from rest to the spin limit within one 5 ms sub-step)")
+    if yaw > MAX_ANGULAR_ACCEL:
+        raise ValueError(f"{where}: quad.torque_to_thrust {quad.torque_to_thrust!r} m with quad.inertia[2] "
+                         f"{quad.inertia[2]!r} kg m^2 gives a yaw angular acceleration up to {yaw:.4g} rad/s^2 "
+                         f"(4 torque_max / Izz); it must be <= MAX_ANGULAR_ACCEL = {MAX_ANGULAR_ACCEL:g} rad/s^2")
+
+
 @dataclass(frozen=True)
 class NoiseConfig:
     """Noise sources (SPEC §2, §5-7). ``EnvConfig.without_noise()`` turns all of them off."""
@@ -151,8 +259,11 @@ class NoiseConfig:
     stochastic_downwash: bool = True  # False: downwash draws take their means
 
     def __post_init__(self) -> None:
-        for n in ("motor_noise_ratio", "sensor_pos_std", "sensor_vel_std", "sensor_omega_std"):
-            _check_range(f"noise.{n}", getattr(self, n), 0.0)
+        # bounds: a motor noise beyond the thrust range, or a sensor noise beyond the largest value the
+        # quantity can take (room side, SPEED_LIMIT, OMEGA_LIMIT), is no longer a perturbation
+        for n, hi in (("motor_noise_ratio", 1.0), ("sensor_pos_std", MAX_ROOM_SIDE), ("sensor_vel_std", SPEED_LIMIT),
+                      ("sensor_omega_std", OMEGA_LIMIT)):
+            _check_range(f"noise.{n}", getattr(self, n), 0.0, hi)
         _check_range("noise.motor_noise_theta", self.motor_noise_theta, 0.0, 1.0)
 
 
@@ -169,10 +280,14 @@ class RandomizationConfig:
     motor_noise_ratio: tuple[float, float] = (0.01, 0.05)
 
     def __post_init__(self) -> None:
+        bounds = {"mass_scale": (MIN_MASS_INERTIA_SCALE, MAX_RANDOM_SCALE),
+                  "inertia_scale": (MIN_MASS_INERTIA_SCALE, MAX_RANDOM_SCALE),
+                  "thrust_to_weight": (0.0, MAX_THRUST_TO_WEIGHT), "torque_to_thrust_scale": (0.0, MAX_RANDOM_SCALE),
+                  "rotor_thrust_scale": (0.0, MAX_RANDOM_SCALE), "motor_noise_ratio": (0.0, 1.0)}
         for f in fields(self):
-            lo = 0.0
+            lo, hi = bounds.get(f.name, (0.0, None))
             object.__setattr__(self, f.name, _check_pair(f"randomization.{f.name}",
-                                                         getattr(self, f.name), lo))
+                                                         getattr(self, f.name), lo, hi))
         for n in ("mass_scale", "inertia_scale", "thrust_to_weight", "motor_settling_time",
                   "rotor_thrust_scale"):
             if getattr(self, n)[0] <= 0:
@@ -208,10 +323,9 @@ class RewardScales:
 
     def __post_init__(self) -> None:
         for n in self.TERMS:
-            _check_range(f"rewards.{n}", getattr(self, n), 0.0)
+            _check_range(f"rewards.{n}", getattr(self, n), 0.0, MAX_REWARD_SCALE)
         _check_range("rewards.proximity_falloff_arms", self.proximity_falloff_arms, 0.0, lo_open=True)
-        if not isinstance(self.anneal_steps, int) or self.anneal_steps < 0:
-            raise ValueError(f"rewards.anneal_steps must be an int >= 0, got {self.anneal_steps!r}")
+        object.__setattr__(self, "anneal_steps", _as_int("rewards.anneal_steps", self.anneal_steps, 0))
 
     @classmethod
     def paper_baseline(cls) -> RewardScales:
@@ -252,14 +366,10 @@ class AeroConfig:
             if not isinstance(getattr(self, n), bool):
                 raise ValueError(f"aero.{n} must be a bool, got {getattr(self, n)!r}")
         _check_range("aero.rotor_radius", self.rotor_radius, 0.0, lo_open=True)
-        _check_range("aero.ground_effect_max_gain", self.ground_effect_max_gain, 1.0, lo_open=True)
+        _check_range("aero.ground_effect_max_gain", self.ground_effect_max_gain, 1.0, MAX_GROUND_EFFECT_GAIN,
+                     lo_open=True)
         _check_range("aero.thrust_coeff", self.thrust_coeff, 0.0, lo_open=True)
-        try:
-            d = tuple(float(x) for x in self.drag_coeff)
-        except Exception as e:  # noqa: BLE001
-            raise ValueError(f"aero.drag_coeff must be 3 numbers >= 0, got {self.drag_coeff!r}") from e
-        if len(d) != 3:
-            raise ValueError(f"aero.drag_coeff must be 3 numbers >= 0, got {self.drag_coeff!r}")
+        d = _numbers("aero.drag_coeff", self.drag_coeff, 3, "3 numbers >= 0")
         for i, x in enumerate(d):
             _check_range(f"aero.drag_coeff[{i}]", x, 0.0)
         object.__setattr__(self, "drag_coeff", d)
@@ -286,13 +396,12 @@ class CollisionParams:
 
     def __post_init__(self) -> None:
         _check_range("collision.hitbox_arms", self.hitbox_arms, 0.0, lo_open=True)
-        if not isinstance(self.tries, int) or self.tries < 1:
-            raise ValueError(f"collision.tries must be an int >= 1, got {self.tries!r}")
+        object.__setattr__(self, "tries", _as_int("collision.tries", self.tries, 1))
         _check_range("collision.shared_noise_std", self.shared_noise_std, 0.0)
         _check_range("collision.own_noise_std", self.own_noise_std, 0.0)
-        object.__setattr__(self, "kick_omega", _check_pair("collision.kick_omega", self.kick_omega, 0.0))
+        object.__setattr__(self, "kick_omega", _check_pair("collision.kick_omega", self.kick_omega, 0.0, OMEGA_LIMIT))
         object.__setattr__(self, "wall_speed_limits",
-                           _check_pair("collision.wall_speed_limits", self.wall_speed_limits, 0.0))
+                           _check_pair("collision.wall_speed_limits", self.wall_speed_limits, 0.0, SPEED_LIMIT))
         _check_range("collision.floor_friction", self.floor_friction, 0.0)
 
 
@@ -357,10 +466,13 @@ class ObstacleConfig:
         for n in ("density_random", "size_random"):
             if not isinstance(getattr(self, n), bool):
                 raise ValueError(f"obstacles.{n} must be a bool, got {getattr(self, n)!r}")
-        _check_range("obstacles.collision_reward", self.collision_reward, 0.0)
+        _check_range("obstacles.collision_reward", self.collision_reward, 0.0, MAX_REWARD_SCALE)
         need = self.columns_needed
         if self.max_columns is not None:
             m = self.max_columns
+            if isinstance(m, numbers.Integral) and _is_real(m):
+                m = int(m)
+                object.__setattr__(self, "max_columns", m)
             if not isinstance(m, int) or isinstance(m, bool) or m < max(need, 1) or m > self.num_cells:
                 raise ValueError(f"obstacles.max_columns must be an int in [{max(need, 1)}, {self.num_cells}] "
                                  f"(the most columns a reset places .. the number of cells), got {m!r}")
@@ -449,14 +561,14 @@ class EnvConfig:
                 object.__setattr__(self, name, v)
             elif not isinstance(v, cls):
                 raise ValueError(f"{name} must be a {cls.__name__} or a dict, got {type(v).__name__}")
-        if not isinstance(self.num_quads, int) or isinstance(self.num_quads, bool) or self.num_quads < 1:
-            raise ValueError(f"num_quads must be an int >= 1, got {self.num_quads!r}")
-        try:
-            room = tuple(float(x) for x in self.room_size)
-        except Exception as e:  # noqa: BLE001
-            raise ValueError(f"room_size must be 3 positive numbers (m), got {self.room_size!r}") from e
-        if len(room) != 3 or not all(math.isfinite(x) and x > 0 for x in room):
+        object.__setattr__(self, "num_quads", _as_int("num_quads", self.num_quads, 1))
+        room = _numbers("room_size", self.room_size, 3, f"3 numbers (m), the room's length x, width y and height z, "
+                                                        f"each in (0, {MAX_ROOM_SIDE:g}]")
+        if not all(x > 0 for x in room):
             raise ValueError(f"room_size must be 3 positive finite numbers (m), got {self.room_size!r}")
+        if max(room) > MAX_ROOM_SIDE:
+            raise ValueError(f"room_size sides must be <= {MAX_ROOM_SIDE:g} m (MAX_ROOM_SIDE: the JAX engine holds "
+                             f"positions in float32), got {self.room_size!r}")
         if room[2] < MIN_ROOM_HEIGHT:
             raise ValueError(f"room_size[2] (height) must be >= {MIN_ROOM_HEIGHT} m (quads spawn at z >= "
                              f"{SPAWN_MIN_Z} m and {SPAWN_MARGIN} m below the ceiling), got {room[2]!r}")
@@ -466,12 +578,13 @@ class EnvConfig:
         object.__setattr__(self, "room_size", room)
         for n in ("control_hz", "sim_hz"):
             v = getattr(self, n)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            if not (isinstance(v, numbers.Integral) and _is_real(v) and v >= 1):
                 raise ValueError(f"{n} must be a positive int (hz), got {v!r}")
+            object.__setattr__(self, n, int(v))
         if self.sim_hz % self.control_hz != 0:
             raise ValueError(f"sim_hz must be a multiple of control_hz, got sim_hz={self.sim_hz}, "
                              f"control_hz={self.control_hz}")
-        _check_range("episode_seconds", self.episode_seconds, 0.0, lo_open=True)
+        self._check_episode_seconds()
         if self.collision_model not in COLLISION_MODELS:
             raise ValueError(f"collision_model must be one of {COLLISION_MODELS}, got {self.collision_model!r}")
         if self.motor_start not in MOTOR_STARTS:
@@ -482,25 +595,28 @@ class EnvConfig:
             raise ValueError(f"control_mode must be one of {CONTROL_MODES}, got {self.control_mode!r}")
         if self.neighbor_sort not in NEIGHBOR_SORTS:
             raise ValueError(f"neighbor_sort must be one of {NEIGHBOR_SORTS}, got {self.neighbor_sort!r}")
-        object.__setattr__(self, "collision_decay", _check_pair("collision_decay", self.collision_decay, 0.0))
+        # a collision never speeds a quad up (decay multiplies the speed)
+        object.__setattr__(self, "collision_decay", _check_pair("collision_decay", self.collision_decay, 0.0, 1.0))
         if self.num_neighbors is not None:
             k = self.num_neighbors
-            if not isinstance(k, int) or isinstance(k, bool) or k < 0 or k > self.num_quads - 1:
+            if not (isinstance(k, numbers.Integral) and _is_real(k) and 0 <= k <= self.num_quads - 1):
                 raise ValueError(f"num_neighbors must be an int in [0, num_quads - 1] = [0, {self.num_quads - 1}] "
                                  f"(each quad has num_quads - 1 neighbors), got {k!r}")
-        _check_range("neighbor_vel_clip", self.neighbor_vel_clip, 0.0, lo_open=True)
-        _check_range("grace_period_s", self.grace_period_s, 0.0)
-        try:
-            fc = tuple(float(x) for x in self.formation_center)
-        except Exception as e:  # noqa: BLE001
-            raise ValueError(f"formation_center must be 3 finite numbers (m), got {self.formation_center!r}") from e
-        if len(fc) != 3 or not all(math.isfinite(x) for x in fc):
-            raise ValueError(f"formation_center must be 3 finite numbers (m), got {self.formation_center!r}")
+            object.__setattr__(self, "num_neighbors", int(k))
+        # two quads at SPEED_LIMIT close at 2 SPEED_LIMIT; a grace period longer than the longest episode means
+        # nothing; the formation centre is a point of a room no side of which exceeds MAX_ROOM_SIDE
+        _check_range("neighbor_vel_clip", self.neighbor_vel_clip, 0.0, 2 * SPEED_LIMIT, lo_open=True)
+        _check_range("grace_period_s", self.grace_period_s, 0.0, MAX_EPISODE_SECONDS)
+        fc = _numbers("formation_center", self.formation_center, 3, "3 finite numbers (m)")
+        if max(abs(x) for x in fc) > MAX_ROOM_SIDE:
+            raise ValueError(f"formation_center must be 3 numbers (m) within +-{MAX_ROOM_SIDE:g} m (MAX_ROOM_SIDE), "
+                             f"got {self.formation_center!r}")
         object.__setattr__(self, "formation_center", fc)
         for n in ("downwash", "randomize", "normalize_obs"):
             if not isinstance(getattr(self, n), bool):
                 raise ValueError(f"{n} must be a bool, got {getattr(self, n)!r}")
         self._check_obstacles()
+        self._check_airframe_ranges()
         from quadswarm_mj.scenarios import get_scenario  # late import: registry validates the name
 
         scn = get_scenario(self.scenario)
@@ -508,6 +624,49 @@ class EnvConfig:
             raise ValueError(f"scenario {self.scenario!r} needs obstacles, which are off (obstacles=None); turn them "
                              f"on with EnvConfig(scenario={self.scenario!r}, obstacles=ObstacleConfig()) "
                              f"(or obstacles={{}} for the defaults)")
+
+    def _check_episode_seconds(self) -> None:
+        """At least one control step, at most MAX_EPISODE_SECONDS and MAX_EPISODE_STEPS control steps."""
+        v, dt = self.episode_seconds, 1.0 / self.control_hz
+        _check_range("episode_seconds", v, 0.0, MAX_EPISODE_SECONDS, lo_open=True)
+        if v < dt:
+            raise ValueError(f"episode_seconds must be at least one control step (1 / control_hz = {dt:g} s) and "
+                             f"<= {MAX_EPISODE_SECONDS:g} s, got {v!r}")
+        steps = int(round(v * self.control_hz))
+        if steps > MAX_EPISODE_STEPS:
+            raise ValueError(f"episode_seconds * control_hz = {steps} control steps must be <= 2^24 = "
+                             f"{MAX_EPISODE_STEPS} (the JAX engine's float32 step time is exact up to 2^24 steps); "
+                             f"got episode_seconds={v!r}, control_hz={self.control_hz}")
+
+    def _check_airframe_ranges(self) -> None:
+        """Bounds on the strongest airframe the randomization ranges can draw (``randomize``) and on the
+        rotor drag's explicit step (``aero.drag``)."""
+        q, r = self.quad, self.randomization
+        thrust_hi = r.thrust_to_weight[1] / q.thrust_to_weight * r.rotor_thrust_scale[1] if self.randomize else 1.0
+        mass_lo = r.mass_scale[0] if self.randomize else 1.0
+        if self.randomize:
+            ttw = q.thrust_to_weight * thrust_hi / mass_lo
+            if ttw > MAX_THRUST_TO_WEIGHT:
+                raise ValueError(f"randomization: the strongest quad the ranges can draw has thrust-to-weight "
+                                 f"{ttw:.4g} (thrust_to_weight[1] * rotor_thrust_scale[1] / mass_scale[0]); it must "
+                                 f"be <= MAX_THRUST_TO_WEIGHT = {MAX_THRUST_TO_WEIGHT:g}")
+            if q.mass * mass_lo < MASS_RANGE[0] or min(q.inertia) * r.inertia_scale[0] < INERTIA_RANGE[0]:
+                raise ValueError(f"randomization: quad.mass * mass_scale[0] must be >= {MASS_RANGE[0]:g} kg and "
+                                 f"quad.inertia * inertia_scale[0] >= {INERTIA_RANGE[0]:g} kg m^2")
+            check_angular_accel(q, "randomization (the strongest quad the ranges can draw)", thrust_hi,
+                                r.torque_to_thrust_scale[1], r.inertia_scale[0])
+        a = self.aero
+        if a.drag:
+            gain = a.ground_effect_max_gain if a.ground_effect else 1.0
+            drag_hi = max(a.drag_coeff) * (a.drag_scale[1] if self.randomize else 1.0)
+            rotor_speed = math.sqrt(q.thrust_max * thrust_hi * gain / a.thrust_coeff)  # rad/s, full thrust
+            rate = drag_hi * 4.0 * rotor_speed / (q.mass * mass_lo)  # 1/s, dv/dt = -rate v
+            if rate * self.sim_dt > 1.0:
+                raise ValueError(f"aero.drag_coeff {a.drag_coeff} and aero.thrust_coeff {a.thrust_coeff!r} give a "
+                                 f"rotor-drag rate up to {rate:.4g} 1/s (drag_coeff * sum of rotor speeds / mass); "
+                                 f"rate * sim_dt ({self.sim_dt:g} s) must be <= 1, beyond which the explicit drag "
+                                 f"step overshoots and diverges: lower aero.drag_coeff or raise aero.thrust_coeff "
+                                 f"or sim_hz")
 
     def _check_obstacles(self) -> None:
         o = self.obstacles

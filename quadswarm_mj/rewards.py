@@ -8,14 +8,16 @@
 
 Terms (keys of ``info["reward_terms"]``) and their costs per quad:
 
-* ``pos`` ||goal - p||; ``effort`` ||a_raw||; ``spin`` ||omega||; ``crash`` 1 while on the floor;
+* ``pos`` ||goal - p||; ``effort`` ||clip(a_raw, -1, 1)||; ``spin`` ||omega||; ``crash`` 1 while on the floor;
   ``orient`` -R_22 in the air, 1 on the floor; ``vel`` ||v||; ``action_change``
   ||f_t - f_{t-1}|| (normalized thrusts); ``yaw`` -R_00; ``rot`` -(tr R - 1) / 2;
 * ``quad_collision`` number of pairs the quad is in whose contact started this step;
   ``proximity`` sum over other quads within the falloff of (1 - d / falloff);
 * ``floor_hit``, ``wall_hit``, ``ceiling_hit`` 1 on the step of the hit.
 
-``a_raw`` is the per-rotor action in [-1, 1] of the "rotor" control mode. In the physical-unit
+``a_raw`` is the per-rotor action of the "rotor" control mode, clipped into [-1, 1] as the
+actuation clips it (so an out-of-range action costs what the action at its bound costs, and a
+huge finite one never makes the reward infinite). In the physical-unit
 modes (``EnvConfig.control_mode`` "ctbr", "attitude", "velocity") the engines pass instead the
 equivalent raw rotor action 2 cmd - 1 of the mode controller's rotor command ``cmd`` in [0, 1] (its
 last physics sub-step of the control step, :func:`quadswarm_mj.pipeline.effort_action`), so the
@@ -85,7 +87,7 @@ def reward_terms(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: 
     falloff = s.proximity_falloff_arms * cfg.quad.arm
     cost_fns = {
         "pos": lambda: _norm(xp, goals - pos) if goal_dist is None else goal_dist,
-        "effort": lambda: _norm(xp, action),
+        "effort": lambda: _norm(xp, xp.minimum(xp.maximum(action, -1.0), 1.0)),  # the clipped action
         "spin": lambda: _norm(xp, omega),
         "crash": lambda: on_floor.astype(pos.dtype),
         "orient": lambda: xp.where(on_floor, 1.0, -R[..., 2, 2]),

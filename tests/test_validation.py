@@ -44,7 +44,7 @@ def test_quad_params_scalars_must_be_finite(name, bad):
 def test_quad_inertia_must_be_finite_and_positive(i, bad):
     inertia = list(QuadParams().inertia)
     inertia[i] = bad
-    with pytest.raises(ValueError, match=r"quad\.inertia must be 3 finite numbers > 0 \(kg m\^2\)"):
+    with pytest.raises(ValueError, match=r"quad\.inertia must be 3 finite numbers >= 1e-09 and <= 1 \(kg m\^2"):
         EnvConfig(quad={"inertia": tuple(inertia)})
 
 

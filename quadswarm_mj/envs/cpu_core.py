@@ -75,6 +75,43 @@ from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
 
 BACKENDS = ("mjdata", "batch")
 _ALL = slice(None)
+#: MuJoCo's mjMAXVAL: a qpos, qvel or qacc entry beyond it (or NaN) is what MuJoCo calls unstable
+_MJ_MAXVAL = 1e10
+#: MuJoCo's instability warnings (mjWARN_BADQPOS, mjWARN_BADQVEL, mjWARN_BADQACC), contiguous
+_BAD_WARNINGS = slice(int(mujoco.mjtWarning.mjWARN_BADQPOS), int(mujoco.mjtWarning.mjWARN_BADQACC) + 1)
+
+
+class PhysicsInstabilityError(RuntimeError):
+    """MuJoCo found the physics of a quad unstable (NaN, inf or a value beyond 1e10 in its position,
+    velocity or acceleration). MuJoCo's automatic reset, which would move every world of the shared
+    data back to the model's default pose without a word, is turned off: the step stops with this
+    error naming the world and quad, and the env needs ``reset()``. Validated inputs (the bounds of
+    ``quadswarm_mj.config``) do not get here; this is the backstop."""
+
+
+def _no_autoreset(model: mujoco.MjModel) -> None:
+    """Turn MuJoCo's automatic reset on instability off (see :class:`PhysicsInstabilityError`); a
+    stable simulation steps exactly as before."""
+    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)
+
+
+def _raise_unstable(qpos: np.ndarray, qvel: np.ndarray, qacc: np.ndarray, first_world: int) -> None:
+    """Raise :class:`PhysicsInstabilityError` naming the quads whose (B, N, .) state or acceleration
+    is NaN, inf or beyond 1e10 (the one with the largest |qacc| if none is)."""
+    with np.errstate(invalid="ignore"):
+        bad = np.zeros(qacc.shape[:2], bool)
+        for a in (qpos, qvel, qacc):
+            bad |= ~(np.abs(a) <= _MJ_MAXVAL).all(-1)
+        if not bad.any():
+            bad.flat[int(np.nanargmax(np.abs(qacc).max(-1)))] = True
+    where = np.argwhere(bad)
+    w, q = (int(i) for i in where[0])
+    more = f" (and {len(where) - 1} more quads)" if len(where) > 1 else ""
+    raise PhysicsInstabilityError(
+        f"the physics became unstable at world {w + first_world}, quad {q}{more}: NaN, inf or a value beyond 1e10 "
+        f"in its position, velocity or acceleration (MuJoCo's automatic reset, which would have moved every world "
+        f"to the default pose, is off); the env needs reset(). Inputs within the bounds of quadswarm_mj.config "
+        f"should not get here: please report the configuration")
 
 
 def _check_simple_bodies(model: mujoco.MjModel, arena: Any) -> None:
@@ -98,10 +135,14 @@ class _MjDataPhysics:
         B, N = num_worlds, cfg.num_quads
         self.arena = build_arena(cfg, num_worlds) if visual else build_arena(cfg, num_worlds, visual=False)
         self.model = self.arena.model
+        _no_autoreset(self.model)
         self.data = mujoco.MjData(self.model)
         qs, vs, fb = self.arena.qpos_start, self.arena.qvel_start, self.arena.first_body
         self.qpos = self.data.qpos[qs:qs + 7 * B * N].reshape(B, N, 7)  # views into MjData
         self.qvel = self.data.qvel[vs:vs + 6 * B * N].reshape(B, N, 6)
+        self._qacc = self.data.qacc[vs:vs + 6 * B * N].reshape(B, N, 6)
+        self._bad_counts = self.data.warning.number[_BAD_WARNINGS]  # a view of MuJoCo's instability warnings
+        self.first_world = 0  # index of world 0 in error messages (a vector env's shard sets it)
         self.xfrc = self.data.xfrc_applied[fb:fb + B * N].reshape(B, N, 6)
         assert np.shares_memory(self.qpos, self.data.qpos) and np.shares_memory(self.xfrc, self.data.xfrc_applied)
         self.offsets = self.arena.world_offsets[:, None, :]
@@ -112,8 +153,13 @@ class _MjDataPhysics:
         """The engine wrote qpos/qvel: nothing to do, they are MjData itself."""
 
     def step(self, max_omega: float) -> None:
-        """One physics sub-step, then angular velocity clipped to +-max_omega per body axis."""
+        """One physics sub-step, then angular velocity clipped to +-max_omega per body axis; raises
+        :class:`PhysicsInstabilityError` if MuJoCo warned of an instability."""
         mujoco.mj_step(self.model, self.data)
+        c = self._bad_counts  # (BADQPOS, BADQVEL, BADQACC): three scalar reads cost less than .any()
+        if c[2] or c[0] or c[1]:
+            self._bad_counts[...] = 0
+            _raise_unstable(self.qpos, self.qvel, self._qacc, self.first_world)
         w = self.qvel[..., 3:]
         np.minimum(np.maximum(w, -max_omega, out=w), max_omega, out=w)  # = clip
 
@@ -166,6 +212,7 @@ class _BatchPhysics:
             _CHUNK_MODELS[key] = build_arena(cfg, C, visual=False)
         self.arena = _CHUNK_MODELS[key]
         self.model = self.arena.model
+        _no_autoreset(self.model)
         self.data = None
         self.batch = mujoco.batch.Batch(self.model, nsim=K, nthread=nthread)
         self.B, self.C, self.K = B, C, K
@@ -174,6 +221,8 @@ class _BatchPhysics:
         self._rv = self.batch.bind("qvel")[:, vs:vs + 6 * C * N]
         self._rx = self.batch.bind("xfrc_applied")[:, fb:fb + C * N]
         self._rw = self._rv.reshape(K, C * N, 6)[..., 3:]  # angular velocities in the rows (a view)
+        self._ra = self.batch.bind("qacc")[:, vs:vs + 6 * C * N]  # accelerations of the last sub-step
+        self.first_world = 0  # index of world 0 in error messages (a vector env's shard sets it)
         self.dirty = True  # the engine's qpos/qvel differ from the rows
         self._time = self.batch.bind("time")
         self._rmass = self.batch.expand("body_mass")[:, fb:fb + C * N]  # per-simulation model fields
@@ -204,6 +253,11 @@ class _BatchPhysics:
             self.dirty = False
         self._rx[...] = self._xfrc.reshape(self._rx.shape)
         self.batch.step()
+        ra = self._ra
+        if not (ra.max() <= _MJ_MAXVAL and ra.min() >= -_MJ_MAXVAL):  # (NaN fails both) MuJoCo's instability test
+            B, N = self.B, self._qpos.shape[1]
+            _raise_unstable(self._rq.reshape(-1, N, 7)[:B], self._rv.reshape(-1, N, 6)[:B],
+                            ra.reshape(-1, N, 6)[:B], self.first_world)
         w = self._rw
         np.minimum(np.maximum(w, -max_omega, out=w), max_omega, out=w)  # = clip
         self._qpos.reshape(K, -1)[...] = self._rq

@@ -20,9 +20,12 @@ from gymnasium import spaces
 
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.control_modes import action_box_bounds
-from quadswarm_mj.envs.cpu_core import CpuSwarm
+from quadswarm_mj.envs.cpu_core import CpuSwarm, PhysicsInstabilityError
 from quadswarm_mj.envs.validation import check_action, check_engine, check_obstacles, check_state
 from quadswarm_mj.observations import obs_bounds
+
+#: the keys ``QuadSwarmEnv.reset`` accepts in ``options``
+RESET_OPTIONS = ("obstacles", "state")
 
 
 def make_config(cfg: EnvConfig | None, kwargs: dict[str, Any]) -> EnvConfig:
@@ -69,6 +72,7 @@ class QuadSwarmEnv(gym.Env):
         self._renderer: Any = None
         self._needs_reset = True
         self._seeded = False
+        self.closed = False
 
     # ------------------------------------------------------------------ helpers
     def _obs(self, obs: np.ndarray) -> np.ndarray:
@@ -94,11 +98,15 @@ class QuadSwarmEnv(gym.Env):
         "hover" or (N, 4) normalized thrusts), ``goals`` (N, 3); missing keys take the defaults.
         With obstacles on, ``options={"obstacles": (M, 2)}`` places exactly those columns (centres
         x, y in m; radius ``obstacles.size / 2``) instead of a random map; ``info["obstacles"]`` is
-        the (M, 2) array of the columns in force (after reset and every step)."""
+        the (M, 2) array of the columns in force (after reset and every step). Other keys raise ValueError."""
+        self._check_open()
         state = None
         if options is not None:
             if not isinstance(options, dict):
                 raise ValueError(f"options must be a dict, got {type(options).__name__}")
+            unknown = set(options) - set(RESET_OPTIONS)
+            if unknown:
+                raise ValueError(f"unknown reset options {sorted(unknown, key=str)}; allowed: {list(RESET_OPTIONS)}")
             if options.get("state") is not None:
                 state = check_state(options["state"], self.cfg.num_quads, room=(self.cfg.room_low, self.cfg.room_high))
             if options.get("obstacles") is not None:
@@ -122,14 +130,20 @@ class QuadSwarmEnv(gym.Env):
         return self._obs(self.core.observe()), self._info()
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        self._check_open()
         if self._needs_reset:
             raise RuntimeError("call reset() before step() (and after an episode ends)")
-        a = check_action(action, self.action_space.shape)
         if self._jax is not None:
+            a = check_action(action, self.action_space.shape, dtype=np.float32)
             obs, reward, truncated, info = self._jax.step(a.reshape(self.cfg.num_quads, 4))
             self._needs_reset = truncated
             return (obs[0] if self.single else obs), reward, False, truncated, info
-        out = self.core.step(a.reshape(1, self.cfg.num_quads, 4))
+        a = check_action(action, self.action_space.shape)
+        try:
+            out = self.core.step(a.reshape(1, self.cfg.num_quads, 4))
+        except PhysicsInstabilityError:  # the world's state is lost: only reset() goes on
+            self._needs_reset = True
+            raise
         truncated = bool(out["truncated"][0])
         info = self._info()
         info["rewards"] = out["rewards"][0].copy()
@@ -153,7 +167,13 @@ class QuadSwarmEnv(gym.Env):
             self._renderer = SwarmRenderer(self.core)
         return self._renderer.render()
 
+    def _check_open(self) -> None:
+        if self.closed:
+            raise RuntimeError("the env is closed: create a new one")
+
     def close(self) -> None:
+        """Release the renderer (and the JAX engine); afterwards ``step`` and ``reset`` raise RuntimeError."""
+        self.closed = True
         if self._jax is not None:
             self._jax.close()
         if self._renderer is not None:

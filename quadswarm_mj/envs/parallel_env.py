@@ -18,8 +18,11 @@ from pettingzoo import ParallelEnv
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.control_modes import action_box_bounds
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv, make_config
+from quadswarm_mj.envs.validation import as_real_array
 
 STATE_PER_QUAD = 21
+#: the reset option key PettingZoo's ``parallel_api_test`` passes (ignored; any other unknown key raises)
+PETTINGZOO_PROBE = "options"
 
 
 class QuadSwarmParallelEnv(ParallelEnv):
@@ -72,23 +75,32 @@ class QuadSwarmParallelEnv(ParallelEnv):
         return out
 
     def reset(self, seed: int | None = None, options: dict[str, Any] | None = None):
+        """Start an episode (``options`` as ``QuadSwarmEnv.reset``; other keys raise ValueError, except
+        ``"options"``: PettingZoo's ``parallel_api_test`` passes ``{"options": 1}`` to see that reset takes
+        options, and that key alone is ignored)."""
+        if isinstance(options, dict) and PETTINGZOO_PROBE in options:
+            options = {k: v for k, v in options.items() if k != PETTINGZOO_PROBE}
         obs, info = self.env.reset(seed=seed, options=options)
         self.agents = list(self.possible_agents)
         self._last_info = info
         return self._split_obs(obs), self._agent_infos(info)
 
     def step(self, actions: dict[str, Any]):
+        self.env._check_open()
         if not self.agents:
             raise RuntimeError("call reset() before step() (and after the episode ends)")
+        if not isinstance(actions, dict):
+            raise ValueError(f"actions must be a dict {{agent: action}} with one entry per live agent "
+                             f"({self.possible_agents[:3]}...), got {type(actions).__name__}")
         missing = [a for a in self.agents if a not in actions]
         unknown = [a for a in actions if a not in self.possible_agents]
         if missing or unknown:
             raise ValueError(f"actions must have one entry per live agent; missing {missing}, unknown {unknown}")
-        act = np.stack([np.asarray(actions[a], dtype=np.float64).reshape(-1) if np.ndim(actions[a]) <= 1
-                        else np.asarray(actions[a], dtype=np.float64) for a in self.possible_agents])
-        if act.shape != (self.cfg.num_quads, 4):
-            raise ValueError(f"each agent's action must have shape (4,); stacked shape {act.shape}, "
-                             f"expected shape {(self.cfg.num_quads, 4)}")
+        per_agent = [as_real_array(actions[a], f"actions['{a}']") for a in self.possible_agents]
+        for a, x in zip(self.possible_agents, per_agent):
+            if x.shape != (4,):
+                raise ValueError(f"each agent's action must have shape (4,); actions['{a}'] has shape {x.shape}")
+        act = np.stack(per_agent)
         obs, _, terminated, truncated, info = self.env.step(act[0] if self.cfg.num_quads == 1 else act)
         self._last_info = info
         rewards = {a: float(info["rewards"][i]) for i, a in enumerate(self.possible_agents)}

@@ -148,6 +148,7 @@ class _Shard:
                  backend: str, chunk_worlds: int):
         self.cfg, self.lo, self.hi = cfg, lo, hi
         self.core = CpuSwarm(cfg, hi - lo, backend=backend, visual=False, chunk_worlds=chunk_worlds)
+        self.core.phys.first_world = lo  # instability errors name the env's world index
         self.a = {k: (v[:, lo:hi] if k in ("terms", "metrics") else v[lo:hi]) for k, v in arrays.items()}
         self.info_keys = info_keys
         self.state = {k: self.a[f"state/{k}"] for k in STATE_FIELDS}
@@ -505,7 +506,7 @@ class QuadSwarmVectorEnv(VectorEnv):
         self._check_usable()
         if self._needs_reset:
             raise RuntimeError("call reset() before step()")
-        a = check_action(actions, self.action_space.shape)
+        a = check_action(actions, self.action_space.shape, dtype=np.float64 if self._jax is None else np.float32)
         if self._jax is not None:
             return self._call_jax(self._jax.step, a)
         self._a["actions"][...] = a
