@@ -153,6 +153,11 @@ class QuadSwarmEnv(gym.Env):
             self._renderer = SwarmRenderer(self.core)
         return self._renderer.render()
 
+    def __getstate__(self) -> dict[str, Any]:
+        """For ``copy.deepcopy``/``pickle``: an independent env in the same state, stepping exactly as
+        this one from here (both engines); the renderer is not copied (the copy opens its own)."""
+        return {**self.__dict__, "_renderer": None}
+
     def close(self) -> None:
         if self._jax is not None:
             self._jax.close()
