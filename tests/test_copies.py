@@ -113,23 +113,32 @@ def test_vector_env_copy_steps_like_original(copier):
 
 
 @pytest.mark.parametrize("copier", COPIERS)
-def test_vector_env_with_workers_refuses_copy(copier):
-    env = QuadSwarmVectorEnv(EnvConfig(num_quads=1), num_envs=2, num_shards=2)
+def test_vector_env_with_workers_copy_steps_like_original(copier):
+    env = QuadSwarmVectorEnv(EnvConfig(num_quads=2, episode_seconds=0.2), num_envs=3, num_shards=2)
     try:
-        env.reset(seed=0)
-        with pytest.raises(TypeError, match="worker processes"):
-            copier(env)
-        env.step(np.zeros((2, 1, 4)))  # the refused copy changed nothing
+        env.reset(seed=5)
+        env.step(_actions((3, 2, 4))[0])
+        twin = copier(env)
+        try:
+            assert {w.proc.pid for w in twin._res.workers}.isdisjoint(w.proc.pid for w in env._res.workers)
+            _run_pair(env, twin, _actions((3, 2, 4)))
+            m1, m2 = env.episode_metrics(), twin.episode_metrics()
+            for k in m1:
+                np.testing.assert_array_equal(m1[k], m2[k])
+        finally:
+            twin.close()
+        env.step(_actions((3, 2, 4))[1])
     finally:
         env.close()
 
 
 def test_batch_backend_and_closed_env_refuse_copy():
-    env = QuadSwarmVectorEnv(EnvConfig(num_quads=1), num_envs=2, num_shards=1, backend="batch", chunk_worlds=1)
+    env = QuadSwarmVectorEnv(EnvConfig(num_quads=1), num_envs=4, num_shards=2, backend="batch", chunk_worlds=1)
     try:
         env.reset(seed=0)
         with pytest.raises(TypeError, match="batch"):
             copy.deepcopy(env)
+        env.step(np.zeros((4, 1, 4)))  # the refused copy changed nothing
     finally:
         env.close()
     with pytest.raises(TypeError, match="closed"):
@@ -164,5 +173,15 @@ def test_jax_vector_env_copy_steps_like_original(copier):
             _run_pair(env, twin, _actions((2, 2, 4)))
         finally:
             twin.close()
+    finally:
+        env.close()
+
+
+def test_jax_vector_env_with_workers_refuses_copy():
+    env = QuadSwarmVectorEnv(EnvConfig(num_quads=1), num_envs=2, num_shards=2, engine="jax")
+    try:
+        for copier in (copy.deepcopy, pickle.dumps):
+            with pytest.raises(TypeError, match="worker processes"):
+                copier(env)
     finally:
         env.close()

@@ -538,7 +538,7 @@ class JaxSingleBackend:
         if self._bufs is not None and isinstance(self._bufs[0], np.ndarray):  # a copy's host buffers
             self._bufs = tuple(jax.device_put(b) for b in self._bufs)
         self._bufs, out = prog.step(self._bufs, action.astype(prog.float))
-        obs, v = self._split(out, self.prog.step_layout)
+        obs, v = self._split(out, prog.step_layout)
         info = self._info(v)
         info["rewards"] = v["rewards"]
         info["reward_terms"] = dict(zip(env_terms(self.cfg), v["terms"]))

@@ -81,6 +81,7 @@ episode).
 from __future__ import annotations
 
 import os
+import pickle
 import weakref
 from collections.abc import Callable
 from typing import Any
@@ -269,6 +270,16 @@ def _check_worker_timeout(t: Any) -> float | None:
     return float(t)
 
 
+def _core_bytes(shard: _Shard) -> bytes:
+    """A shard's worlds, pickled (run in the shard's process when a vector env with workers is copied)."""
+    return pickle.dumps(shard.core, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def _load_core(shard: _Shard, blob: bytes) -> None:
+    """Replace a shard's worlds by pickled ones (:func:`_core_bytes`) in the copy's processes."""
+    shard.core = pickle.loads(blob)
+
+
 def mujoco_shard(init: dict[str, Any], arrays: dict[str, np.ndarray]) -> _Shard:
     """A worker's MuJoCo-engine shard (the ``factory`` of :func:`quadswarm_mj.envs.workers.worker_main`)."""
     return _Shard(init["cfg"], init["lo"], init["hi"], arrays, init["info_keys"], init["backend"],
@@ -305,8 +316,9 @@ class QuadSwarmVectorEnv(VectorEnv):
     thread). After ``os.fork()`` the child's copy refuses calls (RuntimeError) when the env has worker
     processes or runs JAX (they belong to the parent; the child's exit leaves them alone); a copy
     without either is independent and works. ``copy.deepcopy`` and ``pickle`` give an independent env
-    that steps exactly as the original from there, except with worker processes or the "batch"
-    back end (TypeError: build a new env instead).
+    that steps exactly as the original from there (with worker processes: new workers loaded with the
+    original's worlds), except on the JAX engine with worker processes or on the "batch" back end
+    (TypeError: build a new env instead).
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
@@ -588,22 +600,43 @@ class QuadSwarmVectorEnv(VectorEnv):
         name = type(self).__name__
         if self.closed:
             raise TypeError(f"a closed {name} cannot be copied or pickled")
-        if self.num_shards > 1 and self._jax is None:
-            raise TypeError(f"a {name} with worker processes (num_shards={self.num_shards}) cannot be copied or "
-                            f"pickled: the workers' worlds live in other processes. Build a new env with the same "
-                            f"arguments (num_shards=1 envs can be copied)")
+        if self._jax is None and any(self._shard_backend(hi - lo) == "batch" for lo, hi in self._bounds):
+            raise TypeError(f"a {name} whose shards run the 'batch' back end (mujoco.batch) cannot be copied or "
+                            f"pickled; pass backend='mjdata' for an env to copy")
         d = {k: v for k, v in self.__dict__.items() if k not in ("_finalizer", "_call_lock", "_res")}
         if d.get("_failure") is not None:  # the copy needs reset() too (exceptions need not pickle)
             d["_failure"] = RuntimeError(str(self._failure))
         if self._jax is None:
             d["_a"] = {k: v.copy() for k, v in self._a.items()}
+        if self._jax is None and self.num_shards > 1:  # the workers' worlds, fetched from their processes
+            self._check_usable()
+            d.pop("_shard")
+            d["_cores"] = None if self._failure is not None else self._run("copy", lambda k: ("call", _core_bytes))
         return d
+
+    def _shard_backend(self, n: int) -> str:
+        """The physics back end of a shard of ``n`` worlds (as :meth:`_build` picks it)."""
+        if self._backend != "auto":
+            return self._backend
+        return "mjdata" if n <= self._chunk_worlds else "batch"
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         self._owner_pid = os.getpid()
         if self._jax is not None:
             self._finalizer = weakref.finalize(self, self._jax.close)
+            return
+        if "_cores" in state:  # with workers: new ones, loaded with the original's worlds
+            cores = self.__dict__.pop("_cores")
+            self._res = Resources()
+            self._finalizer = weakref.finalize(self, self._res.release)
+            self._build()
+            if cores is not None:
+                self._run("copy", lambda k: ("call", _load_core, cores[k]))
+            for k, v in state["_a"].items():
+                self._a[k][...] = v
+            self._failure, self._needs_reset, self._seeded = (state["_failure"], state["_needs_reset"],
+                                                             state["_seeded"])
             return
         arrays = map_arrays(bytearray(layout_bytes(self._layout)), self._layout)
         for k, v in state["_a"].items():
