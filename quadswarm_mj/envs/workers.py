@@ -6,7 +6,14 @@ A worker builds its shard with ``init["factory"](init, arrays)`` (a module-level
 reference): :func:`quadswarm_mj.envs.vector_env.mujoco_shard` for the MuJoCo engine,
 :func:`quadswarm_mj.envs.jax_engine.jax_shard` for the JAX engine. A shard has ``step()`` (the
 one-byte ``STEP`` message), ``handle(command_tuple)`` (the rare commands) and, if it writes into one
-of several output blocks, ``step_into(block_index)`` (the ``STEP_INTO`` message)."""
+of several output blocks, ``step_into(block_index)`` (the ``STEP_INTO`` message).
+
+No hangs: every wait for a reply is bounded by the worker's ``timeout`` (the envs' ``worker_timeout``;
+a worker that does not answer, e.g. stopped by SIGSTOP, raises :class:`WorkerError` naming it); the
+envs' public calls are :func:`exclusive` (a second thread's call during one raises instead of
+interleaving on the pipes); a forked child forgets the parent's workers (its exit never terminates
+them) and only the creating process ends them (:meth:`Resources.release`); a process forked from one
+running JAX refuses the JAX engine (:func:`check_not_forked_from_jax`) instead of deadlocking."""
 
 from __future__ import annotations
 
