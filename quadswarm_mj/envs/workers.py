@@ -23,6 +23,7 @@ import importlib
 import multiprocessing
 import os
 import pickle
+import select
 import signal
 import sys
 import threading
@@ -284,6 +285,7 @@ class Worker:
         self.cpu: int | None = init.get("cpu")  # the core it is pinned to (None: not pinned)
         #: longest wait for one reply (s; None: no limit), then WorkerError
         self.timeout: float | None = init.get("timeout", DEFAULT_WORKER_TIMEOUT_S)
+        self._poller: Any = None  # select.poll of the pipe, made at the first wait
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=worker_main, args=(child, init, os.getpid()), daemon=True,
                                 name=f"quadswarm-vector-worker-{index}")
@@ -327,15 +329,18 @@ class Worker:
         """Wait until a reply (or the pipe's end) is readable; after ``timeout`` s raise WorkerError."""
         if timeout is None:
             return
-        deadline = time.monotonic() + timeout
         try:
-            while not self.conn.poll(max(0.0, min(_POLL_S, deadline - time.monotonic()))):
+            if self._poller is None:  # one poll(2) per wait (Connection.poll builds a selector per call)
+                self._poller = select.poll()
+                self._poller.register(self.conn.fileno(), select.POLLIN)
+            deadline = time.monotonic() + timeout
+            while not self._poller.poll(1000.0 * max(0.0, min(_POLL_S, deadline - time.monotonic()))):
                 if time.monotonic() >= deadline:
                     state = " (it is stopped, e.g. by SIGSTOP)" if _proc_state(self.proc.pid) == "T" else ""
                     raise WorkerError(f"{self.describe()} did not reply within worker_timeout = {timeout:g} s "
                                       f"during {what}{state}", self.index)
-        except (EOFError, OSError):
-            return  # the pipe closed: recv_bytes reports how
+        except (EOFError, OSError, ValueError):
+            return  # the pipe closed (poll reports the hang-up as an event): recv_bytes reports how
 
     def _died(self, what: str) -> WorkerError:
         self.proc.join(timeout=2.0)
