@@ -185,3 +185,24 @@ def test_jax_vector_env_with_workers_refuses_copy():
                 copier(env)
     finally:
         env.close()
+
+
+def test_failed_vector_env_copies_to_an_env_that_needs_reset():
+    env = QuadSwarmVectorEnv(EnvConfig(num_quads=1), num_envs=2, num_shards=2)
+    try:
+        env.reset(seed=0)
+        env._res.workers[0].proc.kill()
+        env._res.workers[0].proc.join()
+        with pytest.raises(RuntimeError):
+            env.step(np.zeros((2, 1, 4)))
+        twin = copy.deepcopy(env)
+        try:
+            with pytest.raises(RuntimeError, match="reset"):
+                twin.step(np.zeros((2, 1, 4)))
+            o1, _ = twin.reset(seed=3)
+            o2, _ = env.reset(seed=3)
+            np.testing.assert_array_equal(o1, o2)
+        finally:
+            twin.close()
+    finally:
+        env.close()

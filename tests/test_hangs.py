@@ -179,12 +179,12 @@ def test_async_vector_env_fork_over_jax_works_when_the_parent_runs_no_jax():
         import numpy as np
         from quadswarm_mj import QuadSwarmEnv
 
-        fns = [lambda: QuadSwarmEnv(num_quads=1, engine="jax")] * 2
+        fns = [lambda: QuadSwarmEnv(num_quads=1, engine="jax")]  # one sub-env: one JAX compile
         venv = gym.vector.AsyncVectorEnv(fns)  # the default context: fork on Linux
         from jax._src import xla_bridge
-        assert not xla_bridge.backends_are_initialized()  # building the envs' spaces started no JAX here
+        assert not xla_bridge.backends_are_initialized()  # building the env's spaces started no JAX here
         obs, _ = venv.reset(seed=0)
-        obs, *_ = venv.step(np.zeros((2, 4), np.float32))
+        obs, *_ = venv.step(np.zeros((1, 4), np.float32))
         assert np.isfinite(obs).all()
         venv.close()
         print("OK")

@@ -594,6 +594,7 @@ class QuadSwarmVectorEnv(VectorEnv):
                     "its worlds)")
         return None
 
+    @exclusive
     def __getstate__(self) -> dict[str, Any]:
         """The env's state for ``copy.deepcopy``/``pickle``: the worlds (MuJoCo data, generators,
         episode state) and the shared arrays' contents; TypeError where a copy cannot be independent."""
@@ -609,7 +610,6 @@ class QuadSwarmVectorEnv(VectorEnv):
         if self._jax is None:
             d["_a"] = {k: v.copy() for k, v in self._a.items()}
         if self._jax is None and self.num_shards > 1:  # the workers' worlds, fetched from their processes
-            self._check_usable()
             d.pop("_shard")
             d["_cores"] = None if self._failure is not None else self._run("copy", lambda k: ("call", _core_bytes))
         return d
