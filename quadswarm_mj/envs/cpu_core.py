@@ -149,6 +149,19 @@ class _MjDataPhysics:
         _check_simple_bodies(self.model, self.arena)
         self._M0 = self.model.dof_M0[vs:vs + 6 * B * N].reshape(B * N, 6)  # a view
 
+    def __getstate__(self) -> dict[str, Any]:
+        """For copy/pickle: without the views into MjData/MjModel (:meth:`__setstate__` makes them again)."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("qpos", "qvel", "xfrc", "_M0")}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        B, N = self.offsets.shape[0], self.arena.num_quads
+        qs, vs, fb = self.arena.qpos_start, self.arena.qvel_start, self.arena.first_body
+        self.qpos = self.data.qpos[qs:qs + 7 * B * N].reshape(B, N, 7)
+        self.qvel = self.data.qvel[vs:vs + 6 * B * N].reshape(B, N, 6)
+        self.xfrc = self.data.xfrc_applied[fb:fb + B * N].reshape(B, N, 6)
+        self._M0 = self.model.dof_M0[vs:vs + 6 * B * N].reshape(B * N, 6)
+
     def touch(self) -> None:
         """The engine wrote qpos/qvel: nothing to do, they are MjData itself."""
 
@@ -238,6 +251,10 @@ class _BatchPhysics:
         self._pad_qpos = self._qpos[B:].copy()
         self.qpos, self.qvel, self.xfrc = self._qpos[:B], self._qvel[:B], self._xfrc[:B]
         self.offsets = np.tile(self.arena.world_offsets, (K, 1))[:B, None, :]
+
+    def __getstate__(self) -> dict[str, Any]:
+        raise TypeError("a CpuSwarm on the 'batch' back end (mujoco.batch) cannot be copied or pickled; use "
+                        "backend='mjdata' (QuadSwarmVectorEnv(..., backend='mjdata')) for an env to copy")
 
     def touch(self) -> None:
         """The engine wrote qpos/qvel: copy them into the state rows before the next step."""
@@ -385,6 +402,19 @@ class CpuSwarm:
         self.metrics = metrics_lib.init(zeros, (B,), N)
         self._R: np.ndarray | None = None  # rotations of the current qpos (None: recompute)
         self._obst_init()
+
+    # ------------------------------------------------------------------ copy / pickle
+    def __getstate__(self) -> dict[str, Any]:
+        """For copy/pickle: the state without the aliases of the physics' arrays (views into MuJoCo's
+        data, which the physics maps again in the copy): a copy is independent and steps exactly as
+        the original from here."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("arena", "model", "data", "qpos", "qvel", "xfrc")}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        p = self.phys
+        self.arena, self.model, self.data = p.arena, p.model, p.data
+        self.qpos, self.qvel, self.xfrc = p.qpos, p.qvel, p.xfrc
 
     # ------------------------------------------------------------------ obstacles (SPEC_obstacles A)
     def _obst_init(self) -> None:

@@ -171,6 +171,11 @@ class QuadSwarmEnv(gym.Env):
         if self.closed:
             raise RuntimeError("the env is closed: create a new one")
 
+    def __getstate__(self) -> dict[str, Any]:
+        """For ``copy.deepcopy``/``pickle``: an independent env in the same state, stepping exactly as
+        this one from here (both engines); the renderer is not copied (the copy opens its own)."""
+        return {**self.__dict__, "_renderer": None}
+
     def close(self) -> None:
         """Release the renderer (and the JAX engine); afterwards ``step`` and ``reset`` raise RuntimeError."""
         self.closed = True

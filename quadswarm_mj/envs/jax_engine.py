@@ -46,10 +46,12 @@ from quadswarm_mj.devices import loop_once, reuse_freed_memory
 from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv, State
 from quadswarm_mj.envs.sharding import WorldSharding
 from quadswarm_mj.envs.workers import (
+    DEFAULT_WORKER_TIMEOUT_S,
     STEP_INTO,
     Resources,
     SharedBlock,
     Worker,
+    check_not_forked_from_jax,
     layout_bytes,
     map_arrays,
     run_on_workers,
@@ -455,11 +457,17 @@ class JaxSingleBackend:
     """One world on the JAX engine with ``QuadSwarmEnv``'s ``info`` (NumPy in and out).
 
     ``reset(seed, state) -> (obs_flat (N, obs_dim) float32, info)`` and
-    ``step(action (N, 4)) -> (obs, rewards (N,), truncated, info)``; the caller validates inputs."""
+    ``step(action (N, 4)) -> (obs, rewards (N,), truncated, info)``; the caller validates inputs.
+
+    JAX starts only at the first seed, reset or step, in the process that runs them: an env built in
+    one process (e.g. gymnasium's ``AsyncVectorEnv`` builds one to read the spaces) and stepped in a
+    forked one works; in a process forked from one where JAX already ran, every call raises
+    RuntimeError (JAX is not fork-safe; use a "spawn" or "forkserver" context). ``copy.deepcopy``
+    and ``pickle`` give an independent backend in the same state (the state buffers as host arrays)."""
 
     def __init__(self, cfg: EnvConfig):
         self.cfg = cfg
-        self.prog = _program(cfg, None)
+        self._prog: _Program | None = None
         self._keys: KeyStream | None = None
         self._bufs: tuple | None = None
         self._last: dict[str, np.ndarray] | None = None
@@ -470,10 +478,28 @@ class JaxSingleBackend:
         self._renderer: Any = None
 
     @property
+    def prog(self) -> _Program:
+        """The compiled programs of this config (JAX starts here, in the calling process)."""
+        check_not_forked_from_jax()
+        if self._prog is None:
+            self._prog = _program(self.cfg, None)
+        return self._prog
+
+    def __getstate__(self) -> dict[str, Any]:
+        d = {k: v for k, v in self.__dict__.items() if k not in ("_prog", "_renderer")}
+        d["_bufs"] = None if self._bufs is None else tuple(np.asarray(b) for b in self._bufs)
+        return d
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._prog, self._renderer = None, None
+
+    @property
     def seeded(self) -> bool:
         return self._keys is not None
 
     def seed(self, seed: int) -> None:
+        check_not_forked_from_jax()
         self._keys = KeyStream(seed)
 
     def _info(self, v: dict[str, np.ndarray]) -> dict[str, Any]:
@@ -508,8 +534,11 @@ class JaxSingleBackend:
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict[str, Any]]:
         """One control step; returns (obs, team reward (mean over quads), truncated, info)."""
-        self._bufs, out = self.prog.step(self._bufs, action.astype(self.prog.float))
-        obs, v = self._split(out, self.prog.step_layout)
+        prog = self.prog
+        if self._bufs is not None and isinstance(self._bufs[0], np.ndarray):  # a copy's host buffers
+            self._bufs = tuple(jax.device_put(b) for b in self._bufs)
+        self._bufs, out = prog.step(self._bufs, action.astype(prog.float))
+        obs, v = self._split(out, prog.step_layout)
         info = self._info(v)
         info["rewards"] = v["rewards"]
         info["reward_terms"] = dict(zip(env_terms(self.cfg), v["terms"]))
@@ -610,6 +639,21 @@ class LocalWorlds:
     def close(self) -> None:
         self.bufs = None
 
+    def __getstate__(self) -> dict[str, Any]:
+        """For copy/pickle: the state leaves as host arrays (put back on the devices by :meth:`__setstate__`)."""
+        d = {k: v for k, v in self.__dict__.items() if k != "prog"}
+        d["bufs"] = None if self.bufs is None else tuple(np.array(b) for b in self.bufs)
+        return d
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self.prog = _program(self.cfg, self.B)
+        ws = self.prog.worlds
+        put = (lambda x: jax.device_put(x)) if ws is None or ws.num_devices == 1 else (
+            lambda x: jax.device_put(x, ws.sharding))
+        if self.bufs is not None:
+            self.bufs = tuple(put(b) for b in self.bufs)
+
 
 #: output blocks a worker-process vector env hands out before it falls back to copying (see WorkerWorlds)
 MAX_OUTPUT_BLOCKS = 8
@@ -683,7 +727,8 @@ class WorkerWorlds:
     :data:`MAX_OUTPUT_BLOCKS` exist, and if a caller keeps all of them alive the step goes through a
     scratch block and is copied out."""
 
-    def __init__(self, cfg: EnvConfig, num_worlds: int, num_workers: int):
+    def __init__(self, cfg: EnvConfig, num_worlds: int, num_workers: int,
+                 timeout: float | None = DEFAULT_WORKER_TIMEOUT_S):
         self.cfg, self.B, self.n = cfg, int(num_worlds), int(num_workers)
         prog = _program(cfg, self.B)  # layouts only (traced, not compiled, in this process)
         N, D = cfg.num_quads, cfg.obs_dim
@@ -703,7 +748,7 @@ class WorkerWorlds:
             for k, (lo, hi) in enumerate(self.bounds):
                 init = {"factory": "quadswarm_mj.envs.jax_engine:jax_shard", "shm": res.shm.name,
                         "layout": self.layout, "out_layout": self.out_layout, "cfg": cfg, "lo": lo, "hi": hi,
-                        "index": k, "cpu": cores[k % len(cores)]}
+                        "index": k, "cpu": cores[k % len(cores)], "timeout": timeout}
                 res.workers.append(Worker(k, lo, hi, init, environ=env))
             wait_started(res.workers)
             res.unlink()  # every worker has mapped the block: its name can go
@@ -814,10 +859,12 @@ class JaxVectorBackend:
     RENEWED = RENEWED
 
     def __init__(self, cfg: EnvConfig, num_envs: int, info_keys: tuple[str, ...] = VECTOR_INFO_KEYS,
-                 copy: bool = True, num_workers: int = 0):
+                 copy: bool = True, num_workers: int = 0, worker_timeout: float | None = DEFAULT_WORKER_TIMEOUT_S):
+        check_not_forked_from_jax()
         self.cfg, self.B = cfg, int(num_envs)
         self.info_keys, self.copy = tuple(info_keys), bool(copy)
         self.num_workers = int(num_workers)
+        self.worker_timeout = worker_timeout
         self.prog = _program(cfg, self.B)
         self._keys: KeyStream | None = None
         self._v: dict[str, np.ndarray] | None = None
@@ -828,8 +875,21 @@ class JaxVectorBackend:
     def start(self) -> None:
         """(Re)build the worlds (their state is gone: reset every world next)."""
         self.close()
-        self._worlds = (WorkerWorlds(self.cfg, self.B, self.num_workers) if self.num_workers
+        self._worlds = (WorkerWorlds(self.cfg, self.B, self.num_workers, self.worker_timeout) if self.num_workers
                         else LocalWorlds(self.cfg, self.B))
+
+    def __getstate__(self) -> dict[str, Any]:
+        """For copy/pickle (in-process worlds only: TypeError with worker processes)."""
+        if self.num_workers:
+            raise TypeError(f"a JAX-engine vector env with worker processes (num_shards={self.num_workers}) cannot be "
+                            f"copied or pickled: its worlds live in other processes. Build a new env with the same "
+                            f"arguments (num_shards=1 envs can be copied)")
+        d = {k: v for k, v in self.__dict__.items() if k != "prog"}
+        return d
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self.prog = _program(self.cfg, self.B)
 
     def seed(self, seed: int) -> None:
         self._keys = KeyStream(seed)

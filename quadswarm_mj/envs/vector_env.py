@@ -81,6 +81,7 @@ episode).
 from __future__ import annotations
 
 import os
+import pickle
 import weakref
 from collections.abc import Callable
 from typing import Any
@@ -95,9 +96,11 @@ from quadswarm_mj.control_modes import action_box_bounds
 from quadswarm_mj.envs.cpu_core import CpuSwarm
 from quadswarm_mj.envs.validation import check_action, check_engine, check_obstacles, check_state
 from quadswarm_mj.envs.workers import (
+    DEFAULT_WORKER_TIMEOUT_S,
     STEP,
     Resources,
     Worker,
+    exclusive,
     layout_bytes,
     map_arrays,
     run_on_workers,
@@ -155,6 +158,16 @@ class _Shard:
 
     def seed(self, seed: Any) -> None:
         self.core.seed(seed)
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Without the views of the env's arrays (:meth:`bind` maps them again)."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("a", "state")}
+
+    def bind(self, arrays: dict[str, np.ndarray]) -> None:
+        """View this shard's rows of the env's arrays (after a copy or unpickling)."""
+        lo, hi = self.lo, self.hi
+        self.a = {k: (v[:, lo:hi] if k in ("terms", "metrics") else v[lo:hi]) for k, v in arrays.items()}
+        self.state = {k: self.a[f"state/{k}"] for k in STATE_FIELDS}
 
     def reset(self, mask: np.ndarray | None, state: dict[str, Any] | None) -> None:
         c, a = self.core, self.a
@@ -249,6 +262,25 @@ def _default_jax_shards(B: int) -> int:
     return k if k >= 2 else 1
 
 
+def _check_worker_timeout(t: Any) -> float | None:
+    """``worker_timeout``: None (wait forever) or a number of seconds > 0."""
+    if t is None:
+        return None
+    if isinstance(t, bool) or not isinstance(t, (int, float, np.integer, np.floating)) or not 0 < float(t) < np.inf:
+        raise ValueError(f"worker_timeout must be a number of seconds > 0 (finite) or None, got {t!r}")
+    return float(t)
+
+
+def _core_bytes(shard: _Shard) -> bytes:
+    """A shard's worlds, pickled (run in the shard's process when a vector env with workers is copied)."""
+    return pickle.dumps(shard.core, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def _load_core(shard: _Shard, blob: bytes) -> None:
+    """Replace a shard's worlds by pickled ones (:func:`_core_bytes`) in the copy's processes."""
+    shard.core = pickle.loads(blob)
+
+
 def mujoco_shard(init: dict[str, Any], arrays: dict[str, np.ndarray]) -> _Shard:
     """A worker's MuJoCo-engine shard (the ``factory`` of :func:`quadswarm_mj.envs.workers.worker_main`)."""
     return _Shard(init["cfg"], init["lo"], init["hi"], arrays, init["info_keys"], init["backend"],
@@ -274,17 +306,32 @@ class QuadSwarmVectorEnv(VectorEnv):
         engine: "mujoco" (default: CPU MuJoCo shards as above) or "jax" (MJX: jitted calls in this process
             or, on CPU with many worlds, in one worker process per core).
 
+        worker_timeout: the longest wait for one reply of a worker process to a step or command (s; None:
+            no limit; a worker's start, which imports and builds its worlds, waits at least 600 s); a worker
+            that does not answer in time (stopped, stuck) raises :class:`WorkerError` naming it.
+
     Workers are spawned processes that never import the user's script (no ``__main__`` guard
     needed). A failed worker raises :class:`WorkerError`; the env then needs ``reset()``.
+
+    One call at a time: a call from another thread while one runs raises RuntimeError (use one env per
+    thread). After ``os.fork()`` the child's copy refuses calls (RuntimeError) when the env has worker
+    processes or runs JAX (they belong to the parent; the child's exit leaves them alone); a copy
+    without either is independent and works. ``copy.deepcopy`` and ``pickle`` give an independent env
+    that steps exactly as the original from there (with worker processes: new workers loaded with the
+    original's worlds), except on the JAX engine with worker processes or on the "batch" back end
+    (TypeError: build a new env instead).
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
     def __init__(self, cfg: EnvConfig | None = None, num_envs: int = 64, *, num_shards: int | None = None,
                  info_keys: tuple[str, ...] | None = None, copy: bool = True, backend: str = "auto",
-                 chunk_worlds: int = 64, engine: str = "mujoco", **kwargs: Any):
+                 chunk_worlds: int = 64, engine: str = "mujoco",
+                 worker_timeout: float | None = DEFAULT_WORKER_TIMEOUT_S, **kwargs: Any):
         from quadswarm_mj.envs.gym_env import make_config
 
+        self._owner_pid = os.getpid()  # a forked copy refuses calls when it has workers or runs JAX
+        self.worker_timeout = _check_worker_timeout(worker_timeout)
         self.cfg = make_config(cfg, kwargs)
         self.engine = check_engine(engine)
         self._jax: Any = None
@@ -325,7 +372,8 @@ class QuadSwarmVectorEnv(VectorEnv):
             from quadswarm_mj.envs.jax_engine import JaxVectorBackend
 
             self._jax = JaxVectorBackend(self.cfg, B, info_keys=info_keys, copy=copy,
-                                         num_workers=0 if self.num_shards == 1 else self.num_shards)
+                                         num_workers=0 if self.num_shards == 1 else self.num_shards,
+                                         worker_timeout=self.worker_timeout)
             self._failure = None
             self._needs_reset, self._seeded, self.closed = True, False, False
             self._finalizer = weakref.finalize(self, self._jax.close)
@@ -360,7 +408,7 @@ class QuadSwarmVectorEnv(VectorEnv):
                 init = {"factory": mujoco_shard, "shm": res.shm.name if res.shm else None, "layout": self._layout,
                         "cfg": self.cfg,
                         "lo": lo, "hi": hi, "info_keys": self.info_keys, "backend": backend_for(hi - lo),
-                        "chunk_worlds": self._chunk_worlds}
+                        "chunk_worlds": self._chunk_worlds, "timeout": self.worker_timeout}
                 res.workers.append(Worker(k, lo, hi, init))
             lo, hi = self._bounds[0]
             self._shard = _Shard(self.cfg, lo, hi, self._a, self.info_keys, backend_for(hi - lo), self._chunk_worlds)
@@ -398,6 +446,7 @@ class QuadSwarmVectorEnv(VectorEnv):
             raise RuntimeError(f"the vector env failed ({type(self._failure).__name__}: {first}) and must be reset: "
                                f"call reset() to rebuild its workers") from self._failure
 
+    @exclusive
     def _call_shards(self, fn: Callable[..., Any], *args: Any) -> list[Any]:
         """``fn(shard, *args)`` on every shard, in its process (a test hook; ``fn`` must be picklable)."""
         self._check_usable()
@@ -435,6 +484,7 @@ class QuadSwarmVectorEnv(VectorEnv):
         return out
 
     # ------------------------------------------------------------------ API
+    @exclusive
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         """Reset every world (or those in ``options["reset_mask"]``, (B,) bool).
 
@@ -501,6 +551,7 @@ class QuadSwarmVectorEnv(VectorEnv):
         info = self._info()
         return self._out(self._a["obs"]), info
 
+    @exclusive
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Step every world with ``actions`` (B, N, 4) (NaN, inf or a wrong shape raise ValueError)."""
         self._check_usable()
@@ -522,6 +573,7 @@ class QuadSwarmVectorEnv(VectorEnv):
         terminated = np.zeros(self.num_envs, dtype=np.bool_)
         return self._out(A["obs"]), A["reward"].copy(), terminated, A["truncated"].copy(), info
 
+    @exclusive
     def episode_metrics(self) -> dict[str, np.ndarray]:
         """Episode metrics (B,) of the running episodes so far."""
         self._check_usable()
@@ -532,3 +584,65 @@ class QuadSwarmVectorEnv(VectorEnv):
 
     def close_extras(self, **kwargs: Any) -> None:
         self._finalizer()  # ends the workers (once), frees the shared block
+
+    # ------------------------------------------------------------------ fork, copy, pickle
+    def _forked_use_error(self) -> str | None:
+        """Why a forked copy of this env cannot be used (None: it can, as an independent copy)."""
+        if self._jax is not None:
+            return "it runs JAX, which is not fork-safe"
+        if self.num_shards > 1:
+            return ("its worker processes and shared memory belong to that process (a step here would advance "
+                    "its worlds)")
+        return None
+
+    @exclusive
+    def __getstate__(self) -> dict[str, Any]:
+        """The env's state for ``copy.deepcopy``/``pickle``: the worlds (MuJoCo data, generators,
+        episode state) and the shared arrays' contents; TypeError where a copy cannot be independent."""
+        name = type(self).__name__
+        if self.closed:
+            raise TypeError(f"a closed {name} cannot be copied or pickled")
+        if self._jax is None and any(self._shard_backend(hi - lo) == "batch" for lo, hi in self._bounds):
+            raise TypeError(f"a {name} whose shards run the 'batch' back end (mujoco.batch) cannot be copied or "
+                            f"pickled; pass backend='mjdata' for an env to copy")
+        d = {k: v for k, v in self.__dict__.items() if k not in ("_finalizer", "_call_lock", "_res")}
+        if d.get("_failure") is not None:  # the copy needs reset() too (exceptions need not pickle)
+            d["_failure"] = RuntimeError(str(self._failure))
+        if self._jax is None:
+            d["_a"] = {k: v.copy() for k, v in self._a.items()}
+        if self._jax is None and self.num_shards > 1:  # the workers' worlds, fetched from their processes
+            d.pop("_shard")
+            d["_cores"] = None if self._failure is not None else self._run("copy", lambda k: ("call", _core_bytes))
+        return d
+
+    def _shard_backend(self, n: int) -> str:
+        """The physics back end of a shard of ``n`` worlds (as :meth:`_build` picks it)."""
+        if self._backend != "auto":
+            return self._backend
+        return "mjdata" if n <= self._chunk_worlds else "batch"
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._owner_pid = os.getpid()
+        if self._jax is not None:
+            self._finalizer = weakref.finalize(self, self._jax.close)
+            return
+        if "_cores" in state:  # with workers: new ones, loaded with the original's worlds
+            cores = self.__dict__.pop("_cores")
+            self._res = Resources()
+            self._finalizer = weakref.finalize(self, self._res.release)
+            self._build()
+            if cores is not None:
+                self._run("copy", lambda k: ("call", _load_core, cores[k]))
+            for k, v in state["_a"].items():
+                self._a[k][...] = v
+            self._failure, self._needs_reset, self._seeded = (state["_failure"], state["_needs_reset"],
+                                                             state["_seeded"])
+            return
+        arrays = map_arrays(bytearray(layout_bytes(self._layout)), self._layout)
+        for k, v in state["_a"].items():
+            arrays[k][...] = v
+        self._a = arrays
+        self._shard.bind(arrays)
+        self._res = Resources()
+        self._finalizer = weakref.finalize(self, self._res.release)

@@ -6,24 +6,34 @@ A worker builds its shard with ``init["factory"](init, arrays)`` (a module-level
 reference): :func:`quadswarm_mj.envs.vector_env.mujoco_shard` for the MuJoCo engine,
 :func:`quadswarm_mj.envs.jax_engine.jax_shard` for the JAX engine. A shard has ``step()`` (the
 one-byte ``STEP`` message), ``handle(command_tuple)`` (the rare commands) and, if it writes into one
-of several output blocks, ``step_into(block_index)`` (the ``STEP_INTO`` message)."""
+of several output blocks, ``step_into(block_index)`` (the ``STEP_INTO`` message).
+
+No hangs: every wait for a reply is bounded by the worker's ``timeout`` (the envs' ``worker_timeout``;
+a worker that does not answer, e.g. stopped by SIGSTOP, raises :class:`WorkerError` naming it); the
+envs' public calls are :func:`exclusive` (a second thread's call during one raises instead of
+interleaving on the pipes); a forked child forgets the parent's workers (its exit never terminates
+them) and only the creating process ends them (:meth:`Resources.release`); a process forked from one
+running JAX refuses the JAX engine (:func:`check_not_forked_from_jax`) instead of deadlocking."""
 
 from __future__ import annotations
 
 import ctypes
+import functools
 import importlib
 import multiprocessing
 import os
 import pickle
+import select
 import signal
 import sys
 import threading
 import time
 import traceback
-from collections.abc import Iterator, Mapping
+import weakref
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from multiprocessing import shared_memory
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -32,6 +42,10 @@ STEP_INTO = b"i"  # + a block index (little-endian): step, writing the outputs i
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}  # defaults for workers (one core each)
 PARENT_CHECK_S = 1.0  # how often a worker checks that its parent process still exists (s)
 JOIN_TIMEOUT_S = 5.0  # how long close() waits for a worker to exit before terminating it (s)
+#: default of the vector envs' ``worker_timeout``: how long the env waits for one reply of a worker before
+#: raising WorkerError (s); generous, as a worker's first reply may include a JAX compile on a loaded machine
+DEFAULT_WORKER_TIMEOUT_S = 600.0
+_POLL_S = 1.0  # the slice of a reply wait between checks that the worker still runs (s)
 
 
 def map_arrays(buf: Any, layout: list) -> dict[str, np.ndarray]:
@@ -70,6 +84,91 @@ class SharedBlock(shared_memory.SharedMemory):
             if fd >= 0:
                 os.close(fd)
                 self._fd = -1
+
+
+# ------------------------------------------------------------------ fork and thread safety
+_LIVE_RESOURCES: weakref.WeakSet = weakref.WeakSet()  # every Resources of this process with workers
+#: True in a process forked (``os.fork``, multiprocessing's "fork") from one where JAX had started its
+#: runtime: JAX is not fork-safe, so the JAX engine refuses to run here (instead of hanging)
+FORKED_FROM_JAX = False
+
+
+def _after_fork_in_child() -> None:
+    """``os.register_at_fork`` hook (child side): note whether the parent had started JAX, and forget the
+    parent's worker processes, so that this process's exit (multiprocessing's atexit handler terminates
+    every daemonic child it knows of) never kills them."""
+    global FORKED_FROM_JAX
+    jax = sys.modules.get("jax")
+    if jax is not None and not FORKED_FROM_JAX:
+        try:
+            from jax._src import xla_bridge
+
+            FORKED_FROM_JAX = bool(xla_bridge.backends_are_initialized())
+        except Exception:  # noqa: BLE001 - a JAX without this function: assume it started
+            FORKED_FROM_JAX = True
+    children = getattr(multiprocessing.process, "_children", None)
+    for res in list(_LIVE_RESOURCES):
+        for w in res.workers:
+            if children is not None:
+                children.discard(w.proc)
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
+
+
+def check_not_forked_from_jax() -> None:
+    """Raise RuntimeError in a process forked from one where JAX runs (a JAX call here would hang)."""
+    if FORKED_FROM_JAX:
+        raise RuntimeError(
+            "this process was forked (os.fork(), or multiprocessing's 'fork' start method: gymnasium's "
+            "AsyncVectorEnv default context on Linux, SB3's SubprocVecEnv(start_method='fork')) from a process "
+            "in which JAX was already running; JAX is not fork-safe and the JAX engine would hang here. Start "
+            "the subprocesses with context='spawn' or 'forkserver' (AsyncVectorEnv(fns, context='spawn'), "
+            "SubprocVecEnv(fns, start_method='spawn')), or run no JAX (no engine='jax' env's reset or step) in "
+            "the parent before it forks")
+
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def exclusive(method: _F) -> _F:
+    """Decorate an env method: refuse a call from another thread while one is running in this env
+    (the worker protocol and the shared arrays serve one call at a time: interleaved calls would
+    deadlock or mix the worlds), and refuse any call in a process forked from the env's owner when
+    the env has worker processes or runs JAX (``env._forked_use_error()``), raising RuntimeError."""
+
+    @functools.wraps(method)
+    def guarded(self: Any, *args: Any, **kwargs: Any) -> Any:
+        owner = self.__dict__.get("_owner_pid")
+        if owner is not None and owner != os.getpid():
+            why = self._forked_use_error()
+            if why is not None:
+                raise RuntimeError(f"this {type(self).__name__} was created in process {owner}; this is a "
+                                   f"forked copy in process {os.getpid()}: {why}. Create a new env in this "
+                                   f"process instead")
+        lock = self.__dict__.get("_call_lock") or self.__dict__.setdefault("_call_lock", threading.Lock())
+        if not lock.acquire(blocking=False):
+            raise RuntimeError(f"{type(self).__name__}.{method.__name__}() was called while another thread is "
+                               f"inside a call of the same env; an env serves one call at a time: use one env "
+                               f"per thread, or serialize the calls with a lock")
+        try:
+            return method(self, *args, **kwargs)
+        finally:
+            lock.release()
+
+    return guarded  # type: ignore[return-value]
+
+
+def _proc_state(pid: int | None) -> str | None:
+    """The Linux scheduler state letter of process ``pid`` ("T": stopped), or None if unknown."""
+    if pid is None:
+        return None
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().rsplit(b")", 1)[1].split()[0].decode()
+    except (OSError, IndexError, UnicodeDecodeError):
+        return None
 
 
 def _exit_with_parent(parent_pid: int) -> None:
@@ -184,6 +283,9 @@ class Worker:
         ctx = multiprocessing.get_context("spawn")
         self.index, self.lo, self.hi = index, lo, hi
         self.cpu: int | None = init.get("cpu")  # the core it is pinned to (None: not pinned)
+        #: longest wait for one reply (s; None: no limit), then WorkerError
+        self.timeout: float | None = init.get("timeout", DEFAULT_WORKER_TIMEOUT_S)
+        self._poller: Any = None  # select.poll of the pipe, made at the first wait
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=worker_main, args=(child, init, os.getpid()), daemon=True,
                                 name=f"quadswarm-vector-worker-{index}")
@@ -207,7 +309,9 @@ class Worker:
             raise self._died(what) from None
 
     def result(self, what: str) -> Any:
-        """Wait for the reply to the last message; a failure raises WorkerError."""
+        """Wait for the reply to the last message; a failure (also no reply within ``timeout``) raises WorkerError."""
+        self._wait(what, self.timeout if what != "start" or self.timeout is None else
+                   max(self.timeout, DEFAULT_WORKER_TIMEOUT_S))  # a start imports and builds: slow under load
         try:
             buf = self.conn.recv_bytes()
         except (EOFError, OSError):
@@ -220,6 +324,23 @@ class Worker:
         name, text, tb = rest
         raise WorkerError(f"{self.describe()} raised {name} during {what}: {text}\n\nWorker traceback:\n{tb}",
                           self.index, tb)
+
+    def _wait(self, what: str, timeout: float | None) -> None:
+        """Wait until a reply (or the pipe's end) is readable; after ``timeout`` s raise WorkerError."""
+        if timeout is None:
+            return
+        try:
+            if self._poller is None:  # one poll(2) per wait (Connection.poll builds a selector per call)
+                self._poller = select.poll()
+                self._poller.register(self.conn.fileno(), select.POLLIN)
+            deadline = time.monotonic() + timeout
+            while not self._poller.poll(1000.0 * max(0.0, min(_POLL_S, deadline - time.monotonic()))):
+                if time.monotonic() >= deadline:
+                    state = " (it is stopped, e.g. by SIGSTOP)" if _proc_state(self.proc.pid) == "T" else ""
+                    raise WorkerError(f"{self.describe()} did not reply within worker_timeout = {timeout:g} s "
+                                      f"during {what}{state}", self.index)
+        except (EOFError, OSError, ValueError):
+            return  # the pipe closed (poll reports the hang-up as an event): recv_bytes reports how
 
     def _died(self, what: str) -> WorkerError:
         self.proc.join(timeout=2.0)
@@ -259,6 +380,8 @@ class Resources:
         self.workers: list[Worker] = []
         self.shm: SharedBlock | None = None
         self.linked = False  # the block still has its name in /dev/shm
+        self.pid = os.getpid()  # the owner: only it ends the workers (a forked copy only lets go)
+        _LIVE_RESOURCES.add(self)
 
     def create_block(self, size: int) -> SharedBlock:
         self.shm, self.linked = SharedBlock(create=True, size=size), True
@@ -271,6 +394,12 @@ class Resources:
             self.shm.unlink()
 
     def release(self) -> None:
+        if os.getpid() != self.pid:  # a forked copy: the workers and the block are the owner's
+            for w in self.workers:
+                w.conn.close()
+            self.workers.clear()
+            self.shm, self.linked = None, False
+            return
         for w in self.workers:
             w.stop()
         for w in self.workers:
