@@ -206,3 +206,19 @@ def test_failed_vector_env_copies_to_an_env_that_needs_reset():
             twin.close()
     finally:
         env.close()
+
+
+def test_copy_keeps_the_instability_check_on_its_own_data():
+    """The copy's instability check reads its own MjData (the warning counters and accelerations are views)."""
+    from quadswarm_mj.envs.cpu_core import PhysicsInstabilityError
+
+    env = QuadSwarmEnv(num_quads=2)
+    env.reset(seed=0)
+    twin = copy.deepcopy(env)
+    phys = twin.unwrapped.core.phys
+    assert np.shares_memory(phys._bad_counts, phys.data.warning.number)
+    assert np.shares_memory(phys._qacc, phys.data.qacc)
+    phys.qvel[0, 1, 3:] = 1e12  # bypasses validation: MuJoCo must flag it on the copy's data
+    with pytest.raises(PhysicsInstabilityError, match="world 0, quad 1"):
+        twin.step(np.zeros((2, 4)))
+    env.step(np.zeros((2, 4)))  # the original is untouched

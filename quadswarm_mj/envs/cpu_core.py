@@ -151,7 +151,8 @@ class _MjDataPhysics:
 
     def __getstate__(self) -> dict[str, Any]:
         """For copy/pickle: without the views into MjData/MjModel (:meth:`__setstate__` makes them again)."""
-        return {k: v for k, v in self.__dict__.items() if k not in ("qpos", "qvel", "xfrc", "_M0")}
+        return {k: v for k, v in self.__dict__.items()
+                if k not in ("qpos", "qvel", "xfrc", "_M0", "_qacc", "_bad_counts")}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
@@ -159,6 +160,8 @@ class _MjDataPhysics:
         qs, vs, fb = self.arena.qpos_start, self.arena.qvel_start, self.arena.first_body
         self.qpos = self.data.qpos[qs:qs + 7 * B * N].reshape(B, N, 7)
         self.qvel = self.data.qvel[vs:vs + 6 * B * N].reshape(B, N, 6)
+        self._qacc = self.data.qacc[vs:vs + 6 * B * N].reshape(B, N, 6)
+        self._bad_counts = self.data.warning.number[_BAD_WARNINGS]
         self.xfrc = self.data.xfrc_applied[fb:fb + B * N].reshape(B, N, 6)
         self._M0 = self.model.dof_M0[vs:vs + 6 * B * N].reshape(B * N, 6)
 
