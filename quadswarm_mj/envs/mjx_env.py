@@ -137,7 +137,6 @@ from quadswarm_mj.collisions import (
     wall_draw_spec,
 )
 from quadswarm_mj.config import EnvConfig
-from quadswarm_mj.devices import tune_jax_cpu
 from quadswarm_mj.downwash import (
     DOWNWASH_BUDGET,
     apply_downwash,
@@ -154,8 +153,6 @@ from quadswarm_mj.rewards import anneal_factor, env_terms, total_reward
 from quadswarm_mj.scenarios import get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
 from quadswarm_mj.spatial import quat_to_rotmat, quat_to_rotmat_components, rotmat_to_quat
-
-tune_jax_cpu()  # synchronous CPU dispatch for the engine's small programs, if JAX has not started
 
 INIT_STATE_KEYS = ("pos", "vel", "rot", "omega", "motors", "goals")
 PHYSICS = ("freebody", "mjx")
