@@ -1,8 +1,9 @@
 """The package changes nothing of the user's process: no environment variable, no JAX config value, no
 allocator setting, at import or while stepping both engines (the XLA:CPU tuning is the explicit opt-in
-``quadswarm_mj.tune_jax_cpu()``, tests/test_xla_tuning.py). Each check runs in a fresh process that set its own values first.
-The baseline is taken after importing the dependencies themselves (pettingzoo's import sets SDL and
-pygame variables for its pygame envs; that is pettingzoo's doing, not this package's)."""
+``quadswarm_mj.tune_jax_cpu()``, tests/test_xla_tuning.py). Each check runs in a fresh process that
+set its own values first. The baseline is taken after importing the dependencies themselves
+(pettingzoo's import sets SDL and pygame variables for its pygame envs: pettingzoo's doing, not this
+package's)."""
 
 from __future__ import annotations
 
