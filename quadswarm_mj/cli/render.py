@@ -212,6 +212,10 @@ def report(args: argparse.Namespace, r: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # run as a command: the opt-in XLA:CPU tuning (quadswarm_mj.tune_jax_cpu), before JAX starts
+        from quadswarm_mj.devices import tune_jax_cpu
+
+        tune_jax_cpu()
     args = parse_args(argv)
     try:
         result = run(args)
