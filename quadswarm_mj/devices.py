@@ -208,3 +208,39 @@ def reuse_freed_memory() -> bool:
     except (OSError, AttributeError):  # not glibc
         _MALLOC_TUNED = False
     return _MALLOC_TUNED
+
+
+#: The most worlds one jitted, vmapped ``physics="mjx"`` program steps when both XLA:CPU options of
+#: :func:`tune_jax_cpu` are in force on jax >= 0.10. Measured on jax 0.10.2 (CPU, 2 cores, 8 quads,
+#: ``jax.jit(jax.vmap(MjxQuadSwarmEnv(physics="mjx").step))``): 128 worlds run; 512 worlds compile and
+#: then never return (> 160 s against 1-3 s); with either option alone, or with JAX's defaults, 512
+#: worlds run (1.1-3.1 s under load); jax 0.9.2 ran 4096 worlds with both. The default free-body physics
+#: is not affected. Reproduction: ``scripts/mjx_tuned_hang.py``.
+MJX_TUNED_MAX_WORLDS = 128
+
+
+def _jax_at_least(major: int, minor: int) -> bool:
+    import jax
+
+    parts = [int(p) for p in jax.__version__.split(".")[:2] if p.isdigit()]
+    return tuple(parts) >= (major, minor)
+
+
+def check_mjx_batch(physics: str, num_worlds: int) -> None:
+    """RuntimeError before a ``physics="mjx"`` program of more than :data:`MJX_TUNED_MAX_WORLDS` worlds
+    is built in a process where it would hang: jax >= 0.10 on CPU with both :func:`tune_jax_cpu`
+    options in force. Nothing happens otherwise (other physics, fewer worlds, JAX's defaults)."""
+    if physics != "mjx" or num_worlds <= MJX_TUNED_MAX_WORLDS or "jax" not in sys.modules:
+        return
+    import jax
+
+    if not _jax_at_least(0, 10) or jax.config.values.get("jax_cpu_enable_async_dispatch", True):
+        return
+    if jax.default_backend() != "cpu" or not loop_kernels_in_force():
+        return
+    raise RuntimeError(
+        f'physics="mjx" with {num_worlds} worlds in one program hangs on jax {jax.__version__} (CPU) when both '
+        "XLA:CPU options of quadswarm_mj.tune_jax_cpu() are in force (small loops as single kernels and "
+        f"synchronous dispatch); at most {MJX_TUNED_MAX_WORLDS} worlds run then. Run without tune_jax_cpu() "
+        "(console commands: QUADSWARM_MJ_TUNE_JAX=0), use the free-body physics (collision_model=\"paper\"), "
+        f"or step at most {MJX_TUNED_MAX_WORLDS} worlds per program.")

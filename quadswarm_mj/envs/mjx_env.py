@@ -137,6 +137,7 @@ from quadswarm_mj.collisions import (
     wall_draw_spec,
 )
 from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.devices import check_mjx_batch
 from quadswarm_mj.downwash import (
     DOWNWASH_BUDGET,
     apply_downwash,
@@ -1109,6 +1110,7 @@ def benchmark_mjx(cfg: EnvConfig, num_worlds: int, num_steps: int, seed: int = 0
     if devices is not None and (not isinstance(devices, int) or devices < 1):
         raise ValueError(f"devices must be an int >= 1 or None, got {devices!r}")
     env = AutoResetWrapper(MjxQuadSwarmEnv(cfg, physics=physics))
+    check_mjx_batch(env.env.physics, num_worlds)  # a clear error where jax >= 0.10 would hang (devices.py)
     shard = WorldSharding(num_worlds, world_devices(num_worlds, jax.devices()[:devices]))
     hover = jnp.full((num_worlds, cfg.num_quads, 4), cfg.quad.hover_action, _float())
 
