@@ -19,7 +19,7 @@ def test_gym_env_rolls_out(num_envs):
     from torchrl.envs import GymEnv
 
     kw = {"num_envs": num_envs} if num_envs else {}
-    env = GymEnv("QuadSwarm-v0", num_quads=1, **kw, **SHORT)
+    env = GymEnv("quadswarm_mj:QuadSwarm-v0", num_quads=1, **kw, **SHORT)  # the id also in spawned workers
     try:
         td = env.rollout(8, break_when_any_done=False)
         lead = (num_envs, 8) if num_envs else (8,)
