@@ -22,7 +22,7 @@ themselves. The columns are drawn and the controller steers around them (a poten
 
 from __future__ import annotations
 
-# ``import quadswarm_mj`` (the package of this module, imported first) sets MUJOCO_GL=egl when it is unset.
+# Headless: with MUJOCO_GL unset, quadswarm_mj.render picks EGL when it first renders (MUJOCO_GL stays unset).
 import argparse
 import sys
 import time
