@@ -211,11 +211,15 @@ def reuse_freed_memory() -> bool:
 
 
 #: The most worlds one jitted, vmapped ``physics="mjx"`` program steps when both XLA:CPU options of
-#: :func:`tune_jax_cpu` are in force on jax >= 0.10. Measured on jax 0.10.2 (CPU, 2 cores, 8 quads,
-#: ``jax.jit(jax.vmap(MjxQuadSwarmEnv(physics="mjx").step))``): 128 worlds run; 512 worlds compile and
-#: then never return (> 160 s against 1-3 s); with either option alone, or with JAX's defaults, 512
-#: worlds run (1.1-3.1 s under load); jax 0.9.2 ran 4096 worlds with both. The default free-body physics
-#: is not affected. Reproduction: ``scripts/mjx_tuned_hang.py``.
+#: :func:`tune_jax_cpu` are in force on jax >= 0.10 (the reason jax was once pinned to 0.9.2: "jit(vmap(
+#: mjx.step)) hangs at >= 128 worlds on jax 0.10"). Measured on jax 0.10.2, mujoco-mjx 3.17.0 (CPU, 2
+#: shared cores, 8 quads, ``jax.jit(jax.vmap(MjxQuadSwarmEnv(physics="mjx").step))``, one call after
+#: compiling, ``scripts/mjx_tuned_hang.py``): with JAX's defaults, either option alone, or both, 512
+#: worlds ran in 1.1-3.1 s in 7 of 8 runs; the eighth (both options and the allocator setting) did not
+#: return within 160 s after compiling. jax 0.9.2 ran 512 (and, reported, 4096) worlds with both. Not
+#: understood beyond that, so the package's own batched ``physics="mjx"`` programs refuse more worlds
+#: than this under both options on jax >= 0.10 (:func:`check_mjx_batch`); the default free-body physics
+#: and JAX's default settings are not affected.
 MJX_TUNED_MAX_WORLDS = 128
 
 
