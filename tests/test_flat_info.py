@@ -112,3 +112,16 @@ def test_make_by_module_id_in_a_fresh_spawn_child():
         assert obs.shape[0] == 2 and "state/pos" in info
     finally:
         envs.close()
+
+
+def test_jax_engine_flat_info_has_the_mujoco_engine_layout():
+    """The same flat keys, shapes and dtypes on both engines, through an episode end."""
+    want = layout(QuadSwarmEnv(num_quads=2, info_mode="flat", **SHORT).reset(seed=0)[1])
+    env = QuadSwarmEnv(num_quads=2, info_mode="flat", engine="jax", **SHORT)
+    _, info = env.reset(seed=0)
+    assert layout(info) == want
+    truncated = False
+    while not truncated:
+        _, _, _, truncated, info = env.step(np.zeros((2, 4), np.float32))
+        assert layout(info) == want
+    assert np.isfinite(info["episode_metrics/success"])
