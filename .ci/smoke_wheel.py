@@ -5,7 +5,8 @@
 
 Checks: the wheel holds the MJCF assets, the shipped policies and their manifest; the package is
 imported from site-packages (not the checkout); an env builds and steps; one frame renders
-(MUJOCO_GL=egl); ``load_policy("pretrained:swarm8")`` flies the swarm; importing MJX prints
+(headless: with MUJOCO_GL unset the package picks EGL itself and leaves the variable unset);
+``load_policy("pretrained:swarm8")`` flies the swarm; importing MJX prints
 nothing; every console command answers ``--help``; ``quadswarm-render`` writes a short video.
 Exits non-zero on the first failure.
 """
@@ -45,7 +46,7 @@ def main() -> int:
         check(f in names, f"wheel contains {f}")
     check(not any(n.startswith(("tests/", "scripts/", "assets/")) for n in names), "wheel holds only the package")
 
-    os.environ.setdefault("MUJOCO_GL", "egl")
+    gl_before = os.environ.get("MUJOCO_GL")  # the package's renderer is headless either way
     import numpy as np
 
     import quadswarm_mj
@@ -64,7 +65,9 @@ def main() -> int:
         obs, reward, _, _, info = env.step(np.zeros((4, 4)))
     check(obs.shape == (4, env.cfg.obs_dim) and np.isfinite(obs).all() and np.isfinite(reward), "env steps")
     frame = env.render()
-    check(frame.shape == (480, 640, 3) and frame.dtype == np.uint8 and frame.std() > 1.0, "one frame rendered")
+    check(frame.shape == (480, 640, 3) and frame.dtype == np.uint8 and frame.std() > 1.0,
+          f"one frame rendered (MUJOCO_GL={gl_before!r})")
+    check(os.environ.get("MUJOCO_GL") == gl_before, "MUJOCO_GL left as it was")
     env.close()
 
     policy = load_policy("pretrained:swarm8")

@@ -2,19 +2,14 @@
 
 Public API: ``EnvConfig``, ``QuadSwarmEnv``, ``list_scenarios``; ``import quadswarm_mj``
 registers the Gymnasium id ``QuadSwarm-v0``. JAX is not imported here.
+
+Importing or using the package changes no environment variable, JAX config value or allocator
+setting of your process. The XLA:CPU tuning that speeds up the JAX engine's small programs is an
+explicit opt-in: :func:`tune_jax_cpu` (call it before JAX starts; the console commands do).
+Headless rendering picks MuJoCo's EGL context when the package first renders (``quadswarm_mj.render``).
 """
 
-import os
-
-# MuJoCo fixes its GL backend when first imported; unset means GLFW, which needs a display.
-os.environ.setdefault("MUJOCO_GL", "egl")
-if os.environ.get("MUJOCO_GL") in ("egl", "osmesa"):
-    os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
-
-from quadswarm_mj import _quiet_imports  # noqa: E402
-from quadswarm_mj.devices import tune_jax_cpu  # noqa: E402
-
-tune_jax_cpu()  # XLA:CPU options for the JAX engine's small programs, if JAX has not started (devices.py)
+from quadswarm_mj import _quiet_imports
 
 _quiet_imports.install()  # mujoco.mjx prints "Failed to import warp" twice without NVIDIA Warp
 
@@ -27,7 +22,7 @@ from quadswarm_mj.config import (  # noqa: E402
     RandomizationConfig,
     RewardScales,
 )
-from quadswarm_mj.devices import use_cpu_cores  # noqa: E402
+from quadswarm_mj.devices import tune_jax_cpu, use_cpu_cores  # noqa: E402
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv  # noqa: E402
 from quadswarm_mj.envs.parallel_env import QuadSwarmParallelEnv  # noqa: E402
 from quadswarm_mj.envs.vector_env import QuadSwarmVectorEnv  # noqa: E402
@@ -46,6 +41,7 @@ __all__ = [
     "RewardScales",
     "get_scenario",
     "list_scenarios",
+    "tune_jax_cpu",
     "use_cpu_cores",
 ]
 __version__ = "0.1.0"

@@ -552,6 +552,7 @@ class EnvConfig:
     control_mode: str = "rotor"  # "rotor", "ctbr", "attitude", "velocity" (quadswarm_mj.control_modes)
     aero: AeroConfig = field(default_factory=AeroConfig)
     obstacles: ObstacleConfig | None = None  # None: no obstacles (SPEC_obstacles)
+    info_mode: str = "nested"  # "nested" (info["state"]["pos"]) or "flat" ("state/pos", quadswarm_mj.envs.flat_info)
 
     def __post_init__(self) -> None:
         if isinstance(self.quad, str):  # a preset name
@@ -598,6 +599,8 @@ class EnvConfig:
             raise ValueError(f"obs_self must be one of {OBS_SELF_VARIANTS}, got {self.obs_self!r}")
         if self.control_mode not in CONTROL_MODES:
             raise ValueError(f"control_mode must be one of {CONTROL_MODES}, got {self.control_mode!r}")
+        if self.info_mode not in ("nested", "flat"):
+            raise ValueError(f"info_mode must be one of ('nested', 'flat'), got {self.info_mode!r}")
         if self.neighbor_sort not in NEIGHBOR_SORTS:
             raise ValueError(f"neighbor_sort must be one of {NEIGHBOR_SORTS}, got {self.neighbor_sort!r}")
         # a collision never speeds a quad up (decay multiplies the speed)

@@ -1,6 +1,7 @@
 """JAX on the CPU for the JAX engine: one device per core (the engine shards worlds over the cores),
 XLA:CPU options for its small programs (:func:`tune_jax_cpu`, :func:`loop_once`) and glibc's
-allocator (:func:`reuse_freed_memory`).
+allocator (:func:`reuse_freed_memory`). All of them change the whole process, so the package never
+calls them on import or use: they are the user's explicit opt-in (the console commands call them).
 
 JAX exposes a single CPU device by default and parallelizes each XLA kernel over the cores
 itself. For the JAX engine's many small kernels (arrays of a few hundred to a few thousand
@@ -48,7 +49,6 @@ def use_cpu_cores(n: int | None = None, strict: bool = True) -> int:
         raise ValueError(f"n must be an int >= 1 (CPU devices), got {n!r}")
     import jax
 
-    tune_jax_cpu()  # before the devices are created (their client is then synchronous)
     try:
         jax.config.update("jax_num_cpu_devices", n)
     except RuntimeError as e:  # the CPU client exists already
@@ -75,8 +75,29 @@ LOOP_KERNEL_BYTES = 256 * 1024
 LOOP_KERNEL_FLAG = f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={LOOP_KERNEL_BYTES}"
 
 
-def tune_jax_cpu() -> dict[str, bool]:
-    """Set two XLA:CPU options for the JAX engine's small programs, if JAX has not started yet.
+def jax_started() -> bool:
+    """Whether JAX has created its backends (clients) in this process; options read at client creation
+    (``XLA_FLAGS``, ``jax_cpu_enable_async_dispatch``, ``jax_num_cpu_devices``) no longer change then."""
+    if "jax" not in sys.modules:
+        return False
+    try:
+        from jax._src import xla_bridge
+
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):
+        return True
+
+
+def tune_jax_cpu(allocator: bool = True) -> dict[str, bool]:
+    """Opt-in, process-wide XLA:CPU tuning for the JAX engine's small programs. Call it first thing
+    in your program, before JAX starts (the first JAX operation)::
+
+        import quadswarm_mj
+        quadswarm_mj.tune_jax_cpu()   # this process only; before anything runs on JAX
+
+    Importing or using quadswarm_mj never does this by itself (the package changes no environment
+    variable, JAX config value or allocator setting); the package's console commands
+    (``quadswarm-train``, ``quadswarm-benchmark``, ...) and scripts call it. It sets:
 
     * small loops as single kernels (``XLA_FLAGS`` += :data:`LOOP_KERNEL_FLAG`): XLA:CPU's runtime
       otherwise launches each of the ~160 fused kernels of a one-world step as its own task and hands
@@ -85,45 +106,31 @@ def tune_jax_cpu() -> dict[str, bool]:
     * synchronous dispatch on CPU (``jax_cpu_enable_async_dispatch = False``): a single-device
       program then runs in the calling thread instead of being handed to a worker thread, which a
       ``step()`` that returns NumPy results waits for anyway (~60 us less per call, BENCHMARKS.md).
+    * with ``allocator=True``, glibc's allocator keeps freed large blocks (:func:`reuse_freed_memory`).
 
-    ``import quadswarm_mj`` sets the first (it does not import JAX), importing the JAX engine sets
-    the second; ``QUADSWARM_MJ_TUNE_JAX=0`` turns both off, and a value the user set (``XLA_FLAGS``
-    with the option, or the JAX config) is kept. Only the speed of CPU programs changes, and only
-    before JAX creates its CPU client (the first JAX operation of the process). Returns what is in
-    force as far as this process's settings tell.
+    Both XLA options are set only before JAX has started (else nothing changes); a value you set
+    yourself (``xla_cpu_small_while_loop_byte_threshold`` in ``XLA_FLAGS``) is kept, and
+    ``QUADSWARM_MJ_TUNE_JAX=0`` turns the call into a no-op (the console commands then run with JAX's
+    defaults). Only the speed of CPU programs changes; results agree to float32 rounding. Returns what
+    is in force as far as this process's settings tell.
 
     Caveat: XLA:CPU cannot put its YNNPACK library fusions into a loop kernel and then fails with
     "Fusion kind not implemented on CPU"; none of this project's programs has one in a loop below the
-    limit, but if one of yours does, set ``QUADSWARM_MJ_TUNE_JAX=0`` (or your own
+    limit, but if one of yours does, do not call this (or set your own
     ``xla_cpu_small_while_loop_byte_threshold`` in ``XLA_FLAGS``, which is then kept)."""
     on = os.environ.get("QUADSWARM_MJ_TUNE_JAX", "1") != "0"
-    started = True
-    if "jax" not in sys.modules:
-        started = False
-    else:
-        try:
-            from jax._src import xla_bridge
-
-            started = bool(xla_bridge.backends_are_initialized())
-        except (ImportError, AttributeError):
-            pass
+    started = jax_started()
     flags = os.environ.get("XLA_FLAGS", "")
     if on and not started and "xla_cpu_small_while_loop_byte_threshold" not in flags:
         os.environ["XLA_FLAGS"] = (flags + " " + LOOP_KERNEL_FLAG).strip()
-    sync = False
-    if "jax" in sys.modules:
-        import jax
+    import jax
 
-        global _ASYNC_SET
-        if on and not started and not _ASYNC_SET and jax.config.values.get("jax_cpu_enable_async_dispatch", True):
-            jax.config.update("jax_cpu_enable_async_dispatch", False)
-            _ASYNC_SET = True
-        sync = not jax.config.values.get("jax_cpu_enable_async_dispatch", True)
+    if on and not started:
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
+    if on and allocator:
+        reuse_freed_memory()
     return {"loop_kernels": "xla_cpu_small_while_loop_byte_threshold" in os.environ.get("XLA_FLAGS", ""),
-            "sync_dispatch": sync}
-
-
-_ASYNC_SET = False
+            "sync_dispatch": not jax.config.values.get("jax_cpu_enable_async_dispatch", True)}
 
 
 @functools.lru_cache(maxsize=1)
@@ -183,8 +190,8 @@ def reuse_freed_memory() -> bool:
     worlds. This raises the mmap threshold to glibc's maximum (32 MB) and the trim threshold to
     512 MB, so freed blocks return to the heap and the next step reuses them (the process keeps its
     peak heap instead of returning it to the OS; it does not grow with the number of steps).
-    Called by the JAX engine's vector env; ``QUADSWARM_MJ_MALLOPT=0`` turns it off. Returns whether
-    the settings are in force."""
+    Process-wide, so never called by the package itself: :func:`tune_jax_cpu` calls it (opt-in);
+    ``QUADSWARM_MJ_MALLOPT=0`` turns it off. Returns whether the settings are in force."""
     global _MALLOC_TUNED
     if _MALLOC_TUNED is not None:
         return _MALLOC_TUNED
@@ -201,3 +208,43 @@ def reuse_freed_memory() -> bool:
     except (OSError, AttributeError):  # not glibc
         _MALLOC_TUNED = False
     return _MALLOC_TUNED
+
+
+#: The most worlds one jitted, vmapped ``physics="mjx"`` program steps when both XLA:CPU options of
+#: :func:`tune_jax_cpu` are in force on jax >= 0.10 (the reason jax was once pinned to 0.9.2: "jit(vmap(
+#: mjx.step)) hangs at >= 128 worlds on jax 0.10"). Measured on jax 0.10.2, mujoco-mjx 3.17.0 (CPU, 2
+#: shared cores, 8 quads, ``jax.jit(jax.vmap(MjxQuadSwarmEnv(physics="mjx").step))``, one call after
+#: compiling, ``scripts/mjx_tuned_hang.py``): with JAX's defaults, either option alone, or both, 512
+#: worlds ran in 1.1-3.1 s in 7 of 8 runs; the eighth (both options and the allocator setting) did not
+#: return within 160 s after compiling. jax 0.9.2 ran 512 (and, reported, 4096) worlds with both. Not
+#: understood beyond that, so the package's own batched ``physics="mjx"`` programs refuse more worlds
+#: than this under both options on jax >= 0.10 (:func:`check_mjx_batch`); the default free-body physics
+#: and JAX's default settings are not affected.
+MJX_TUNED_MAX_WORLDS = 128
+
+
+def _jax_at_least(major: int, minor: int) -> bool:
+    import jax
+
+    parts = [int(p) for p in jax.__version__.split(".")[:2] if p.isdigit()]
+    return tuple(parts) >= (major, minor)
+
+
+def check_mjx_batch(physics: str, num_worlds: int) -> None:
+    """RuntimeError before a ``physics="mjx"`` program of more than :data:`MJX_TUNED_MAX_WORLDS` worlds
+    is built in a process where it would hang: jax >= 0.10 on CPU with both :func:`tune_jax_cpu`
+    options in force. Nothing happens otherwise (other physics, fewer worlds, JAX's defaults)."""
+    if physics != "mjx" or num_worlds <= MJX_TUNED_MAX_WORLDS or "jax" not in sys.modules:
+        return
+    import jax
+
+    if not _jax_at_least(0, 10) or jax.config.values.get("jax_cpu_enable_async_dispatch", True):
+        return
+    if jax.default_backend() != "cpu" or not loop_kernels_in_force():
+        return
+    raise RuntimeError(
+        f'physics="mjx" with {num_worlds} worlds in one program hangs on jax {jax.__version__} (CPU) when both '
+        "XLA:CPU options of quadswarm_mj.tune_jax_cpu() are in force (small loops as single kernels and "
+        f"synchronous dispatch); at most {MJX_TUNED_MAX_WORLDS} worlds run then. Run without tune_jax_cpu() "
+        "(console commands: QUADSWARM_MJ_TUNE_JAX=0), use the free-body physics (collision_model=\"paper\"), "
+        f"or step at most {MJX_TUNED_MAX_WORLDS} worlds per program.")

@@ -19,19 +19,25 @@ live there) and its own ``MjData``; every frame copies ``qpos`` into it and runs
 ``mj_kinematics`` + ``mj_camlight`` there (``data.xpos`` of the simulation is from before the last
 integration after ``mj_step``; the copy is always current). No random numbers are drawn.
 
-The GL backend is fixed when mujoco is first imported: ``import quadswarm_mj`` sets
-``MUJOCO_GL=egl`` when it is unset. If mujoco was imported first (so it chose GLFW) and no OpenGL
-was loaded yet, the renderer switches mujoco's context class to the requested backend. If the
-renderer cannot start, a ``RuntimeError`` names the fix.
+GL context: headless by default, without touching ``MUJOCO_GL``. With ``MUJOCO_GL`` unset (mujoco's
+default would be GLFW, which needs a display), each renderer of this package is created with
+MuJoCo's EGL context class (:func:`start_renderer`; mujoco's own choice is restored right after, so
+your own ``mujoco.Renderer`` or viewer is unaffected). Loading EGL sets ``PYOPENGL_PLATFORM=egl``
+when it is unset (mujoco.egl does that at its import, at the package's first render): PyOpenGL
+fixes its platform once per process. Set ``MUJOCO_GL`` yourself (``egl``, ``osmesa``, ``glfw``) to
+choose; if mujoco was imported before you set it, the renderer switches to the backend it now asks
+for when no OpenGL was loaded yet. If the renderer cannot start, a ``RuntimeError`` names the fix.
 """
 
 from __future__ import annotations
 
 import colorsys
+import contextlib
 import copy
 import math
 import os
 import sys
+from collections.abc import Iterator
 from typing import Any
 
 import mujoco
@@ -45,8 +51,7 @@ CAMERAS = ("overview", "chase")
 _FIX_HINT = (
     "Fix: install Mesa's EGL driver (Debian/Ubuntu: `apt-get install libegl1 libgl1-mesa-dri libegl-mesa0`), "
     "or use software OSMesa (`apt-get install libosmesa6` and run with MUJOCO_GL=osmesa). MUJOCO_GL must be "
-    "set before mujoco is first imported; `import quadswarm_mj` sets MUJOCO_GL=egl when it is unset, so import "
-    "quadswarm_mj (or set the variable) before importing mujoco."
+    "set before mujoco is first imported; with MUJOCO_GL unset, quadswarm_mj's renderers use EGL."
 )
 
 
@@ -68,39 +73,62 @@ def _gl_backend() -> str:
         return ""
 
 
-def _adopt_requested_backend() -> None:
-    """If mujoco was imported before ``MUJOCO_GL`` was set (so it picked GLFW, which needs a
-    display) and no OpenGL has been loaded yet, switch mujoco's offscreen context class to the
-    backend ``MUJOCO_GL`` now asks for (egl or osmesa). Nothing changes otherwise."""
-    gl = os.environ.get("MUJOCO_GL", "").lower()
-    if gl not in ("egl", "osmesa") or "OpenGL" in sys.modules:
-        return
+def _headless_class() -> Any:
+    """MuJoCo's context class for this package's renderers when mujoco's own choice would not be the
+    one wanted (None: keep mujoco's): ``MUJOCO_GL`` egl/osmesa, or EGL when it is unset (mujoco's
+    default, GLFW, needs a display); only if no other PyOpenGL platform is in use yet."""
+    gl = os.environ.get("MUJOCO_GL", "").lower().strip()
+    if gl not in ("", "egl", "osmesa"):
+        return None
+    want = gl or "egl"
+    platform = os.environ.get("PYOPENGL_PLATFORM", "").lower()
+    if ("OpenGL" in sys.modules or platform) and platform != want:
+        return None
     try:
         from mujoco.rendering.classic import gl_context
     except ImportError:
+        return None
+    if getattr(getattr(gl_context, "GLContext", None), "__module__", "").startswith(f"mujoco.{want}"):
+        return None
+    if want == "egl":
+        from mujoco.egl import GLContext  # sets PYOPENGL_PLATFORM=egl when unset (mujoco.egl, once)
+    else:
+        from mujoco.osmesa import GLContext  # sets PYOPENGL_PLATFORM=osmesa when unset
+    return GLContext
+
+
+@contextlib.contextmanager
+def _headless_context() -> Iterator[None]:
+    """While mujoco's ``Renderer`` is created inside: the context class of :func:`_headless_class`;
+    mujoco's own choice is restored on exit (the renderer keeps its context), so the user's own
+    ``mujoco.Renderer`` or viewer is unaffected."""
+    cls = _headless_class()
+    if cls is None:
+        yield
         return
-    cls = getattr(gl_context, "GLContext", None)
-    if cls is not None and getattr(cls, "__module__", "").startswith("mujoco.glfw"):
-        if gl == "egl":
-            from mujoco.egl import GLContext
-        else:
-            from mujoco.osmesa import GLContext
-        gl_context.GLContext = GLContext
+    from mujoco.rendering.classic import gl_context
+
+    before = getattr(gl_context, "GLContext", None)
+    gl_context.GLContext = cls
+    try:
+        yield
+    finally:
+        gl_context.GLContext = before
 
 
 def start_renderer(model: mujoco.MjModel, width: int, height: int, max_geom: int) -> mujoco.Renderer:
-    """``mujoco.Renderer`` or a RuntimeError that names the fix."""
+    """``mujoco.Renderer`` or a RuntimeError that names the fix (headless EGL when ``MUJOCO_GL`` is unset)."""
     gl = os.environ.get("MUJOCO_GL")
     try:
-        _adopt_requested_backend()
-        return mujoco.Renderer(model, height=height, width=width, max_geom=max_geom)
+        with _headless_context():
+            return mujoco.Renderer(model, height=height, width=width, max_geom=max_geom)
     except Exception as e:  # noqa: BLE001 - GL failures come as ImportError, FatalError, AttributeError...
         backend = _gl_backend()
         extra = ""
         if gl in ("egl", "osmesa") and backend and gl not in backend:
             extra = (f" mujoco was imported before MUJOCO_GL={gl!r} was set and uses {backend}; "
-                     "set MUJOCO_GL in the shell or import quadswarm_mj first.")
-        elif gl in (None, "", "glfw", "glx") and not os.environ.get("DISPLAY"):
+                     "set MUJOCO_GL in the shell, before mujoco is imported.")
+        elif gl in ("glfw", "glx") and not os.environ.get("DISPLAY"):
             extra = f" MUJOCO_GL={gl!r} needs a display and DISPLAY is unset; use MUJOCO_GL=egl."
         raise RuntimeError(f"MuJoCo's offscreen renderer could not start (MUJOCO_GL={gl!r}, "
                            f"{type(e).__name__}: {e}).{extra} {_FIX_HINT}") from e

@@ -183,19 +183,23 @@ def clean_env() -> dict:
 
 @pytest.mark.parametrize("first", ["quadswarm_mj", "mujoco"])
 def test_fresh_process_without_mujoco_gl_renders(first):
-    """No MUJOCO_GL, no display: importing quadswarm_mj picks EGL; also when the user imported
-    mujoco first (it then chose GLFW; the renderer switches to EGL before any GL is loaded)."""
+    """No MUJOCO_GL, no display: the package's renderer picks EGL by itself, also when the user imported
+    mujoco first (it then chose GLFW), and leaves MUJOCO_GL unset and mujoco's own choice in place."""
     code = (
         "import os; assert 'MUJOCO_GL' not in os.environ and 'DISPLAY' not in os.environ\n"
         f"import {first}\n"
         "import quadswarm_mj\n"
+        "assert 'MUJOCO_GL' not in os.environ\n"
+        "from mujoco.rendering.classic import gl_context\n"
+        "before = gl_context.GLContext\n"
         "env = quadswarm_mj.QuadSwarmEnv(num_quads=2, render_mode='rgb_array'); env.reset(seed=0)\n"
         "f = env.render(); assert f.shape == (480, 640, 3) and f.std() > 1, f.std()\n"
-        "print('OK', os.environ['MUJOCO_GL'])\n"
+        "assert gl_context.GLContext is before\n"
+        "print('OK', os.environ.get('MUJOCO_GL'), os.environ.get('PYOPENGL_PLATFORM'))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], env=clean_env(), capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-3000:]
-    assert "OK egl" in out.stdout
+    assert "OK None egl" in out.stdout
 
 
 def read_mp4(path: Path) -> np.ndarray:

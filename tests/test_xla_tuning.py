@@ -1,6 +1,6 @@
-"""XLA:CPU tuning for the JAX engine (quadswarm_mj.devices.tune_jax_cpu, loop_once): small loops as one
-kernel and synchronous CPU dispatch, set before JAX starts. Both are process-wide, so the checks of
-what ``import quadswarm_mj`` sets run in fresh subprocesses."""
+"""XLA:CPU tuning for the JAX engine (quadswarm_mj.tune_jax_cpu, the explicit opt-in; loop_once): small
+loops as one kernel and synchronous CPU dispatch, set before JAX starts. Both are process-wide, so the
+checks run in fresh subprocesses."""
 
 from __future__ import annotations
 
@@ -30,8 +30,9 @@ def _run(script: str, env_extra: dict[str, str] | None = None, timeout: int = 30
 PROBE = """
     import json, os
     import quadswarm_mj
+    quadswarm_mj.tune_jax_cpu()  # the opt-in, before JAX starts
     flags = os.environ.get("XLA_FLAGS", "")
-    import quadswarm_mj.envs.mjx_env  # the JAX engine: sets synchronous dispatch
+    import quadswarm_mj.envs.mjx_env
     import jax
     from quadswarm_mj.devices import loop_kernels_in_force
     print(json.dumps({"flags": flags, "async": bool(jax.config.values["jax_cpu_enable_async_dispatch"]),
@@ -39,7 +40,7 @@ PROBE = """
 """
 
 
-def test_import_sets_loop_kernels_and_sync_dispatch():
+def test_tune_sets_loop_kernels_and_sync_dispatch():
     r = _run(PROBE)
     assert LOOP_KERNEL_FLAG in r["flags"]
     assert r["async"] is False and r["loops"] is True
@@ -57,10 +58,9 @@ def test_too_late_once_jax_has_started():
     r = _run("""
         import json, os
         import jax, jax.numpy as jnp
-        float(jnp.ones(2).sum())  # JAX has started before quadswarm_mj
+        float(jnp.ones(2).sum())  # JAX has started before the opt-in
         import quadswarm_mj, quadswarm_mj.envs.mjx_env
-        from quadswarm_mj.devices import tune_jax_cpu
-        print(json.dumps({"flags": os.environ.get("XLA_FLAGS", ""), "state": tune_jax_cpu(),
+        print(json.dumps({"flags": os.environ.get("XLA_FLAGS", ""), "state": quadswarm_mj.tune_jax_cpu(),
                           "async": bool(jax.config.values["jax_cpu_enable_async_dispatch"])}))
     """)
     assert LOOP_KERNEL_FLAG not in r["flags"] and r["async"] is True
@@ -91,6 +91,7 @@ def test_single_env_same_episode_with_and_without_tuning():
         import json
         import numpy as np
         import quadswarm_mj
+        quadswarm_mj.tune_jax_cpu()  # a no-op with QUADSWARM_MJ_TUNE_JAX=0
         env = quadswarm_mj.QuadSwarmEnv(quadswarm_mj.EnvConfig(num_quads=4), engine="jax")
         obs, info = env.reset(seed=3)
         rng = np.random.default_rng(0)

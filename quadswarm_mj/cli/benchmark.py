@@ -332,7 +332,8 @@ def crazyflow_best(worlds: int, n: int, steps: int, seconds: float, repeat: int,
     if here is None:
         return None
     call = f"crazyflow_rates({worlds}, {n}, {steps}, {seconds}, {repeat}, devices={devices})"
-    code = (f"import json; from quadswarm_mj.devices import use_cpu_cores; use_cpu_cores({devices}, strict=False); "
+    code = (f"import json; from quadswarm_mj.devices import tune_jax_cpu, use_cpu_cores; tune_jax_cpu(); "
+            f"use_cpu_cores({devices}, strict=False); "
             f"from quadswarm_mj.cli.benchmark import crazyflow_rates; print('RESULT', json.dumps({call}))")
     default = _fresh_process(code, _jax_defaults_env())
     if not default:
@@ -361,13 +362,13 @@ def alternating_peer_ratio(worlds: int, devices: int, rounds: int, steps: int, r
     None when a side could not be measured (crazyflow or JAX missing)."""
     import statistics
 
-    ours_code = ("import json; from quadswarm_mj.devices import use_cpu_cores; "
+    ours_code = ("import json; from quadswarm_mj.devices import tune_jax_cpu, use_cpu_cores; tune_jax_cpu(); "
                  f"use_cpu_cores({devices}, strict=False); from quadswarm_mj import EnvConfig; "
                  "from quadswarm_mj.envs.mjx_env import benchmark_mjx; "
                  f"r = [benchmark_mjx(EnvConfig(num_quads=8), {worlds}, {steps}, devices={devices})"
                  f"['samples_per_s'] for _ in range({max(repeat, 1)})]; print('RESULT', json.dumps(max(r)))")
     key = "scan_sharded" if devices > 1 else "scan"
-    peer_code = ("import json; from quadswarm_mj.devices import use_cpu_cores; "
+    peer_code = ("import json; from quadswarm_mj.devices import tune_jax_cpu, use_cpu_cores; tune_jax_cpu(); "
                  f"use_cpu_cores({devices}, strict=False); from quadswarm_mj.cli.benchmark import crazyflow_rates; "
                  f"r = crazyflow_rates({worlds}, 8, {steps}, 1.0, {max(repeat, 3)}, devices={devices}, "
                  f"scan_only=True); print('RESULT', json.dumps(r and r.get('{key}')))")
@@ -870,6 +871,10 @@ def _bench_single_cfg(cfg: EnvConfig, seconds: float, repeat: int, engine: str =
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # run as a command: the opt-in XLA:CPU tuning (quadswarm_mj.tune_jax_cpu), before JAX starts
+        from quadswarm_mj.devices import tune_jax_cpu
+
+        tune_jax_cpu()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="short runs (0.5 s, 1 repeat, hover workload only)")
     p.add_argument("--rows", default="single,vector,jax,jaxsingle,jaxvector,peers",

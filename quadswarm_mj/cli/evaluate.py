@@ -80,6 +80,10 @@ def _check_not_other_file(path: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # run as a command: the opt-in XLA:CPU tuning (quadswarm_mj.tune_jax_cpu), before JAX starts
+        from quadswarm_mj.devices import tune_jax_cpu
+
+        tune_jax_cpu()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--policy", default="pretrained:single",
                    help="pretrained:<name>, a policy .npz path, 'controller' or 'random' (default pretrained:single)")

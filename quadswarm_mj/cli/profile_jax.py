@@ -24,6 +24,10 @@ import tempfile
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # run as a command: the opt-in XLA:CPU tuning (quadswarm_mj.tune_jax_cpu), before JAX starts
+        from quadswarm_mj.devices import tune_jax_cpu
+
+        tune_jax_cpu()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--worlds", type=int, default=512, help="worlds stepped together (default 512)")
     p.add_argument("--quads", type=int, default=8, help="quads per world (default 8)")

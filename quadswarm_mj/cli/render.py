@@ -26,7 +26,7 @@ themselves. The columns are drawn and the controller steers around them (a poten
 
 from __future__ import annotations
 
-# ``import quadswarm_mj`` (the package of this module, imported first) sets MUJOCO_GL=egl when it is unset.
+# Headless: with MUJOCO_GL unset, quadswarm_mj.render picks EGL when it first renders (MUJOCO_GL stays unset).
 import argparse
 import sys
 import time
@@ -229,6 +229,10 @@ def report(args: argparse.Namespace, r: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # run as a command: the opt-in XLA:CPU tuning (quadswarm_mj.tune_jax_cpu), before JAX starts
+        from quadswarm_mj.devices import tune_jax_cpu
+
+        tune_jax_cpu()
     args = parse_args(argv)
     try:
         result = run(args)

@@ -196,6 +196,10 @@ def _strip_budget(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # run as a command: the opt-in XLA:CPU tuning (quadswarm_mj.tune_jax_cpu), before JAX starts
+        from quadswarm_mj.devices import tune_jax_cpu
+
+        tune_jax_cpu()
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     resume_file = None

@@ -12,15 +12,18 @@ validation and seeding contract; float32, its own random streams).
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+from gymnasium.envs.registration import EnvSpec
 
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.control_modes import action_box_bounds
 from quadswarm_mj.envs.cpu_core import CpuSwarm, PhysicsInstabilityError
+from quadswarm_mj.envs.flat_info import gym_flattener
 from quadswarm_mj.envs.validation import check_action, check_engine, check_obstacles, check_state
 from quadswarm_mj.observations import obs_bounds
 
@@ -42,6 +45,19 @@ class QuadSwarmEnv(gym.Env):
 
     #: ``render_fps`` is set per instance to the control rate (``cfg.control_hz``): one frame per step.
     metadata = {"render_modes": ["rgb_array"], "render_fps": 100}
+    _spec: EnvSpec | None = None
+
+    @property
+    def spec(self) -> EnvSpec | None:  # type: ignore[override]
+        """``gym.make``'s spec, with ``max_episode_steps`` = the env's own time limit (``cfg.episode_steps``;
+        the env truncates itself, so no ``TimeLimit`` wrapper is added)."""
+        return self._spec
+
+    @spec.setter
+    def spec(self, value: EnvSpec | None) -> None:
+        if value is not None and value.max_episode_steps is None:
+            value = dataclasses.replace(value, max_episode_steps=self.cfg.episode_steps)
+        self._spec = value
 
     def __init__(self, cfg: EnvConfig | None = None, render_mode: str | None = None, engine: str = "mujoco",
                  **kwargs: Any):
@@ -73,6 +89,7 @@ class QuadSwarmEnv(gym.Env):
         self._needs_reset = True
         self._seeded = False
         self.closed = False
+        self._flat = gym_flattener(self.cfg) if self.cfg.info_mode == "flat" else None  # envs/flat_info.py
 
     # ------------------------------------------------------------------ helpers
     def _obs(self, obs: np.ndarray) -> np.ndarray:
@@ -90,6 +107,10 @@ class QuadSwarmEnv(gym.Env):
             "time": float(c.steps[0] * self.cfg.control_dt),
             **({"obstacles": c.obstacle_centres(0)} if c.omap is not None else {}),
         }
+
+    def _info_out(self, info: dict[str, Any]) -> dict[str, Any]:
+        """``info`` as returned: nested, or flat with ``cfg.info_mode="flat"`` (envs/flat_info.py)."""
+        return info if self._flat is None else self._flat(info)
 
     # ------------------------------------------------------------------ API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
@@ -117,7 +138,7 @@ class QuadSwarmEnv(gym.Env):
                 self._jax.seed(seed if seed is not None else int(self.np_random.integers(2**63 - 1)))
             obs, info = self._jax.reset(state)
             self._needs_reset = False
-            return (obs[0] if self.single else obs), info
+            return (obs[0] if self.single else obs), self._info_out(info)
         if seed is not None:
             self.core.seed(seed)
         elif not self._seeded:
@@ -127,7 +148,7 @@ class QuadSwarmEnv(gym.Env):
             state = {k: (v if isinstance(v, str) else v[None]) for k, v in state.items()}
         self.core.reset(state=state)
         self._needs_reset = False
-        return self._obs(self.core.observe()), self._info()
+        return self._obs(self.core.observe()), self._info_out(self._info())
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         self._check_open()
@@ -137,7 +158,7 @@ class QuadSwarmEnv(gym.Env):
             a = check_action(action, self.action_space.shape, dtype=np.float32)
             obs, reward, truncated, info = self._jax.step(a.reshape(self.cfg.num_quads, 4))
             self._needs_reset = truncated
-            return (obs[0] if self.single else obs), reward, False, truncated, info
+            return (obs[0] if self.single else obs), reward, False, truncated, self._info_out(info)
         a = check_action(action, self.action_space.shape)
         try:
             out = self.core.step(a.reshape(1, self.cfg.num_quads, 4))
@@ -153,7 +174,7 @@ class QuadSwarmEnv(gym.Env):
             info["episode_metrics"] = {k: float(v[0]) for k, v in self.core.episode_metrics().items()}
             self._needs_reset = True
         reward = float(np.mean(out["rewards"][0]))
-        return self._obs(out["obs"]), reward, False, truncated, info
+        return self._obs(out["obs"]), reward, False, truncated, self._info_out(info)
 
     def render(self) -> np.ndarray | None:
         if self.render_mode is None:

@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from quadswarm_mj.config import EnvConfig
-from quadswarm_mj.devices import loop_once, reuse_freed_memory
+from quadswarm_mj.devices import check_mjx_batch, loop_once
 from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv, State
 from quadswarm_mj.envs.sharding import WorldSharding
 from quadswarm_mj.envs.workers import (
@@ -271,6 +271,7 @@ class _Program:
     def __init__(self, cfg: EnvConfig, batch: int | None):
         self.cfg, self.batch = cfg, batch
         self.env = MjxQuadSwarmEnv(cfg)
+        check_mjx_batch(self.env.physics, batch or 1)  # a clear error where jax >= 0.10 would hang (devices.py)
         self.auto = AutoResetWrapper(self.env)
         self.lead = () if batch is None else (batch,)
         key0 = jax.random.key(0)
@@ -597,7 +598,6 @@ class LocalWorlds:
     def __init__(self, cfg: EnvConfig, num_worlds: int):
         self.cfg, self.B = cfg, int(num_worlds)
         self.prog = _program(cfg, self.B)
-        reuse_freed_memory()  # no page faults on the step's megabytes of fresh outputs (see there)
         self.bufs: tuple | None = None
         lay = self.prog.step_layout
         self._done = lay.slices["done"].start

@@ -143,7 +143,7 @@ from quadswarm_mj.collisions import (
     wall_draw_spec,
 )
 from quadswarm_mj.config import EnvConfig
-from quadswarm_mj.devices import tune_jax_cpu
+from quadswarm_mj.devices import check_mjx_batch
 from quadswarm_mj.downwash import (
     DOWNWASH_BUDGET,
     apply_downwash,
@@ -160,8 +160,6 @@ from quadswarm_mj.rewards import anneal_factor, env_terms, total_reward
 from quadswarm_mj.scenarios import get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
 from quadswarm_mj.spatial import quat_to_rotmat, quat_to_rotmat_components, rotmat_to_quat
-
-tune_jax_cpu()  # synchronous CPU dispatch for the engine's small programs, if JAX has not started
 
 INIT_STATE_KEYS = ("pos", "vel", "rot", "omega", "motors", "goals")
 PHYSICS = ("freebody", "mjx")
@@ -1127,6 +1125,7 @@ def benchmark_mjx(cfg: EnvConfig, num_worlds: int, num_steps: int, seed: int = 0
     if devices is not None and (not isinstance(devices, int) or devices < 1):
         raise ValueError(f"devices must be an int >= 1 or None, got {devices!r}")
     env = AutoResetWrapper(MjxQuadSwarmEnv(cfg, physics=physics))
+    check_mjx_batch(env.env.physics, num_worlds)  # a clear error where jax >= 0.10 would hang (devices.py)
     shard = WorldSharding(num_worlds, world_devices(num_worlds, jax.devices()[:devices]))
     hover = jnp.full((num_worlds, cfg.num_quads, 4), cfg.quad.hover_action, _float())
 

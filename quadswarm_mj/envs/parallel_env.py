@@ -17,6 +17,7 @@ from pettingzoo import ParallelEnv
 
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.control_modes import action_box_bounds
+from quadswarm_mj.envs.flat_info import agent_flattener
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv, make_config
 from quadswarm_mj.envs.validation import as_real_array
 
@@ -34,7 +35,8 @@ class QuadSwarmParallelEnv(ParallelEnv):
                  **kwargs: Any):
         self.cfg = make_config(cfg, kwargs)
         self.metadata = {**self.metadata, "render_fps": self.cfg.control_hz}  # one frame per control step
-        self.env = QuadSwarmEnv(self.cfg, render_mode=render_mode, engine=engine)
+        self.env = QuadSwarmEnv(self.cfg.replace(info_mode="nested"), render_mode=render_mode, engine=engine)
+        self._flat = agent_flattener(self.cfg) if self.cfg.info_mode == "flat" else None  # envs/flat_info.py
         self.render_mode = render_mode
         n = self.cfg.num_quads
         self.possible_agents = [f"quad_{i}" for i in range(n)]
@@ -71,7 +73,7 @@ class QuadSwarmParallelEnv(ParallelEnv):
                 d["episode_metrics"] = dict(info["episode_metrics"])
             if "obstacles" in info:  # (M, 2) column centres (x, y) in m, world frame, the same for every agent
                 d["obstacles"] = info["obstacles"].copy()
-            out[a] = d
+            out[a] = d if self._flat is None else self._flat(d)
         return out
 
     def reset(self, seed: int | None = None, options: dict[str, Any] | None = None):

@@ -94,6 +94,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.control_modes import action_box_bounds
 from quadswarm_mj.envs.cpu_core import CpuSwarm
+from quadswarm_mj.envs.flat_info import vector_flattener
 from quadswarm_mj.envs.validation import check_action, check_engine, check_obstacles, check_state
 from quadswarm_mj.envs.workers import (
     DEFAULT_WORKER_TIMEOUT_S,
@@ -483,6 +484,14 @@ class QuadSwarmVectorEnv(VectorEnv):
             out["obstacles"] = self._out(a["obstacles"])
         return out
 
+    def _info_out(self, info: dict[str, Any]) -> dict[str, Any]:
+        """``info`` as returned: nested, or flat with ``cfg.info_mode="flat"`` (envs/flat_info.py)."""
+        if self.cfg.info_mode != "flat":
+            return info
+        if getattr(self, "_flat", None) is None:
+            self._flat = vector_flattener(self.cfg, self.num_envs, self.cfg.obs_dim)
+        return self._flat(info)
+
     # ------------------------------------------------------------------ API
     @exclusive
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
@@ -535,7 +544,7 @@ class QuadSwarmVectorEnv(VectorEnv):
                 self._seeded = True
             obs, info = self._call_jax(self._jax.reset, mask, state)
             self._needs_reset = False
-            return obs, info
+            return obs, self._info_out(info)
         if seed is not None or not self._seeded:
             ss = np.random.SeedSequence(None if seed is None else int(seed)).spawn(self.num_shards)
             self._run("seed", lambda k: ("seed", ss[k]))
@@ -549,7 +558,7 @@ class QuadSwarmVectorEnv(VectorEnv):
         self._run("reset", lambda k: ("reset", self._split(mask, k), sub_state(k)))
         self._needs_reset = False
         info = self._info()
-        return self._out(self._a["obs"]), info
+        return self._out(self._a["obs"]), self._info_out(info)
 
     @exclusive
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
@@ -559,7 +568,8 @@ class QuadSwarmVectorEnv(VectorEnv):
             raise RuntimeError("call reset() before step()")
         a = check_action(actions, self.action_space.shape, dtype=np.float64 if self._jax is None else np.float32)
         if self._jax is not None:
-            return self._call_jax(self._jax.step, a)
+            *out, info = self._call_jax(self._jax.step, a)
+            return (*out, self._info_out(info))
         self._a["actions"][...] = a
         self._run("step", lambda k: STEP)
         A = self._a
@@ -571,7 +581,7 @@ class QuadSwarmVectorEnv(VectorEnv):
             info["final_obs"] = A["final_obs"].copy()
             info["_final_obs"] = done.copy()
         terminated = np.zeros(self.num_envs, dtype=np.bool_)
-        return self._out(A["obs"]), A["reward"].copy(), terminated, A["truncated"].copy(), info
+        return self._out(A["obs"]), A["reward"].copy(), terminated, A["truncated"].copy(), self._info_out(info)
 
     @exclusive
     def episode_metrics(self) -> dict[str, np.ndarray]:

@@ -39,7 +39,6 @@ from brax.training import types as brax_types
 from brax.training.acme import running_statistics
 
 from quadswarm_mj.config import EnvConfig
-from quadswarm_mj.devices import reuse_freed_memory
 from quadswarm_mj.metrics import METRIC_KEYS
 from quadswarm_mj.training.ppo import (
     TRAIN_STATE_FILE,
@@ -132,7 +131,6 @@ class JaxPPOTrainer:
         self.state = TrainState(params=params, opt_state=self.optimizer.init(params), normalizer=normalizer)
         self._policy_step = make_policy_step(self.networks)
         self.num_devices = self._data_parallel_devices(devices)
-        reuse_freed_memory()  # the iteration's large buffers are reused, not page-faulted in again
         self._update = make_update_fn(self.networks, self.optimizer, ppo,
                                       axis_name=AXIS if self.num_devices > 1 else None)
         self._reset = [jax.jit(jax.vmap(e.reset)) for e in self.envs]

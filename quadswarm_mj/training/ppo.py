@@ -558,9 +558,6 @@ class PPOTrainer:
     """PPO on ``AgentBatch`` (the CPU engine). Use :meth:`train` (budget in agent-steps and/or seconds)."""
 
     def __init__(self, cfgs: list[EnvConfig], ppo: PPOConfig, seed: int = 0, init_from: str | None = None):
-        from quadswarm_mj.devices import reuse_freed_memory
-
-        reuse_freed_memory()  # the jitted update's large buffers are reused, not page-faulted in again
         self.cfgs, self.ppo, self.seed = cfgs, ppo, seed
         nscn = len(cfgs)
         base, extra = divmod(ppo.num_worlds, nscn)
