@@ -27,6 +27,7 @@ from quadswarm_mj.envs.gym_env import QuadSwarmEnv  # noqa: E402
 from quadswarm_mj.envs.parallel_env import QuadSwarmParallelEnv  # noqa: E402
 from quadswarm_mj.envs.vector_env import QuadSwarmVectorEnv  # noqa: E402
 from quadswarm_mj.scenarios import get_scenario, list_scenarios  # noqa: E402
+from quadswarm_mj.sensor_config import SensorConfig  # noqa: E402
 
 __all__ = [
     "CollisionParams",
@@ -39,6 +40,7 @@ __all__ = [
     "QuadSwarmVectorEnv",
     "RandomizationConfig",
     "RewardScales",
+    "SensorConfig",
     "get_scenario",
     "list_scenarios",
     "tune_jax_cpu",

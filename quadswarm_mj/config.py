@@ -12,6 +12,8 @@ import numbers
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
+from quadswarm_mj.sensor_config import SensorConfig
+
 COLLISION_MODELS = ("paper", "mujoco", "blend")
 MOTOR_STARTS = ("zero", "hover")
 OBS_SELF_VARIANTS = ("base", "floor", "wall")
@@ -514,7 +516,7 @@ class ObstacleConfig:
 MAX_QUADS = 1024
 
 _NESTED = {"quad": QuadParams, "noise": NoiseConfig, "randomization": RandomizationConfig,
-           "rewards": RewardScales, "collision": CollisionParams, "aero": AeroConfig}
+           "rewards": RewardScales, "collision": CollisionParams, "aero": AeroConfig, "sensors": SensorConfig}
 
 
 @dataclass(frozen=True)
@@ -553,6 +555,7 @@ class EnvConfig:
     aero: AeroConfig = field(default_factory=AeroConfig)
     obstacles: ObstacleConfig | None = None  # None: no obstacles (SPEC_obstacles)
     info_mode: str = "nested"  # "nested" (info["state"]["pos"]) or "flat" ("state/pos", quadswarm_mj.envs.flat_info)
+    sensors: SensorConfig = field(default_factory=SensorConfig)  # deck sensors, all off (quadswarm_mj.sensors)
 
     def __post_init__(self) -> None:
         if isinstance(self.quad, str):  # a preset name
@@ -730,8 +733,10 @@ class EnvConfig:
 
     @property
     def obs_dim(self) -> int:
-        """Self block + 6 per neighbour (+ 9 obstacle distance features, last, when obstacles are on)."""
-        return self.self_obs_dim + 6 * self.neighbors + (9 if self.obstacles is not None else 0)
+        """Self block + 6 per neighbour (+ 9 obstacle distance features when obstacles are on) (+ the deck
+        sensors' ``sensors.obs_dim`` readings, last)."""
+        return (self.self_obs_dim + 6 * self.neighbors + (9 if self.obstacles is not None else 0)
+                + self.sensors.obs_dim)
 
     @property
     def hitbox(self) -> float:
@@ -754,11 +759,12 @@ class EnvConfig:
     def without_noise(self) -> EnvConfig:
         """Copy with every noise source and randomization off, and the collision and
         downwash draws replaced by their means (SPEC §5, §6). Obstacles are kept (their
-        response's draws take their means too, through ``noise.stochastic_collisions``)."""
+        response's draws take their means too, through ``noise.stochastic_collisions``); the deck
+        sensors read noise-free (``sensors.noise`` False)."""
         noise = replace(self.noise, motor_noise_ratio=0.0, sensor_pos_std=0.0, sensor_vel_std=0.0,
                         sensor_omega_std=0.0, neighbor_obs_noise=False, stochastic_collisions=False,
                         stochastic_downwash=False)
-        return replace(self, noise=noise, randomize=False)
+        return replace(self, noise=noise, randomize=False, sensors=replace(self.sensors, noise=False))
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

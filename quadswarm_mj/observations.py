@@ -12,7 +12,9 @@ slice                  size  content (units; frame)
 18 ("floor" only)      1     z (m)
 18:24 ("wall" only)    6     distances to the walls -x, +x, -y, +y, floor, ceiling (m, <= 5)
 then, per neighbour    6     p_j - p_i (m), v_j - v_i (m/s), nearest first
-last (obstacles on)    9     obstacle distance features (m; SPEC_obstacles A.2, true positions)
+then (obstacles on)    9     obstacle distance features (m; SPEC_obstacles A.2, true positions)
+last (sensors on)      S     deck readings (``sensors.deck_layout``: multi-ranger 5 ranges m + 5
+                             flags, flow deck range m, flow x, y px/frame + 2 flags, depth H W m)
 ====================== ===== ==========================================================
 
 Sensor noise (Gaussian: p 0.005 m, v 0.01 m/s, omega 1.75e-4 rad/s) perturbs the quad's own
@@ -63,6 +65,11 @@ def obs_bounds(cfg: EnvConfig) -> tuple[np.ndarray, np.ndarray]:
 
         f_lo, f_hi = feature_bounds(cfg)
         lo, hi = lo + f_lo.tolist(), hi + f_hi.tolist()
+    if cfg.sensors.any:  # the deck readings, last (quadswarm_mj.sensors)
+        from quadswarm_mj.sensors import deck_bounds
+
+        s_lo, s_hi = deck_bounds(cfg)
+        lo, hi = lo + s_lo.tolist(), hi + s_hi.tolist()
     return np.asarray(lo, dtype=np.float32), np.asarray(hi, dtype=np.float32)
 
 
@@ -227,12 +234,15 @@ def _obs_neighbor_bounds(self_dim: int, k: int, bound: tuple[float, ...],
 
 def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any,
               noise: dict[str, Any] | None, low: Any, high: Any, scale: Any | None = None,
-              dist: Any | None = None, obstacles: Any | None = None, obstacle_feats: Any | None = None) -> Any:
+              dist: Any | None = None, obstacles: Any | None = None, obstacle_feats: Any | None = None,
+              deck_draws: dict[str, Any] | None = None) -> Any:
     """Full observation (..., N, obs_dim): noisy own state + neighbours (+ the 9 obstacle features
     of the true ``pos`` when ``obstacles`` = (centres, valid, radius) of the map is given), clipped
     into [low, high] and divided by ``scale`` when normalization is on. ``dist``: optional
     (..., N, N) distances between the true ``pos`` (see :func:`neighbor_obs`); ``obstacle_feats``:
     optional (..., N, 9) features of these ``pos`` already computed (the CPU engine's obstacle stage).
+    With ``cfg.sensors`` on, the deck readings of the true state (:func:`quadswarm_mj.sensors.deck_readings`,
+    noise from ``deck_draws`` = draws of ``sensors.deck_draw_spec``, None: noise-free) come last.
 
     The neighbour clip of :func:`neighbor_obs` is folded into the final clip: clipping into one
     interval and then into another equals clipping into their intersection."""
@@ -248,13 +258,17 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
         else:
             parts.append(neighbor_obs(cfg, pos, vel, dist, clip=False))
         nb_lo, nb_hi = _obs_neighbor_bounds(cfg.self_obs_dim, cfg.neighbors, tuple(_neighbor_bounds(cfg)),
-                                      9 if cfg.obstacles is not None else 0)
+                                      cfg.obs_dim - cfg.self_obs_dim - 6 * cfg.neighbors)
         low = xp.maximum(xp.asarray(low), xp.asarray(nb_lo, dtype=pos.dtype))
         high = xp.minimum(xp.asarray(high), xp.asarray(nb_hi, dtype=pos.dtype))
     if obstacles is not None:
         from quadswarm_mj.obstacles import obstacle_features
 
         parts.append(obstacle_feats if obstacle_feats is not None else obstacle_features(pos, *obstacles))
+    if cfg.sensors.any:
+        from quadswarm_mj.sensors import deck_obs, deck_readings
+
+        parts.append(deck_obs(cfg, deck_readings(cfg, pos, vel, R, omega, obstacles, deck_draws)))
     if xp is np:
         obs = np.minimum(np.maximum(np.concatenate(parts, axis=-1), low), high)  # = clip into the bounds
     else:  # each part clipped into its bounds, then concatenated: the same values, and XLA:CPU then

@@ -1,0 +1,283 @@
+"""Deck sensors (issue 36): analytic ray-cast cases, flow, noise, NumPy == jax.jit, config, spaces."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.observations import obs_bounds
+from quadswarm_mj.sensor_config import SensorConfig
+from quadswarm_mj.sensors import (
+    FLOW_GAIN,
+    FLOW_MIN_RANGE,
+    cast_rays,
+    deck_bounds,
+    deck_draw_spec,
+    deck_info,
+    deck_obs,
+    deck_readings,
+    depth_directions,
+    tof_std,
+    world_rays,
+)
+
+ALL = SensorConfig(multiranger=True, flow=True, depth=(3, 3))
+
+
+def cfg(n: int = 1, room: tuple = (6.0, 6.0, 3.0), sensors: SensorConfig = ALL, **kw) -> EnvConfig:
+    return EnvConfig(num_quads=n, room_size=room, sensors=sensors, **kw)
+
+
+def yaw(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def roll(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def read(c: EnvConfig, pos, R=None, vel=None, omega=None, obstacles=None, draws=None):
+    pos = np.asarray(pos, float).reshape(-1, 3)
+    n = len(pos)
+    R = np.broadcast_to(np.eye(3) if R is None else np.asarray(R, float), (n, 3, 3))
+    vel = np.zeros((n, 3)) if vel is None else np.asarray(vel, float).reshape(n, 3)
+    omega = np.zeros((n, 3)) if omega is None else np.asarray(omega, float).reshape(n, 3)
+    return deck_readings(c, pos, vel, R, omega, obstacles, draws)
+
+
+def columns(centres, radius):
+    c = np.asarray(centres, float).reshape(-1, 2)
+    return (c, np.ones(len(c), bool), np.asarray(radius, float))
+
+
+# ------------------------------------------------------------------------------------ walls
+
+
+def test_walls_at_known_distances_level():
+    r = read(cfg(), [1.0, 0.5, 1.0])
+    # room [-3, 3] x [-3, 3] x [0, 3]: front +x 2, back 4 (= the limit, still valid), left +y 2.5,
+    # right 3.5, up 2; flow deck down 1
+    np.testing.assert_allclose(r["multiranger"][0], [2.0, 4.0, 2.5, 3.5, 2.0], atol=1e-12)
+    assert r["multiranger_valid"][0].all()
+    np.testing.assert_allclose(r["flow"][0], [1.0, 0.0, 0.0], atol=1e-12)
+    assert r["flow_valid"][0].all()
+
+
+def test_yawed_quad_front_is_body_x():
+    r = read(cfg(), [1.0, 0.5, 1.0], R=yaw(math.pi / 2))  # body +x = world +y
+    np.testing.assert_allclose(r["multiranger"][0], [2.5, 3.5, 4.0, 2.0, 2.0], atol=1e-12)
+
+
+def test_beyond_the_limit_is_clipped_and_flagged():
+    r = read(cfg(room=(10.0, 10.0, 3.0)), [0.0, 0.0, 1.0])
+    np.testing.assert_allclose(r["multiranger"][0], [4.0, 4.0, 4.0, 4.0, 2.0])
+    np.testing.assert_array_equal(r["multiranger_valid"][0], [False] * 4 + [True])
+
+
+def test_upside_down_and_tilted():
+    # upside down (roll pi): the "up" sensor looks at the floor, the flow deck at the ceiling
+    r = read(cfg(), [0.0, 0.0, 1.0], R=roll(math.pi))
+    assert r["multiranger"][0, 4] == pytest.approx(1.0)
+    assert r["flow"][0, 0] == pytest.approx(2.0)
+    # left is body +y = world -y after the roll: 3 m to the wall either way
+    assert r["multiranger"][0, 2] == pytest.approx(3.0)
+    # tilted 30 deg about x: the down ray meets the floor at z / cos(30 deg), the up ray the ceiling
+    a = math.radians(30.0)
+    r = read(cfg(), [0.0, 0.0, 1.0], R=roll(a))
+    assert r["flow"][0, 0] == pytest.approx(1.0 / math.cos(a))
+    assert r["multiranger"][0, 4] == pytest.approx(2.0 / math.cos(a))
+
+
+# ------------------------------------------------------------------------------- columns, quads
+
+
+def test_column_at_known_bearing():
+    c = cfg()
+    omap = columns([[2.0 / math.sqrt(2), 2.0 / math.sqrt(2)]], 0.3)  # 2 m away at bearing 45 deg
+    r = read(c, [0.0, 0.0, 1.0], R=yaw(math.pi / 4), obstacles=omap)
+    assert r["multiranger"][0, 0] == pytest.approx(1.7)
+    # level and facing +x the column is off every beam: the walls at 3 m
+    r = read(c, [0.0, 0.0, 1.0], obstacles=omap)
+    np.testing.assert_allclose(r["multiranger"][0, :4], 3.0)
+    # a ray that nearly grazes the side: column at (2, 0.299) with radius 0.3 is hit just before x = 2
+    r = read(c, [0.0, 0.0, 1.0], obstacles=columns([[2.0, 0.299]], 0.3))
+    assert 1.9 < r["multiranger"][0, 0] < 2.0
+    # invalid slots are ignored (no column at x = 1 ahead: the wall at 3 m)
+    c_map = (np.array([[1.0, 0.0], [0.0, 2.0]]), np.array([False, True]), np.asarray(0.3))
+    r = read(c, [0.0, 0.0, 1.0], obstacles=c_map)
+    assert r["multiranger"][0, 0] == pytest.approx(3.0)
+    assert r["multiranger"][0, 2] == pytest.approx(1.7)  # left (+y): the valid column at y = 2
+    # from inside a (solid) column every range is 0
+    r = read(c, [0.0, 1.9, 1.0], obstacles=c_map)
+    np.testing.assert_allclose(r["multiranger"][0], 0.0)
+
+
+def test_neighbour_straight_ahead():
+    c = cfg(n=2)
+    r = read(c, [[0.0, 0.0, 1.0], [1.5, 0.0, 1.0]])
+    hb = c.hitbox
+    assert r["multiranger"][0, 0] == pytest.approx(1.5 - hb)  # quad 0 sees quad 1 ahead
+    assert r["multiranger"][1, 1] == pytest.approx(1.5 - hb)  # quad 1 sees quad 0 behind
+    assert r["multiranger"][1, 0] == pytest.approx(1.5)  # quad 1's front: the wall at x = 3
+    # a neighbour 1 m below: quad 1's flow range sees its hitbox, quad 0's up range too
+    r = read(c, [[0.0, 0.0, 1.0], [0.0, 0.0, 2.0]])
+    assert r["multiranger"][0, 4] == pytest.approx(1.0 - hb)
+    assert r["flow"][1, 0] == pytest.approx(1.0 - hb)
+
+
+# ------------------------------------------------------------------------------------- flow
+
+
+def test_flow_of_known_velocity_and_height():
+    c = cfg()
+    r = read(c, [0.0, 0.0, 1.5], vel=[0.6, -0.3, 0.0])
+    np.testing.assert_allclose(r["flow"][0], [1.5, FLOW_GAIN * 0.4, FLOW_GAIN * -0.2], atol=1e-12)
+    assert FLOW_GAIN == pytest.approx(0.01 * 35.0 / 0.71674, rel=1e-4)
+    # rotation: omega_y gives -flow x, omega_x gives +flow y (mm_flow.c's signs)
+    r = read(c, [0.0, 0.0, 1.5], omega=[0.5, 0.25, 0.0])
+    np.testing.assert_allclose(r["flow"][0, 1:], [-FLOW_GAIN * 0.25, FLOW_GAIN * 0.5], atol=1e-12)
+    # body velocity: yawed 90 deg, a world +y velocity is body +x flow
+    r = read(c, [0.0, 0.0, 1.0], R=yaw(math.pi / 2), vel=[0.0, 0.5, 0.0])
+    np.testing.assert_allclose(r["flow"][0, 1:], [FLOW_GAIN * 0.5, 0.0], atol=1e-12)
+
+
+def test_flow_validity_limits():
+    c = cfg()
+    low = read(c, [0.0, 0.0, FLOW_MIN_RANGE / 2], vel=[0.01, 0.0, 0.0])
+    assert not low["flow_valid"][0, 1] and np.all(low["flow"][0, 1:] == 0.0)
+    fast = read(c, [0.0, 0.0, 0.5], vel=[5.0, 0.0, 0.0])  # 10 rad/s > 7.4
+    assert not fast["flow_valid"][0, 1]
+    dark = read(cfg(sensors=SensorConfig(flow=True, light_lux=10.0)), [0.0, 0.0, 1.0], vel=[0.5, 0.0, 0.0])
+    assert not dark["flow_valid"][0, 1] and dark["flow_valid"][0, 0]
+
+
+# ------------------------------------------------------------------------------------ depth
+
+
+def test_depth_centre_and_corner_pixels():
+    c = cfg()
+    r = read(c, [1.0, 0.0, 1.5])  # 2 m from the +x wall
+    d = r["depth"][0]
+    assert d.shape == (3, 3)
+    assert d[1, 1] == pytest.approx(2.0)
+    dirs = depth_directions((3, 3), (45.0, 45.0))
+    assert dirs[0, 0, 1] > 0 and dirs[0, 0, 2] > 0  # top-left pixel: left (+y) and up (+z)
+    np.testing.assert_allclose(d, 2.0 / dirs[..., 0], rtol=1e-12)  # ranges along the rays
+
+
+# ------------------------------------------------------------------------------------ noise
+
+
+def test_noise_and_dropout_draws():
+    c = cfg()
+    spec = deck_draw_spec(c)
+    k = c.sensors.num_rays
+    assert spec["range_noise"].shape == (1, k) and spec["flow_noise"].shape == (1, 2)
+    assert deck_draw_spec(c.without_noise()) == {}
+    z = np.ones((1, k))
+    keep = np.ones((1, k))
+    draws = {"range_noise": z, "range_drop": keep, "flow_noise": np.ones((1, 2))}
+    r = read(c, [1.0, 0.5, 1.0], vel=[0.6, 0.0, 0.0], draws=draws)
+    t = np.array([2.0, 4.0, 2.5, 3.5, 2.0])
+    np.testing.assert_allclose(r["multiranger"][0], np.minimum(t + tof_std(t), 4.0))
+    assert r["flow"][0, 1] == pytest.approx(FLOW_GAIN * 0.6 + 0.2)
+    drop = np.zeros((1, k))  # every reading lost: invalid, at the limit
+    r = read(c, [1.0, 0.5, 1.0], draws={**draws, "range_drop": drop})
+    assert not r["multiranger_valid"].any() and np.all(r["multiranger"] == 4.0)
+    assert tof_std(np.array(2.5)) == pytest.approx(0.005)
+    assert tof_std(np.array(4.0)) == pytest.approx(0.2025)
+
+
+# ------------------------------------------------------------------------------ NumPy == jit
+
+
+def _random_state(rng, n, lead=()):
+    from scipy.spatial.transform import Rotation
+
+    pos = rng.uniform([-2.5, -2.5, 0.2], [2.5, 2.5, 2.8], lead + (n, 3))
+    R = Rotation.random(int(np.prod(lead + (n,))), random_state=rng).as_matrix().reshape(lead + (n, 3, 3))
+    vel = rng.normal(0, 1, lead + (n, 3))
+    omega = rng.normal(0, 1, lead + (n, 3))
+    return pos, vel, R, omega
+
+
+def test_numpy_equals_jax_jit():
+    jax = pytest.importorskip("jax")
+    jnp = jax.numpy
+    c = cfg(n=6, sensors=SensorConfig(multiranger=True, flow=True, depth=(4, 5)))
+    rng = np.random.default_rng(3)
+    B = 4
+    pos, vel, R, omega = _random_state(rng, 6, (B,))
+    omap = (rng.uniform(-2.5, 2.5, (B, 5, 2)), rng.uniform(size=(B, 5)) < 0.7, np.full(B, 0.25))
+    spec = deck_draw_spec(c)
+    draws = {k: (rng.normal(size=(B,) + d.shape) if k != "range_drop" else rng.uniform(size=(B,) + d.shape))
+             for k, d in spec.items()}
+    ref = deck_readings(c, pos, vel, R, omega, omap, draws)
+
+    @jax.jit
+    def f(pos, vel, R, omega, omap, draws):
+        return deck_readings(c, pos, vel, R, omega, omap, draws)
+
+    f32 = lambda x: jnp.asarray(x, jnp.float32) if np.asarray(x).dtype.kind == "f" else jnp.asarray(x)  # noqa: E731
+    out = f(*(f32(x) for x in (pos, vel, R, omega)), tuple(f32(x) for x in omap),
+            {k: f32(v) for k, v in draws.items()})
+    for k, v in ref.items():
+        o = np.asarray(out[k])
+        if v.dtype == bool:  # a flag may differ only where a range sits at a limit within float32 round-off
+            assert np.mean(o != v) < 0.01, k
+        else:
+            np.testing.assert_allclose(o, v, atol=2e-3, err_msg=k)
+
+
+def test_cast_rays_batched_and_never_past_the_room():
+    c = cfg(n=8)
+    rng = np.random.default_rng(0)
+    pos, vel, R, omega = _random_state(rng, 8, (3,))
+    dirs = world_rays(R, np.asarray([[1.0, 0, 0], [0, 0, -1.0]]))
+    t = cast_rays(pos, dirs, c.room_low, c.room_high, None, c.hitbox)
+    assert t.shape == (3, 8, 2) and np.all(np.isfinite(t)) and np.all(t >= 0)
+    end = pos[..., None, :] + t[..., None] * dirs
+    assert np.all(end >= np.asarray(c.room_low) - 1e-9) and np.all(end <= np.asarray(c.room_high) + 1e-9)
+
+
+# --------------------------------------------------------------------------- config, layout
+
+
+def test_config_validation_and_obs_dim():
+    assert EnvConfig().sensors == SensorConfig() and not SensorConfig().any
+    assert EnvConfig().obs_dim == EnvConfig(sensors={}).obs_dim
+    base = EnvConfig(num_quads=4).obs_dim
+    assert EnvConfig(num_quads=4, sensors={"multiranger": True, "flow": True, "depth": (8, 8)}).obs_dim == base + 79
+    for bad, field in [({"depth": (33, 8)}, "sensors.depth"), ({"depth": (0, 4)}, "sensors.depth"),
+                       ({"depth": "8x8"}, "sensors.depth"), ({"dropout": 1.5}, "sensors.dropout"),
+                       ({"range_limit": 0.0}, "sensors.range_limit"), ({"flow": "yes"}, "sensors.flow"),
+                       ({"depth_fov": (45.0,)}, "sensors.depth_fov"), ({"light_lux": -1.0}, "sensors.light_lux")]:
+        with pytest.raises(ValueError, match=field.replace(".", r"\.")):
+            EnvConfig(sensors=bad)
+    with pytest.raises(ValueError, match="sensors"):
+        EnvConfig(sensors={"unknown": 1})
+    assert not EnvConfig(sensors=ALL).without_noise().sensors.noise
+
+
+def test_obs_layout_bounds_and_info_roundtrip():
+    c = cfg(n=3)
+    lo, hi = deck_bounds(c)
+    assert lo.shape == (c.sensors.obs_dim,) and np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))
+    assert np.all(lo < hi)
+    full_lo, full_hi = obs_bounds(c)
+    assert full_lo.shape == (c.obs_dim,) and np.all(np.isfinite(full_lo)) and np.all(np.isfinite(full_hi))
+    rng = np.random.default_rng(1)
+    pos, vel, R, omega = _random_state(rng, 3)
+    r = deck_readings(c, pos, vel, R, omega)
+    o = deck_obs(c, r)
+    assert np.all(o >= lo - 1e-6) and np.all(o <= hi + 1e-6)
+    obs = np.concatenate([np.zeros((3, c.obs_dim - c.sensors.obs_dim)), o], axis=-1)
+    info = deck_info(c, obs)
+    for k, v in r.items():
+        np.testing.assert_allclose(info[k], v, atol=1e-6, err_msg=k)
+    assert info["multiranger"].shape == (3, 5) and info["flow"].shape == (3, 3) and info["depth"].shape == (3, 3, 3)
