@@ -61,6 +61,8 @@ FLOW_MIN_LUX = 60.0  # lux, the PMW3901's low-light limit
 MULTIRANGER_DIRS = ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, 1.0))
 MULTIRANGER_NAMES = ("front", "back", "left", "right", "up")
 DOWN_DIR = (0.0, 0.0, -1.0)
+#: the info entries of the deck readings (:func:`deck_info`)
+DECK_INFO_KEYS = ("multiranger", "multiranger_valid", "flow", "flow_valid", "depth")
 _EPS = 1e-9
 
 
@@ -308,20 +310,22 @@ def deck_bounds(cfg: Any) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(lo, dtype=np.float32), np.asarray(hi, dtype=np.float32)
 
 
-def deck_info(cfg: Any, obs: Any, scale: Any = None) -> dict[str, np.ndarray]:
+def deck_info(cfg: Any, obs: Any, scale: Any = None) -> dict[str, Any]:
     """The info entries of the deck readings from an observation (..., N, obs_dim) (its last
     ``sensors.obs_dim`` components; ``scale``: the observation's normalization, or None):
     ``multiranger`` (..., N, 5) m, ``multiranger_valid`` (..., N, 5) bool, ``flow`` (..., N, 3),
-    ``flow_valid`` (..., N, 2) bool, ``depth`` (..., N, H, W) m; {} with the sensors off."""
+    ``flow_valid`` (..., N, 2) bool, ``depth`` (..., N, H, W) m; {} with the sensors off. NumPy in:
+    float32 NumPy copies out; ``jax.numpy`` in: ``jax.numpy`` out."""
     s = cfg.sensors
     if not s.any:
         return {}
-    o = np.asarray(obs, dtype=np.float32)
+    xp = array_namespace(obs)
+    o = np.asarray(obs, dtype=np.float32) if xp is np else obs
     start = cfg.obs_dim - s.obs_dim
     part = o[..., start:]
     if scale is not None:
-        part = part * np.asarray(scale, dtype=np.float32)[start:]
-    out: dict[str, np.ndarray] = {}
+        part = part * xp.asarray(np.asarray(scale)[start:], dtype=part.dtype)
+    out: dict[str, Any] = {}
     k = 0
     for name, w in deck_layout(s):
         v = part[..., k:k + w]
@@ -329,6 +333,6 @@ def deck_info(cfg: Any, obs: Any, scale: Any = None) -> dict[str, np.ndarray]:
             v = v > 0.5
         elif name == "depth":
             v = v.reshape(v.shape[:-1] + s.depth)
-        out[name] = np.array(v)
+        out[name] = np.array(v) if xp is np else v
         k += w
     return out

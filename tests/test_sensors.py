@@ -281,3 +281,92 @@ def test_obs_layout_bounds_and_info_roundtrip():
     for k, v in r.items():
         np.testing.assert_allclose(info[k], v, atol=1e-6, err_msg=k)
     assert info["multiranger"].shape == (3, 5) and info["flow"].shape == (3, 3) and info["depth"].shape == (3, 3, 3)
+
+
+# ------------------------------------------------------------------------------ front ends
+
+DECK = SensorConfig(multiranger=True, flow=True, depth=(2, 3))
+
+
+def _env_cfg(**kw) -> EnvConfig:
+    return EnvConfig(num_quads=2, episode_seconds=0.05, sensors=DECK, **kw)
+
+
+def _check_deck_info(info: dict, lead: tuple) -> None:
+    assert info["multiranger"].shape == lead + (2, 5) and info["multiranger_valid"].dtype == bool
+    assert info["flow"].shape == lead + (2, 3) and info["flow_valid"].shape == lead + (2, 2)
+    assert info["depth"].shape == lead + (2, 2, 3)
+    assert np.all(np.isfinite(info["multiranger"])) and np.all((info["depth"] >= 0) & (info["depth"] <= 4.0))
+
+
+@pytest.mark.parametrize("engine", ["mujoco", "jax"])
+def test_gym_env_check_env_and_info(engine):
+    from gymnasium.utils.env_checker import check_env
+
+    from quadswarm_mj import QuadSwarmEnv
+
+    env = QuadSwarmEnv(_env_cfg(), engine=engine)
+    check_env(env, skip_render_check=True)
+    obs, info = env.reset(seed=1)
+    _check_deck_info(info, ())
+    np.testing.assert_allclose(info["multiranger"], obs[:, -env.cfg.sensors.obs_dim:][:, :5])
+    obs, _, _, _, info = env.step(np.full((2, 4), env.cfg.quad.hover_action))
+    _check_deck_info(info, ())
+    assert env.observation_space.contains(obs)
+    flat = QuadSwarmEnv(_env_cfg(info_mode="flat", normalize_obs=True), engine=engine)
+    _, finfo = flat.reset(seed=1)
+    _check_deck_info(finfo, ())
+    env.close()
+    flat.close()
+
+
+def test_normalized_obs_info_in_metres():
+    from quadswarm_mj import QuadSwarmEnv
+
+    raw, norm = (QuadSwarmEnv(_env_cfg(normalize_obs=b).without_noise()) for b in (False, True))
+    _, a = raw.reset(seed=2)
+    _, b = norm.reset(seed=2)
+    for k in ("multiranger", "flow", "depth"):
+        np.testing.assert_allclose(a[k], b[k], rtol=1e-5, atol=1e-6)
+
+
+def test_parallel_env_api_with_every_sensor():
+    from pettingzoo.test import parallel_api_test
+
+    from quadswarm_mj import QuadSwarmParallelEnv
+
+    env = QuadSwarmParallelEnv(_env_cfg())
+    parallel_api_test(env, num_cycles=5)
+    _, infos = env.reset(seed=0)
+    assert infos["quad_1"]["multiranger"].shape == (5,) and infos["quad_0"]["depth"].shape == (2, 3)
+
+
+@pytest.mark.parametrize("engine", ["mujoco", "jax"])
+def test_vector_env_info(engine):
+    from quadswarm_mj import QuadSwarmVectorEnv
+
+    env = QuadSwarmVectorEnv(_env_cfg(), num_envs=3, engine=engine)
+    obs, info = env.reset(seed=0)
+    _check_deck_info(info, (3,))
+    obs, *_, info = env.step(np.full((3, 2, 4), env.cfg.quad.hover_action, np.float32))
+    _check_deck_info(info, (3,))
+    assert env.observation_space.contains(obs)
+    env.close()
+
+
+def test_mjx_env_state_info_and_noise_off():
+    jax = pytest.importorskip("jax")
+    from quadswarm_mj.envs.mjx_env import MjxQuadSwarmEnv
+
+    env = MjxQuadSwarmEnv(_env_cfg())
+    s = jax.jit(env.reset)(jax.random.key(0))
+    s = jax.jit(env.step)(s, jax.numpy.full((2, 4), env.cfg.quad.hover_action))
+    _check_deck_info({k: np.asarray(v) for k, v in s.info.items() if k in ("multiranger", "multiranger_valid",
+                                                                            "flow", "flow_valid", "depth")}, ())
+    # without noise the MJX readings equal the pure function on the state's true pose
+    quiet = MjxQuadSwarmEnv(_env_cfg().without_noise())
+    s = jax.jit(quiet.reset)(jax.random.key(0))
+    st = {k: np.asarray(v, np.float64) for k, v in s.info["state"].items()}
+    ref = deck_readings(quiet.cfg, st["pos"], st["vel"], st["rot"], st["omega"])
+    np.testing.assert_allclose(np.asarray(s.info["multiranger"]), ref["multiranger"], atol=1e-4)
+    np.testing.assert_allclose(np.asarray(s.info["depth"]), ref["depth"], atol=1e-4)

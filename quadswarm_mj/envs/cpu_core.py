@@ -813,8 +813,13 @@ class CpuSwarm:
         if self.omap is not None:
             obst = tuple(self.omap) if worlds is None or kin is not None else tuple(a[worlds] for a in self.omap)
         feats = kin.get("obst_feats") if kin is not None else None
+        deck = None
+        if self.cfg.sensors.any and self.cfg.sensors.noise:  # deck sensor noise (quadswarm_mj.sensors)
+            from quadswarm_mj.sensors import deck_draw_spec
+
+            deck = NumpySampler(self.rng).draw(deck_draw_spec(self.cfg), pos.shape[:1])
         return build_obs(self.cfg, pos, vel, R, omega, goals, noise, self.obs_low, self.obs_high,
-                         self.obs_scale, dist=dist, obstacles=obst, obstacle_feats=feats)
+                         self.obs_scale, dist=dist, obstacles=obst, obstacle_feats=feats, deck_draws=deck)
 
     def state_into(self, out: dict[str, np.ndarray]) -> None:
         """Write :meth:`state_dict`'s arrays into ``out`` (preallocated (B, N, ...) arrays)."""

@@ -108,8 +108,15 @@ class QuadSwarmEnv(gym.Env):
             **({"obstacles": c.obstacle_centres(0)} if c.omap is not None else {}),
         }
 
-    def _info_out(self, info: dict[str, Any]) -> dict[str, Any]:
-        """``info`` as returned: nested, or flat with ``cfg.info_mode="flat"`` (envs/flat_info.py)."""
+    def _info_out(self, info: dict[str, Any], obs: np.ndarray | None = None) -> dict[str, Any]:
+        """``info`` as returned: nested, or flat with ``cfg.info_mode="flat"`` (envs/flat_info.py); with
+        the deck sensors on, their readings from ``obs`` (N, obs_dim) (``quadswarm_mj.sensors.deck_info``)."""
+        if obs is not None and self.cfg.sensors.any:
+            from quadswarm_mj.observations import obs_scale
+            from quadswarm_mj.sensors import deck_info
+
+            scale = obs_scale(self.cfg) if self.cfg.normalize_obs else None
+            info.update(deck_info(self.cfg, np.reshape(obs, (self.cfg.num_quads, self.cfg.obs_dim)), scale))
         return info if self._flat is None else self._flat(info)
 
     # ------------------------------------------------------------------ API
@@ -138,7 +145,7 @@ class QuadSwarmEnv(gym.Env):
                 self._jax.seed(seed if seed is not None else int(self.np_random.integers(2**63 - 1)))
             obs, info = self._jax.reset(state)
             self._needs_reset = False
-            return (obs[0] if self.single else obs), self._info_out(info)
+            return (obs[0] if self.single else obs), self._info_out(info, obs)
         if seed is not None:
             self.core.seed(seed)
         elif not self._seeded:
@@ -148,7 +155,8 @@ class QuadSwarmEnv(gym.Env):
             state = {k: (v if isinstance(v, str) else v[None]) for k, v in state.items()}
         self.core.reset(state=state)
         self._needs_reset = False
-        return self._obs(self.core.observe()), self._info_out(self._info())
+        obs = self._obs(self.core.observe())
+        return obs, self._info_out(self._info(), obs)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         self._check_open()
@@ -158,7 +166,7 @@ class QuadSwarmEnv(gym.Env):
             a = check_action(action, self.action_space.shape, dtype=np.float32)
             obs, reward, truncated, info = self._jax.step(a.reshape(self.cfg.num_quads, 4))
             self._needs_reset = truncated
-            return (obs[0] if self.single else obs), reward, False, truncated, self._info_out(info)
+            return (obs[0] if self.single else obs), reward, False, truncated, self._info_out(info, obs)
         a = check_action(action, self.action_space.shape)
         try:
             out = self.core.step(a.reshape(1, self.cfg.num_quads, 4))
@@ -174,7 +182,8 @@ class QuadSwarmEnv(gym.Env):
             info["episode_metrics"] = {k: float(v[0]) for k, v in self.core.episode_metrics().items()}
             self._needs_reset = True
         reward = float(np.mean(out["rewards"][0]))
-        return self._obs(out["obs"]), reward, False, truncated, self._info_out(info)
+        obs = self._obs(out["obs"])
+        return obs, reward, False, truncated, self._info_out(info, obs)
 
     def render(self) -> np.ndarray | None:
         if self.render_mode is None:

@@ -205,6 +205,13 @@ def _prefixed(prefix: str, spec: DrawSpec, lead: tuple[int, ...] = ()) -> DrawSp
     return {f"{prefix}/{k}": dataclasses.replace(d, shape=tuple(lead) + tuple(d.shape)) for k, d in spec.items()}
 
 
+def _deck_spec(cfg: EnvConfig) -> DrawSpec:
+    """The deck sensors' draws of one step (quadswarm_mj.sensors.deck_draw_spec; {} when off)."""
+    from quadswarm_mj.sensors import deck_draw_spec
+
+    return deck_draw_spec(cfg)
+
+
 def _sub(draws: dict[str, Any], prefix: str) -> dict[str, Any]:
     """The draws named ``prefix/...`` with the prefix removed."""
     p = prefix + "/"
@@ -518,6 +525,7 @@ class MjxQuadSwarmEnv:
             **(_prefixed("omap", _obst_lib().map_draw_spec(self._obst)) if self._obst is not None else {}),
             **(_prefixed("sensor", self._spec_sensor) if self._sensor_on else {}),
             **(_prefixed("aero", aero_draw_spec(cfg)) if cfg.randomize and cfg.aero.any else {}),
+            **_prefixed("deck", _deck_spec(cfg)),  # deck sensor noise (quadswarm_mj.sensors); {} when off
         }
         self._act = pipeline.make_substep_actuation(cfg)  # None: the paper's chain (no extra work)
         # the default configuration's sub-steps run on tuples of components (quadswarm_mj.components)
@@ -543,6 +551,7 @@ class MjxQuadSwarmEnv:
             **(down_spec if stoch_down else {}),
             "scenario": Uniform(0.0, 1.0, (self._n_scn,)),
             **(_prefixed("sensor", self._spec_sensor) if self._sensor_on else {}),
+            **_prefixed("deck", _deck_spec(cfg)),  # deck sensor noise (quadswarm_mj.sensors); {} when off
         }
         self._step_mean_spec = {**({} if stoch_coll else coll_spec), **({} if stoch_down else down_spec)}
         # The next step's random numbers are made at the end of a step (and by reset) and carried in
@@ -662,9 +671,19 @@ class MjxQuadSwarmEnv:
         f = _float()
         noise = _sub(draws, "sensor") if self._sensor_on else None
         scale = None if self._obs_scale is None else jnp.asarray(self._obs_scale, f)
+        deck = _sub(draws, "deck") or None  # deck sensor noise (quadswarm_mj.sensors), None: noise-free
         return build_obs(self.cfg, pos, vel, R, omega, goals, noise, jnp.asarray(self._obs_low, f),
                          jnp.asarray(self._obs_high, f), scale, dist=dist,
-                         obstacles=None if omap is None else tuple(omap))
+                         obstacles=None if omap is None else tuple(omap), deck_draws=deck)
+
+    def _deck_info(self, obs: jax.Array) -> dict[str, jax.Array]:
+        """``multiranger``, ``flow``, ``depth`` (and their ``*_valid`` flags) from the observation's deck
+        part (quadswarm_mj.sensors.deck_info); {} with the deck sensors off."""
+        if not self.cfg.sensors.any:
+            return {}
+        from quadswarm_mj.sensors import deck_info
+
+        return deck_info(self.cfg, obs, self._obs_scale)
 
     def _omap(self, info: dict[str, Any]) -> Any:
         """The world's column map (ObstacleMap) from ``info``."""
@@ -759,6 +778,7 @@ class MjxQuadSwarmEnv:
             "truncation": jnp.zeros((), f), "rng": k_next,
             **self._next_numbers(k_next),
             **({"ctrl_state": jnp.zeros((n, 6), f)} if self._modes else {}),  # control-mode integrators
+            **self._deck_info(obs),  # deck sensor readings ({} when off)
         }
         if omap is not None:
             ob = _obst_lib()
@@ -987,6 +1007,7 @@ class MjxQuadSwarmEnv:
             "step": steps, "time": t, "total_steps": total_steps,
             "truncation": done.astype(f), "rng": k_next,
             **({"ctrl_state": k["ctrl"][1]} if self._modes else {}),
+            **self._deck_info(obs),  # deck sensor readings ({} when off)
         }
         if "step_numbers" in info:
             new_info.update(self._next_numbers(k_next))

@@ -20,6 +20,7 @@ from quadswarm_mj.control_modes import action_box_bounds
 from quadswarm_mj.envs.flat_info import agent_flattener
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv, make_config
 from quadswarm_mj.envs.validation import as_real_array
+from quadswarm_mj.sensors import DECK_INFO_KEYS
 
 STATE_PER_QUAD = 21
 #: the reset option key PettingZoo's ``parallel_api_test`` passes (ignored; any other unknown key raises)
@@ -73,6 +74,9 @@ class QuadSwarmParallelEnv(ParallelEnv):
                 d["episode_metrics"] = dict(info["episode_metrics"])
             if "obstacles" in info:  # (M, 2) column centres (x, y) in m, world frame, the same for every agent
                 d["obstacles"] = info["obstacles"].copy()
+            for k in DECK_INFO_KEYS:  # the agent's deck sensor readings (quadswarm_mj.sensors.deck_info)
+                if k in info:
+                    d[k] = info[k][i].copy()
             out[a] = d if self._flat is None else self._flat(d)
         return out
 

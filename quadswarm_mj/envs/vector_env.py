@@ -484,8 +484,14 @@ class QuadSwarmVectorEnv(VectorEnv):
             out["obstacles"] = self._out(a["obstacles"])
         return out
 
-    def _info_out(self, info: dict[str, Any]) -> dict[str, Any]:
-        """``info`` as returned: nested, or flat with ``cfg.info_mode="flat"`` (envs/flat_info.py)."""
+    def _info_out(self, info: dict[str, Any], obs: np.ndarray | None = None) -> dict[str, Any]:
+        """``info`` as returned: nested, or flat with ``cfg.info_mode="flat"`` (envs/flat_info.py); with
+        the deck sensors on, their readings (B, N, ...) from ``obs`` (``quadswarm_mj.sensors.deck_info``)."""
+        if obs is not None and self.cfg.sensors.any:
+            from quadswarm_mj.observations import obs_scale
+            from quadswarm_mj.sensors import deck_info
+
+            info.update(deck_info(self.cfg, obs, obs_scale(self.cfg) if self.cfg.normalize_obs else None))
         if self.cfg.info_mode != "flat":
             return info
         if getattr(self, "_flat", None) is None:
@@ -544,7 +550,7 @@ class QuadSwarmVectorEnv(VectorEnv):
                 self._seeded = True
             obs, info = self._call_jax(self._jax.reset, mask, state)
             self._needs_reset = False
-            return obs, self._info_out(info)
+            return obs, self._info_out(info, obs)
         if seed is not None or not self._seeded:
             ss = np.random.SeedSequence(None if seed is None else int(seed)).spawn(self.num_shards)
             self._run("seed", lambda k: ("seed", ss[k]))
@@ -558,7 +564,7 @@ class QuadSwarmVectorEnv(VectorEnv):
         self._run("reset", lambda k: ("reset", self._split(mask, k), sub_state(k)))
         self._needs_reset = False
         info = self._info()
-        return self._out(self._a["obs"]), self._info_out(info)
+        return self._out(self._a["obs"]), self._info_out(info, self._a["obs"])
 
     @exclusive
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
@@ -569,7 +575,7 @@ class QuadSwarmVectorEnv(VectorEnv):
         a = check_action(actions, self.action_space.shape, dtype=np.float64 if self._jax is None else np.float32)
         if self._jax is not None:
             *out, info = self._call_jax(self._jax.step, a)
-            return (*out, self._info_out(info))
+            return (*out, self._info_out(info, out[0]))
         self._a["actions"][...] = a
         self._run("step", lambda k: STEP)
         A = self._a
@@ -581,7 +587,8 @@ class QuadSwarmVectorEnv(VectorEnv):
             info["final_obs"] = A["final_obs"].copy()
             info["_final_obs"] = done.copy()
         terminated = np.zeros(self.num_envs, dtype=np.bool_)
-        return self._out(A["obs"]), A["reward"].copy(), terminated, A["truncated"].copy(), self._info_out(info)
+        return (self._out(A["obs"]), A["reward"].copy(), terminated, A["truncated"].copy(),
+                self._info_out(info, A["obs"]))
 
     @exclusive
     def episode_metrics(self) -> dict[str, np.ndarray]:
