@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from quadswarm_mj.bench import peers
 from quadswarm_mj.cli import benchmark
 
 
@@ -18,7 +19,7 @@ def test_alternating_ratio_takes_median_and_better_peer_setup(monkeypatch: pytes
         calls.append(env)
         return next(answers)
 
-    monkeypatch.setattr(benchmark, "_fresh_process", fake)
+    monkeypatch.setattr(peers, "_fresh_process", fake)
     res = benchmark.alternating_peer_ratio(512, 2, rounds=3, steps=10, repeat=1)
     assert res is not None
     assert res["ratios"] == pytest.approx([0.4, 0.75, 0.9])
@@ -30,7 +31,7 @@ def test_alternating_ratio_takes_median_and_better_peer_setup(monkeypatch: pytes
 
 
 def test_alternating_ratio_none_when_a_side_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(benchmark, "_fresh_process", lambda code, env: None)
+    monkeypatch.setattr(peers, "_fresh_process", lambda code, env: None)
     assert benchmark.alternating_peer_ratio(512, 1, rounds=2, steps=10, repeat=1) is None
 
 
@@ -67,8 +68,8 @@ def test_alternating_floor_ratio_warms_up_past_an_episode_and_closes(monkeypatch
         calls["floors"] += 1
         return 1e6 * calls["floors"]
 
-    monkeypatch.setattr(benchmark, "QuadSwarmVectorEnv", FakeEnv)
-    monkeypatch.setattr(benchmark, "ceiling_rollout", fake_floor)
+    monkeypatch.setattr(peers, "QuadSwarmVectorEnv", FakeEnv)
+    monkeypatch.setattr(peers, "ceiling_rollout", fake_floor)
     res = benchmark.alternating_floor_ratio(4, rounds=3, seconds=0.01)
     assert calls["closed"] and calls["floors"] == 3
     assert calls["steps"] > benchmark.EnvConfig().episode_steps  # the warm-up alone passes an episode end

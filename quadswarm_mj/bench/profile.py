@@ -1,0 +1,172 @@
+"""Where the time goes (cProfile groups of the single and vector env) and the design measurements behind
+the vector env (physics back ends, threads vs processes)."""
+
+from __future__ import annotations
+
+import cProfile
+import pstats
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from quadswarm_mj import EnvConfig, QuadSwarmEnv, QuadSwarmVectorEnv
+from quadswarm_mj.bench.ceiling import ceiling_one_core
+from quadswarm_mj.bench.common import fmt, hover_like, timed
+from quadswarm_mj.bench.envs import bench_vector
+
+PROFILE_GROUPS = [  # (label, [(file suffix, function name)]); builtins have file "~" and match by substring
+    ("MuJoCo physics step (C)", [("~", "mj_step"), ("~", "_batch.step")]),
+    ("actuation: command, motor noise, lag, thrusts, wrench", [("actuation.py", "substep_wrench"),
+                                                               ("actuation.py", "motor_noise_step"),
+                                                               ("actuation.py", "action_to_command")]),
+    ("rotation matrices from quaternions", [("spatial.py", "quat_to_rotmat")]),
+    ("floor model (friction wrench + impact)", [("collisions.py", "floor_wrench"), ("cpu_core.py", "_floor_impact")]),
+    ("walls, ceiling, quad-quad response", [("collisions.py", "wall_collisions"),
+                                            ("collisions.py", "quad_collisions")]),
+    ("pairwise distances and contacts", [("collisions.py", "pairwise_contacts")]),
+    ("reward terms and total", [("rewards.py", "reward_terms"), ("rewards.py", "total_reward")]),
+    ("episode metrics", [("metrics.py", "update"), ("metrics.py", "goal_jump")]),
+    ("observations (sensor noise, own state, K nearest)", [("cpu_core.py", "observe")]),
+    ("scenario goals", [("scenarios/static.py", "step"), ("scenarios/base.py", "step")]),
+    ("env wrapper: action check, info / output arrays", [("validation.py", "check_action"), ("gym_env.py", "_info"),
+                                                         ("vector_env.py", "_info"),
+                                                         ("vector_env.py", "_write_info")]),
+]
+
+
+def profile_breakdown(fn: Callable[[], None]) -> tuple[float, list[tuple[str, float]]]:
+    """Run ``fn`` under cProfile; return its total time and the cumulative time of each group (the
+    groups are disjoint calls, except that the floor model computes rotations too)."""
+    pr = cProfile.Profile()
+    pr.enable()
+    fn()
+    pr.disable()
+    st = pstats.Stats(pr)
+    total = max(v[3] for v in st.stats.values())
+    out = []
+    for label, keys in PROFILE_GROUPS:
+        t = 0.0
+        for (file, _line, name), (_cc, _nc, _tt, ct, _callers) in st.stats.items():
+            for suffix, fname in keys:
+                if (suffix == "~" and file == "~" and fname in name) or (
+                        suffix != "~" and file.endswith(suffix) and name == fname):
+                    t += ct
+        out.append((label, t))
+    return total, out
+
+
+def _profile_table(total: float, groups: list[tuple[str, float]]) -> list[str]:
+    lines = ["| stage | share of step time |", "|---|---:|"]
+    for label, t in groups:
+        if t > 0:
+            lines.append(f"| {label} | {100 * t / total:.1f} % |")
+    rest = total - sum(t for label, t in groups if "rotation" not in label)
+    lines.append(f"| everything else (engine glue, Python overhead) | {100 * max(rest, 0.0) / total:.1f} % |")
+    return lines
+
+
+def run_profile() -> str:
+    cfg = EnvConfig(num_quads=8)
+    env = QuadSwarmEnv(cfg)
+    env.reset(seed=0)
+    a = hover_like(env.action_space.shape)
+
+    def single() -> None:
+        for _ in range(1500):
+            _, _, _, tr, _ = env.step(a)
+            if tr:
+                env.reset()
+
+    total, groups = profile_breakdown(single)
+    env.close()
+    lines = ["QuadSwarmEnv, 8 quads, hover workload (quads crash after ~1 s, so the floor model runs), one "
+             f"1500-step episode under cProfile: {total / 1500 * 1e6:.0f} us/step profiled (cProfile adds"
+             " overhead per Python call, so Python-heavy stages look larger than they are):", ""]
+    lines += _profile_table(total, groups)
+    venv = QuadSwarmVectorEnv(cfg, num_envs=512, num_shards=1)
+    venv.reset(seed=0)
+    act = hover_like(venv.action_space.shape)
+
+    def vector() -> None:
+        for _ in range(100):
+            venv.step(act)
+
+    total, groups = profile_breakdown(vector)
+    venv.close()
+    lines += ["", "QuadSwarmVectorEnv with one shard of 512 worlds x 8 quads (what each of the two processes runs "
+              f"at B = 1024), hover workload, 100 steps under cProfile: {total / 100 * 1e3:.2f} ms/step profiled:", ""]
+    lines += _profile_table(total, groups)
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------- design choices
+def compare_engines(B: int, seconds: float, repeat: int) -> str:
+    """The measurements behind the vector env's design: physics back ends, threads vs processes."""
+    import threading
+
+    from quadswarm_mj.envs.cpu_core import CpuSwarm
+
+    cfg = EnvConfig(num_quads=8)
+    act = np.full((B, 8, 4), cfg.quad.hover_action)
+    rows = []
+
+    def physics_rate(core: CpuSwarm) -> float:
+        core.seed(0)
+        core.reset()
+
+        def run(steps: int) -> float:
+            t = time.perf_counter()
+            for _ in range(steps):
+                core.phys.step(cfg.quad.max_omega)
+            return time.perf_counter() - t
+
+        return B * 8 * timed(run, seconds, repeat) / 2.0
+
+    for label, kw in [(f"one MjData, {B} worlds, visual geoms", {"backend": "mjdata", "visual": True}),
+                      (f"one MjData, {B} worlds, no visual geoms", {"backend": "mjdata", "visual": False}),
+                      (f"mujoco.batch, {B} one-world simulations", {"backend": "batch", "chunk_worlds": 1}),
+                      (f"mujoco.batch, {B // 64} simulations of 64 worlds (+ copies)",
+                       {"backend": "batch", "chunk_worlds": 64})]:
+        t0 = time.perf_counter()
+        core = CpuSwarm(cfg, B, **kw)
+        build = time.perf_counter() - t0
+        rows.append((f"physics only: {label}", physics_rate(core), f"model built in {build:.1f} s"))
+    rows.append((f"bare-MuJoCo ceiling, {8 * B} free bodies, 1 core", ceiling_one_core(8 * B, seconds, repeat), ""))
+
+    def step_rate(cores: list[CpuSwarm], threads: bool) -> float:
+        for k, c in enumerate(cores):
+            c.seed(k)
+            c.reset()
+        a = act[: cores[0].B]
+
+        def one(c: CpuSwarm, steps: int) -> None:
+            for _ in range(steps):
+                c.step(a)
+
+        def run(steps: int) -> float:
+            t = time.perf_counter()
+            if threads:
+                th = [threading.Thread(target=one, args=(c, steps)) for c in cores]
+                for x in th:
+                    x.start()
+                for x in th:
+                    x.join()
+            else:
+                for c in cores:
+                    one(c, steps)
+            return time.perf_counter() - t
+
+        return B * 8 * timed(run, seconds, repeat)
+
+    half = [CpuSwarm(cfg, B // 2, backend="batch") for _ in range(2)]
+    rows.append((f"engine step, {B} worlds in 1 process (2 shards one after the other)", step_rate(half, False), ""))
+    rows.append((f"engine step, {B} worlds, 2 shards in 2 threads", step_rate(half, True), ""))
+    rows.append((f"QuadSwarmVectorEnv, {B} worlds, 2 shards in 2 processes",
+                 bench_vector(B, 8, "hover", seconds, repeat, num_shards=2), "whole env step, info included"))
+    rows.append((f"QuadSwarmVectorEnv, {B} worlds, 1 process",
+                 bench_vector(B, 8, "hover", seconds, repeat, num_shards=1), "whole env step, info included"))
+    out = ["| measurement (hover workload) | samples/s | note |", "|---|---:|---|"]
+    out += [f"| {a} | {fmt(b)} | {c} |" for a, b, c in rows]
+    return "\n".join(out)
+
