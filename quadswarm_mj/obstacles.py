@@ -43,13 +43,16 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
 from quadswarm_mj._xp import array_namespace, safe_normalize
-from quadswarm_mj.config import EnvConfig, ObstacleConfig
+from quadswarm_mj.obstacle_config import ObstacleConfig
 from quadswarm_mj.random_draws import DrawSpec, Normal, Uniform
+
+if TYPE_CHECKING:  # annotations only: quadswarm_mj.config imports the scenarios, which import this module
+    from quadswarm_mj.config import EnvConfig
 
 #: spacing (m) of the 3 x 3 grid of sample points of the distance features (A.2)
 SDF_RESOLUTION = 0.1

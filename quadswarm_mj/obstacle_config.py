@@ -1,0 +1,111 @@
+"""``ObstacleConfig``: columns from floor to ceiling on the cells of a spawn area (SPEC_obstacles A.1,
+A.6). Re-exported by :mod:`quadswarm_mj.config`; :mod:`quadswarm_mj.obstacles` builds the maps from it."""
+
+from __future__ import annotations
+
+import numbers
+from dataclasses import dataclass
+
+from quadswarm_mj.config_checks import MAX_REWARD_SCALE, _check_range, _is_real
+
+OBSTACLE_DENSITY_VALUES = (0.05, 0.10, 0.15, 0.20)  # SPEC_obstacles A.6: np.arange(0.05, 0.2, 0.05) incl. 0.2
+OBSTACLE_SIZE_VALUES = (0.3, 0.4, 0.5)  # SPEC_obstacles A.6: np.arange(0.3, 0.6, 0.1), 0.6 excluded
+
+
+@dataclass(frozen=True)
+class ObstacleConfig:
+    """Columns from floor to ceiling on the cells of a spawn area (SPEC_obstacles A.1, A.6).
+
+    ``size`` is the column *diameter* (m); ``area`` (m, along x and y) is centred on the room and
+    split into ``cell``-sized cells; ``int(cells_x * cells_y * density)`` cells get a column at
+    every reset. ``density_random`` / ``size_random`` draw density and size per reset uniformly
+    from ``density_values`` / ``size_values``. ``max_columns`` (None: the most any reset can
+    place) fixes the number of column slots per world (static shapes). ``collision_reward`` is
+    the penalty per new obstacle contact (not scaled by dt; SPEC_obstacles A.4).
+    """
+
+    density: float = 0.2
+    size: float = 0.6  # m, diameter
+    area: tuple[float, float] = (8.0, 8.0)  # m
+    cell: float = 1.0  # m
+    density_random: bool = False
+    size_random: bool = False
+    density_values: tuple[float, ...] = OBSTACLE_DENSITY_VALUES
+    size_values: tuple[float, ...] = OBSTACLE_SIZE_VALUES
+    max_columns: int | None = None
+    collision_reward: float = 5.0
+
+    def __post_init__(self) -> None:
+        _check_range("obstacles.density", self.density, 0.0, 1.0)
+        _check_range("obstacles.cell", self.cell, 0.0, lo_open=True)
+        _check_range("obstacles.size", self.size, 0.0, lo_open=True)
+        if not self.size < self.cell:
+            raise ValueError(f"obstacles.size (diameter, m) must be smaller than obstacles.cell = {self.cell}, "
+                             f"got {self.size!r}")
+        try:
+            area = tuple(float(x) for x in self.area)
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"obstacles.area must be 2 numbers (m, x and y), got {self.area!r}") from e
+        if len(area) != 2:
+            raise ValueError(f"obstacles.area must be 2 numbers (m, x and y), got {self.area!r}")
+        for i, a in enumerate(area):
+            _check_range(f"obstacles.area[{i}]", a, self.cell)
+        object.__setattr__(self, "area", area)
+        for n, vals in (("density_values", self.density_values), ("size_values", self.size_values)):
+            try:
+                vals = tuple(float(x) for x in vals)
+            except Exception as e:  # noqa: BLE001
+                raise ValueError(f"obstacles.{n} must be a non-empty tuple of numbers, got {vals!r}") from e
+            if not vals:
+                raise ValueError(f"obstacles.{n} must be a non-empty tuple of numbers, got {vals!r}")
+            object.__setattr__(self, n, vals)
+        for i, d in enumerate(self.density_values):
+            _check_range(f"obstacles.density_values[{i}]", d, 0.0, 1.0)
+        for i, d in enumerate(self.size_values):
+            _check_range(f"obstacles.size_values[{i}]", d, 0.0, lo_open=True)
+            if not d < self.cell:
+                raise ValueError(f"obstacles.size_values[{i}] must be smaller than obstacles.cell = {self.cell}, "
+                                 f"got {d!r}")
+        for n in ("density_random", "size_random"):
+            if not isinstance(getattr(self, n), bool):
+                raise ValueError(f"obstacles.{n} must be a bool, got {getattr(self, n)!r}")
+        _check_range("obstacles.collision_reward", self.collision_reward, 0.0, MAX_REWARD_SCALE)
+        need = self.columns_needed
+        if self.max_columns is not None:
+            m = self.max_columns
+            if isinstance(m, numbers.Integral) and _is_real(m):
+                m = int(m)
+                object.__setattr__(self, "max_columns", m)
+            if not isinstance(m, int) or isinstance(m, bool) or m < max(need, 1) or m > self.num_cells:
+                raise ValueError(f"obstacles.max_columns must be an int in [{max(need, 1)}, {self.num_cells}] "
+                                 f"(the most columns a reset places .. the number of cells), got {m!r}")
+
+    @property
+    def grid(self) -> tuple[int, int]:
+        """(cells along x, cells along y)."""
+        return tuple(int(a / self.cell + 1e-9) for a in self.area)  # type: ignore[return-value]
+
+    @property
+    def num_cells(self) -> int:
+        gx, gy = self.grid
+        return gx * gy
+
+    def num_columns(self, density: float | None = None) -> int:
+        """Columns placed at ``density`` (default: ``self.density``): int(cells * density), as the original."""
+        return int(self.num_cells * (self.density if density is None else density))
+
+    @property
+    def columns_needed(self) -> int:
+        """The most columns one reset can place (over the density values when randomized)."""
+        ds = self.density_values if self.density_random else (self.density,)
+        return max(self.num_columns(d) for d in ds)
+
+    @property
+    def slots(self) -> int:
+        """M_max: column slots per world (>= 1 so arrays never have a zero-size axis)."""
+        return self.max_columns if self.max_columns is not None else max(self.columns_needed, 1)
+
+    @property
+    def max_size(self) -> float:
+        """Largest column diameter any reset can draw (m)."""
+        return max(self.size_values) if self.size_random else self.size
