@@ -77,3 +77,26 @@ def test_alternating_floor_ratio_warms_up_past_an_episode_and_closes(monkeypatch
     assert res["ratios"] == [e / f for e, f in zip(res["env"], res["floor"])]
     assert res["median"] == statistics.median(res["ratios"])
     assert res["min"] <= res["median"] <= res["max"]
+
+
+def test_gym_rates_ratio_to_the_first_row_and_a_failed_row_reported() -> None:
+    from quadswarm_mj.bench.gym_rows import gym_rates
+    from quadswarm_mj.bench.report import gym_table
+
+    rows = (("ref", {"num_quads": 1, "engine": "mujoco"}), ("eight", {"num_quads": 8, "engine": "mujoco"}),
+            ("bad", {"num_quads": 0}))
+    out = gym_rates(0.05, 1, rows)
+    assert [r["label"] for r in out] == ["ref", "eight", "bad"]
+    assert out[0]["rate"] > 0 and out[0]["ratio"] == 1.0
+    assert out[1]["ratio"] == out[1]["rate"] / out[0]["rate"]
+    assert out[2]["rate"] is None and out[2]["ratio"] is None and "num_quads" in out[2]["error"]
+    table = gym_table(out, [("fresh", {"import_s": 0.5, "first_step_s": 1.25}), ("failed", None)])
+    assert "| ref | " in table and "1.00x" in table and "| fresh | 0.50 | 1.25 |" in table and "(failed)" in table
+
+
+def test_first_step_code_runs_in_a_fresh_process() -> None:
+    from quadswarm_mj.bench.gym_rows import first_step_code
+    from quadswarm_mj.bench.peers import _fresh_process
+
+    res = _fresh_process(first_step_code({"num_quads": 1, "engine": "mujoco"}), {})
+    assert res is not None and res["import_s"] > 0 and res["first_step_s"] > 0

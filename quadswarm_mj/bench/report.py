@@ -16,7 +16,9 @@ NOTES_MARKER = "<!-- notes: kept by scripts/benchmark.py -->"
 
 
 def env_table(table: list[dict[str, Any]], workloads: tuple[str, ...]) -> str:
-    """The single and vector env rows with their bare-MuJoCo ceilings."""
+    """The single and vector env rows with their bare-MuJoCo ceilings ('' if there are none)."""
+    if not table:
+        return ""
     head = "| configuration | " + " | ".join(f"{w} (samples/s)" for w in workloads) + \
            " | ceiling 1 core | ceiling rollout 2 cores | env / ceiling (" + workloads[0] + ") |"
     sep = "|---|" + "---:|" * (len(workloads) + 3)
@@ -82,9 +84,9 @@ def document(command: str, started: datetime.datetime, load0: str, load1: str, r
         "- ceiling: bare free bodies (Crazyflie inertia, no geoms, contacts off, Euler, 2 sub-steps per sample);"
         " 1 core = one model, `mj_step` loop; rollout = `mujoco.rollout` on 2 threads over equal models",
         "",
-        tab,
-        "",
     ]
+    if tab:
+        doc += [tab, ""]
     if summary:
         doc += ["Vector env / ceiling, measured in this run:", ""] + summary + [""]
     if gym:

@@ -91,19 +91,30 @@ _jax_rows = jax_rows
 _num_devices = num_devices
 FIRST_STEP_ROWS = (("gym.make('QuadSwarm-v0', num_quads=1)", {"num_quads": 1}),
                    ("gym.make('QuadSwarm-v0', num_quads=8)", {"num_quads": 8}),
-                   ("gym.make('QuadSwarm-v0', num_quads=1, engine='mujoco')", {"num_quads": 1, "engine": "mujoco"}))
+                   ("gym.make('QuadSwarm-v0', num_quads=1, engine='mujoco')", {"num_quads": 1, "engine": "mujoco"}),
+                   ("gym.make('QuadSwarm-v0', num_quads=1, engine='jax')", {"num_quads": 1, "engine": "jax"}),
+                   ("gym.make('QuadSwarm-v0', num_quads=8, engine='jax')", {"num_quads": 8, "engine": "jax"}))
 
 
 def gym_rows(seconds: float, repeat: int) -> str:
-    """The Gymnasium rows (fresh processes with JAX's defaults): rates vs Hopper-v5 and first-step times."""
-    code = ("import json; from quadswarm_mj.bench.gym_rows import gym_rates; "
-            f"print('RESULT', json.dumps(gym_rates({seconds}, {max(repeat, 1)})))")
+    """The Gymnasium rows: rates vs Hopper-v5 in a fresh process with JAX's defaults (what a user gets), the
+    JAX engine's again in a fresh process with the opt-in ``tune_jax_cpu()`` (Hopper re-measured there), and
+    the first-step times in fresh processes with JAX's defaults."""
+    call = f"gym_rates({seconds}, {max(repeat, 1)}"
+    code = f"import json; from quadswarm_mj.bench.gym_rows import gym_rates; print('RESULT', json.dumps({call})))"
     rates = _fresh_process(code, _jax_defaults_env())
-    if rates is None:
-        print("  gym rows failed in their fresh process", flush=True)
+    tuned_code = ("import json, quadswarm_mj; quadswarm_mj.tune_jax_cpu(); "
+                  "from quadswarm_mj.bench.gym_rows import GYM_ROWS, gym_rates; "
+                  f"rows = [GYM_ROWS[0]] + [r for r in GYM_ROWS if r[1].get('engine') == 'jax']; "
+                  f"print('RESULT', json.dumps({call}, rows=rows)))")
+    tuned = _fresh_process(tuned_code, {"QUADSWARM_MJ_TUNE_JAX": "1"})
+    if rates is None or tuned is None:
+        print("  gym rows failed in a fresh process", flush=True)
+    for r in tuned or []:
+        r["label"] += ", with tune_jax_cpu()"
     first = [(label, _fresh_process(first_step_code(kw), _jax_defaults_env())) for label, kw in FIRST_STEP_ROWS]
-    print("gym", rates, first, flush=True)
-    return gym_table(rates, first)
+    print("gym", rates, tuned, first, flush=True)
+    return gym_table((rates or []) + (tuned or []), first)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -203,8 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     comp = compare_engines(args.compare, seconds, repeat) if args.compare else None
     load1 = load()
     tab = env_table(table, workloads)
-    print("\n" + tab)
-    for extra in (jax_table, gym):
+    for extra in (tab, jax_table, gym):
         if extra:
             print("\n" + extra)
     if args.no_write:
