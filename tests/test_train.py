@@ -32,7 +32,8 @@ def _train_script():
 
 def test_train_script_writes_logs_curves_and_policies(tmp_path):
     out = tmp_path / "run"
-    argv = ["--out", str(out), "--timesteps", "96", "--scenario", "static_same_goal,dynamic_same_goal",
+    argv = ["--preset", "single_v1", "--out", str(out), "--timesteps", "96",
+            "--scenario", "static_same_goal,dynamic_same_goal",
             "--num-worlds", "4", "--unroll-length", "8", "--num-minibatches", "2", "--num-epochs", "1",
             "--policy-hidden", "8,8", "--value-hidden", "8", "--reward", "vel=0.05", "--env", "episode_seconds=0.2",
             "--no-progress", "--seed", "3"]
@@ -108,10 +109,6 @@ def test_ppo_config_validation():
         PPOTrainer([EnvConfig(num_quads=1)], PPOConfig(num_worlds=3, num_minibatches=2, unroll_length=2))
 
 
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(pytest.main([__file__, "-q"]))
-
-
 def test_desync_truncates_first_episodes_without_moving_scenario_clocks():
     """The first episode of each world ends after its own random length; every world starts at
     t = 0, so dynamic_same_goal's first goal jump (U(4, 6) s) never fires before t = 4 s."""
@@ -139,8 +136,9 @@ def test_desync_truncates_first_episodes_without_moving_scenario_clocks():
 
 # ---------------------------------------------------------------------------- encoders, presets, resume
 def _tiny_argv(out, *extra):
-    return ["--out", str(out), "--num-worlds", "2", "--unroll-length", "4", "--num-minibatches", "2",
-            "--num-epochs", "1", "--value-hidden", "8", "--no-progress", "--seed", "1", *extra]
+    return ["--preset", "single_v1", "--out", str(out), "--num-worlds", "2", "--unroll-length", "4",
+            "--num-minibatches", "2", "--num-epochs", "1", "--value-hidden", "8", "--no-progress", "--seed", "1",
+            *extra]
 
 
 @pytest.mark.slow
@@ -276,3 +274,67 @@ def test_jax_engine_training_with_encoder_replay_anneal_and_resume(tmp_path):
     with np.load(out / "checkpoints" / TRAIN_STATE_FILE, allow_pickle=False) as z:
         np.testing.assert_array_equal(z["extra/total_steps_0"], [12, 12])
         assert json.loads(str(z["scalars"]))["iteration"] == 3
+
+
+def test_progress_bar_lines_and_terminal_line():
+    """Off a terminal: full lines (agent-steps, agent-steps/s, elapsed and remaining time, the recent
+    episodes' metrics); on a terminal: one line redrawn with \\r, ended by close()."""
+    import io
+
+    from quadswarm_mj.training.progress import ProgressBar, fmt_time
+
+    rows = [{"env_steps": 1000 * (i + 1), "reward_per_step": 0.001 * i, "a/episodes": n, "a/success": s,
+             "a/mean_distance": d, "a/floor_hits": 0.0} for i, (n, s, d) in enumerate([(0, float("nan"), float("nan")),
+                                                                                       (1, 0.0, 2.0), (3, 1.0, 0.4)])]
+    buf = io.StringIO()
+    bar = ProgressBar(total_steps=6000, stream=buf, every_s=0.0)
+    assert not bar.tty
+    for r in rows:
+        bar.update(r)
+    bar.close()
+    lines = buf.getvalue().splitlines()
+    assert len(lines) == 3 and "\r" not in buf.getvalue()
+    assert "3.00 k agent-steps" in lines[-1] and "/s" in lines[-1] and "elapsed" in lines[-1] and "left" in lines[-1]
+    assert " 50%" in lines[-1]
+    # episode-weighted over the recent rows: success (0 * 1 + 1 * 3) / 4, distance (2 * 1 + 0.4 * 3) / 4
+    assert "a: succ 0.75" in lines[-1] and "dist 0.80 m" in lines[-1]
+    assert "a:" not in lines[0]  # no episode ended yet
+    tty = io.StringIO()
+    bar = ProgressBar(seconds=60.0, stream=tty, tty=True)
+    for r in rows:
+        bar.update(r)
+    bar.close()
+    text = tty.getvalue()
+    assert text.count("\r") == 3 and text.count("\n") == 1 and text.endswith("\n")
+    assert fmt_time(75) == "1:15" and fmt_time(3725) == "1:02:05" and fmt_time(float("inf")) == "?"
+
+
+def test_training_run_prints_progress_and_writes_curves(tmp_path, capsys):
+    """A few seconds of training with the progress bar on (stdout is not a terminal here: periodic lines,
+    and always the final one) and the curves as PNG in the run directory."""
+    out = tmp_path / "run"
+    argv = ["--preset", "single_v1", "--out", str(out), "--timesteps", "256", "--scenario", "static_same_goal",
+            "--num-worlds", "8", "--unroll-length", "16", "--num-minibatches", "2", "--num-epochs", "1",
+            "--policy-hidden", "8,8", "--value-hidden", "8", "--env", "episode_seconds=0.1"]
+    assert _train_script().main(argv) == 0
+    text = capsys.readouterr().out
+    bar = [ln for ln in text.splitlines() if "agent-steps |" in ln]
+    assert bar and "[####################] 100%" in bar[-1] and "256 agent-steps" in bar[-1]
+    assert "static_same_goal: succ" in bar[-1] and "elapsed" in bar[-1]
+    assert (out / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_single_preset_is_the_one_minute_recipe():
+    """The default preset trains one quad on the JAX engine with a fixed agent-step budget (the schedule
+    follows it: reproducible from the seed); the recipe of pretrained:single stays as single_v1."""
+    from quadswarm_mj.cli.train import PRESETS, build_parser
+
+    pr = PRESETS["single"]
+    assert build_parser().parse_args([]).preset == "single"
+    assert pr["engine"] == "jax" and pr["num_quads"] == 1 and pr["scenarios"] == ["static_same_goal"]
+    assert pr["timesteps"] > 0 and PRESETS["single_v1"]["scenarios"] == ["static_same_goal", "dynamic_same_goal"]
+    assert "engine" not in PRESETS["single_v1"]
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(pytest.main([__file__, "-q"]))

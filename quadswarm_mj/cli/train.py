@@ -57,9 +57,15 @@ OBSTACLE_ENV: dict[str, Any] = {"num_neighbors": 2, "downwash": True, "obs_self"
 SWARM_ANNEAL = 5e7
 
 PRESETS: dict[str, dict[str, Any]] = {
-    # single quad, static and jumping goals
-    "single": {"scenarios": ["static_same_goal", "dynamic_same_goal"], "num_quads": 1, "env": {}, "rewards": {},
-               "ppo": {"num_worlds": 1024, "unroll_length": 32}},
+    # single quad flying to a goal from scratch in under a minute (TRAINING.md "One-minute single quad"): the JAX
+    # engine end to end (one scenario: half the compile of two), learning rate 2e-3 decaying linearly over a fixed
+    # budget of 4e6 agent-steps (the budget, not the wall clock, sets the schedule: the run is reproducible from its
+    # seed; --minutes caps it), the position term at 3x the paper's scale (hover precision)
+    "single": {"scenarios": ["static_same_goal"], "num_quads": 1, "env": {}, "rewards": {"pos": 3.0}, "engine": "jax",
+               "timesteps": 4e6, "ppo": {"num_worlds": 1024, "unroll_length": 32, "learning_rate": 2e-3}},
+    # the recipe of the shipped pretrained:single (static and jumping goals, MuJoCo engine, 30 min)
+    "single_v1": {"scenarios": ["static_same_goal", "dynamic_same_goal"], "num_quads": 1, "env": {}, "rewards": {},
+                  "ppo": {"num_worlds": 1024, "unroll_length": 32}},
     # the recipe of the shipped pretrained:swarm8 (CPU engine, two scenarios, MLP over the sorted neighbours)
     "swarm8_v1": {"scenarios": ["static_diff_goal", "swap_goals"], "num_quads": 8, "env": {}, "rewards": {},
                   "ppo": {"num_worlds": 128, "unroll_length": 32}},
@@ -69,6 +75,12 @@ PRESETS: dict[str, dict[str, Any]] = {
     "swarm8": {"scenarios": ["mix", "run_away"], "weights": [9, 1], "num_quads": 8, "env": {}, "rewards": {},
                "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": SWARM_ANNEAL,
                "ppo": {"num_worlds": 128, "unroll_length": 32, "arch": "deepsets_large", "arch_width": 64}},
+    # the swarm by PPO alone (no teacher, no imitation loss; a warm start only from a PPO policy of the same
+    # --arch via --init-from): swarm8's scenarios, deep-sets encoder, annealing and collision replay, with the
+    # position term at 2x the paper's scale (the single preset's lesson: hover precision)
+    "swarm8_rl": {"scenarios": ["mix", "run_away"], "weights": [9, 1], "num_quads": 8, "env": {},
+                  "rewards": {"pos": 2.0}, "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": SWARM_ANNEAL,
+                  "ppo": {"num_worlds": 128, "unroll_length": 32, "arch": "deepsets_large", "arch_width": 64}},
     # deployable variant: deep sets 16-wide, 1,012 actor parameters
     "swarm8_deployable": {"scenarios": ["mix", "run_away"], "weights": [9, 1], "num_quads": 8, "env": {},
                           "rewards": {}, "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": SWARM_ANNEAL,
@@ -216,12 +228,14 @@ def main(argv: list[str] | None = None) -> int:
             args.out = str(rdir)
     if args.out is None:
         args.out = "runs/train"
+    preset = PRESETS[args.preset]
+    if args.timesteps is None and preset.get("timesteps") and not args.resume:
+        args.timesteps = float(preset["timesteps"])  # the preset's budget (--minutes, if given, caps it)
     if args.minutes is None and args.timesteps is None:
         args.minutes = 30.0
     from quadswarm_mj.config import EnvConfig, RewardScales
     from quadswarm_mj.training.ppo import PPOConfig, PPOTrainer
 
-    preset = PRESETS[args.preset]
     engine = args.engine or preset.get("engine", "mujoco")
     if engine == "jax":  # before any JAX operation: the device count is fixed when JAX starts
         from quadswarm_mj.devices import cpu_devices_option, use_cpu_cores

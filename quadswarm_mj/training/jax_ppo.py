@@ -359,6 +359,8 @@ class JaxPPOTrainer:
             rep = self._world_sharding()[1]
             carry = (jax.device_put(self.state, rep), carry[1], jax.device_put(self.key, rep))
         steps0 = self._steps0 = self.env_steps
+        if bar is not None:
+            bar.steps0 = steps0
         t_first = None
         while True:
             elapsed = time.perf_counter() - t0
@@ -366,11 +368,12 @@ class JaxPPOTrainer:
                 break
             if seconds is not None and elapsed >= seconds:
                 break
-            frac = 0.0
+            # the learning-rate schedule follows the step budget when there is one (the wall clock then only
+            # caps the run, so a run that reaches its budget is reproducible from its seed), else the clock
             if total_steps is not None:
-                frac = max(frac, (self.env_steps - steps0) / max(total_steps, 1))
-            if seconds is not None:
-                frac = max(frac, elapsed / seconds)
+                frac = (self.env_steps - steps0) / max(total_steps, 1)
+            else:
+                frac = elapsed / seconds
             self._lr_scale = linear_lr_scale(self.ppo, frac, self.lr_start)
             carry, m, sums = self._iteration(carry, jnp.float32(self._lr_scale))
             m, sums = jax.device_get((m, sums))  # one small transfer per iteration
@@ -382,14 +385,12 @@ class JaxPPOTrainer:
                 t_first = now
                 self.compile_s = now - t0
                 steps_first = self.env_steps
-            if bar is not None:
-                bar.update(per_iter if total_steps is not None else int(now - t0) - bar.n)
             row = self._log_row(now - t0, m, sums)
             if t_first is not None and now > t_first:
                 row["steps_per_s_compiled"] = round((self.env_steps - steps_first) / (now - t_first), 1)
             rows.append(row)
             if bar is not None:
-                bar.set_postfix({"r/step": f"{row['reward_per_step']:.4f}"})
+                bar.update(row)
             if callback is not None and self.iteration % log_every == 0:
                 callback(row)
             if out is not None and self.iteration % (10 * log_every) == 0:
@@ -401,7 +402,7 @@ class JaxPPOTrainer:
                 write_logs(out, rows)
                 plot_curves(out / "progress.json", out / "curves.png")
         if bar is not None:
-            bar.close()
+            bar.close(rows[-1] if rows else None)
         if out is not None:
             self.save(out / "final.npz", {"wall_seconds": round(time.perf_counter() - t0, 1)})
             self.save_state(out / "checkpoints" / TRAIN_STATE_FILE, carry[1])

@@ -472,7 +472,7 @@ def _value_layers(arrays: dict[str, np.ndarray]) -> list[tuple[np.ndarray, np.nd
 def start_run(out_dir: str | Path | None, history: list[dict[str, Any]] | None, total_steps: int | None,
               seconds: float | None, progress: bool) -> tuple[Path | None, list[dict[str, Any]], float, Any]:
     """Common start of both trainers' ``train``: the output directory (``checkpoints/`` created), the
-    earlier log rows of a resumed run, their wall time (s) and the tqdm bar (None without progress)."""
+    earlier log rows of a resumed run, their wall time (s) and the ProgressBar (None without progress)."""
     if total_steps is None and seconds is None:
         raise ValueError("give a budget: total_steps and/or seconds")
     out = Path(out_dir) if out_dir is not None else None
@@ -481,11 +481,10 @@ def start_run(out_dir: str | Path | None, history: list[dict[str, Any]] | None, 
     rows: list[dict[str, Any]] = list(history or [])
     wall0 = float(rows[-1]["wall_s"]) if rows else 0.0
     bar = None
-    if progress:
-        from tqdm import tqdm
+    if progress:  # one \r-updated line on a terminal, a line every 10 s otherwise (training/progress.py)
+        from quadswarm_mj.training.progress import ProgressBar
 
-        bar = tqdm(total=total_steps if total_steps is not None else int(seconds), unit="step" if total_steps
-                   is not None else "s", dynamic_ncols=True, smoothing=0.05)
+        bar = ProgressBar(total_steps, seconds)
     return out, rows, wall0, bar
 
 
@@ -724,6 +723,8 @@ class PPOTrainer:
         pending: list = []
         rew_acc, rew_n = 0.0, 0
         steps0 = self._steps0 = self.env_steps  # budgets count this run's steps (a resumed run continues the counter)
+        if bar is not None:
+            bar.steps0 = steps0
         while True:
             elapsed = time.perf_counter() - t0
             if total_steps is not None and self.env_steps - steps0 >= total_steps:
@@ -745,19 +746,12 @@ class PPOTrainer:
             self.env_steps += per_iter
             self.iteration += 1
             now = time.perf_counter()
-            if bar is not None:
-                bar.update(per_iter if total_steps is not None else int(now - t0) - bar.n)
             if self.iteration % log_every == 0:
                 row = self._log_row(now - t0, rew_acc / max(rew_n, 1), pending, m)
                 rows.append(row)
                 pending, rew_acc, rew_n = [], 0.0, 0
                 if bar is not None:
-                    post = {"r/step": f"{row['reward_per_step']:.4f}"}
-                    for key, v in row.items():
-                        if key.endswith("/success") or key.endswith("/goal_reach_rate"):
-                            if v == v:
-                                post[key.split("/")[0][:12] + key[key.rfind("/"):]] = f"{v:.2f}"
-                    bar.set_postfix(post)
+                    bar.update(row)
                 if callback is not None:
                     callback(row)
                 if out is not None and (self.iteration % (10 * log_every) == 0):
@@ -769,7 +763,7 @@ class PPOTrainer:
                 write_logs(out, rows)
                 plot_curves(out / "progress.json", out / "curves.png")
         if bar is not None:
-            bar.close()
+            bar.close(rows[-1] if rows else None)
         if out is not None:
             self.save(out / "final.npz", {"wall_seconds": round(time.perf_counter() - t0, 1)})
             self.save_state(out / "checkpoints" / TRAIN_STATE_FILE)
@@ -834,11 +828,13 @@ def plot_curves(progress_json: str | Path, png: str | Path, title: str | None = 
     averaged over the episodes that ended in the last ``window`` iterations (default: about
     1/60 of the run, at least 10), weighted by episode count. ``marks``: (agent-steps, label)
     vertical lines, e.g. the checkpoint that was shipped."""
-    import matplotlib
+    try:  # optional: without matplotlib the run goes on without curves
+        import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
     rows = json.loads(Path(progress_json).read_text())
     if not rows:
         return
