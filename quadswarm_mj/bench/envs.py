@@ -14,13 +14,13 @@ from quadswarm_mj.bench.common import hover_like, timed
 from quadswarm_mj.controllers import PositionController
 
 
-def bench_single(n: int, workload: str, seconds: float, repeat: int) -> float:
-    cfg = EnvConfig(num_quads=n)
-    env = QuadSwarmEnv(cfg)
+def _workload_rate(env: Any, cfg: EnvConfig, workload: str, seconds: float, repeat: int, pool_size: int,
+                   reset_on_truncation: bool) -> float:
+    """Best ``step`` calls/s of ``env`` under ``workload`` (only ``step``, and the resets it needs, timed)."""
     _, info = env.reset(seed=0)
     rng = np.random.default_rng(0)
     shape = env.action_space.shape
-    pool = [rng.uniform(-1, 1, shape).astype(np.float32) for _ in range(64)]
+    pool = [rng.uniform(-1, 1, shape).astype(np.float32) for _ in range(pool_size)]
     hover = hover_like(shape)
     ctrl = PositionController(cfg) if workload == "controller" else None
     state = {"info": info}
@@ -31,21 +31,27 @@ def bench_single(n: int, workload: str, seconds: float, repeat: int) -> float:
             if workload == "hover":
                 a = hover
             elif workload == "random":
-                a = pool[i % 64]
+                a = pool[i % pool_size]
             else:
                 inf = state["info"]
                 a = np.asarray(ctrl(inf["state"], inf["goals"], inf["goal_vel"], inf["params"]),
                                np.float32).reshape(shape)
             t = time.perf_counter()
             _, _, _, trunc, inf = env.step(a)
-            if trunc:
+            if reset_on_truncation and trunc:
                 _, inf = env.reset()
             total += time.perf_counter() - t
             state["info"] = inf
         return total
 
+    return timed(run, seconds, repeat)
+
+
+def bench_single(n: int, workload: str, seconds: float, repeat: int) -> float:
+    cfg = EnvConfig(num_quads=n)
+    env = QuadSwarmEnv(cfg)
     try:
-        return n * timed(run, seconds, repeat)
+        return n * _workload_rate(env, cfg, workload, seconds, repeat, 64, True)
     finally:
         env.close()
 
@@ -54,31 +60,7 @@ def bench_vector(B: int, n: int, workload: str, seconds: float, repeat: int, **k
     cfg = EnvConfig(num_quads=n)
     env = QuadSwarmVectorEnv(cfg, num_envs=B, **kw)
     try:
-        _, info = env.reset(seed=0)
-        rng = np.random.default_rng(0)
-        shape = env.action_space.shape
-        pool = [rng.uniform(-1, 1, shape).astype(np.float32) for _ in range(8)]
-        hover = hover_like(shape)
-        ctrl = PositionController(cfg) if workload == "controller" else None
-        state = {"info": info}
-
-        def run(steps: int) -> float:
-            total = 0.0
-            for i in range(steps):
-                if workload == "hover":
-                    a = hover
-                elif workload == "random":
-                    a = pool[i % 8]
-                else:
-                    inf = state["info"]
-                    a = np.asarray(ctrl(inf["state"], inf["goals"], inf["goal_vel"], inf["params"]), np.float32)
-                t = time.perf_counter()
-                _, _, _, _, inf = env.step(a)
-                total += time.perf_counter() - t
-                state["info"] = inf
-            return total
-
-        return B * n * timed(run, seconds, repeat)
+        return B * n * _workload_rate(env, cfg, workload, seconds, repeat, 8, False)
     finally:
         env.close()
 
