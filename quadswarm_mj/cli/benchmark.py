@@ -1,45 +1,23 @@
 """Throughput of quadswarm_mj on this machine, with the bare-MuJoCo ceiling measured in the same run.
 
-samples/s = quad-steps per second (one quad advanced one 100 Hz control step = 2 physics sub-steps
-of 200 Hz), paper defaults (collisions, noise, K = 6 neighbours, static_same_goal). Rows:
+samples/s = quad-steps per second (one quad advanced one 100 Hz control step = 2 physics sub-steps of
+200 Hz), paper defaults (collisions, noise, K = 6 neighbours, static_same_goal). Row families
+(``--rows``): ``single`` and ``vector`` (the MuJoCo engine's envs), ``jax`` (``benchmark_mjx``'s jitted
+rollout; ``--ablations`` switches stages on or off), ``jaxsingle`` and ``jaxvector`` (the envs with
+``engine="jax"``), ``peers`` (crazyflow's ``Sim``, when installed), ``obstacles`` (the cost of 12 columns)
+and ``gym`` (``gym.make("QuadSwarm-v0")`` against Hopper-v5). Every row has the bare-MuJoCo ceiling for
+the same bodies (free bodies, contacts off, ``mj_step`` on one core or ``mujoco.rollout`` on both).
+Each figure is the best of ``--repeat`` runs of ``--seconds``; every ratio is of figures of the same run,
+and ``--alternate R`` measures the peer and floor ratios in R alternating rounds (medians).
 
-* ``QuadSwarmEnv`` (one world) at N = 1, 8, 32, 128 quads;
-* ``QuadSwarmVectorEnv`` at B = 64, 256, 1024 worlds x 8 quads (auto-reset);
-* the JAX engine (``quadswarm_mj.envs.mjx_env.benchmark_mjx``: a jitted ``lax.scan`` rollout with
-  auto-reset) at 1, 64, 512, 2048 worlds x 8 quads, paper defaults and ``without_noise()``; the
-  single env and the vector env on the JAX engine (``engine="jax"``) beside the MuJoCo engine; with
-  ``--ablations`` the JAX engine at 512 x 8 with stages switched on or off (where the time goes);
-  ``obstacles`` rows: the cost of 12 columns on each engine (``--skip-mjx`` leaves the JAX rows out);
-* the peer, crazyflow's ``Sim`` (first-principles dynamics, per-rotor control, 200 Hz physics, 2
-  physics steps per 100 Hz sample) when ``crazyflow`` is installed (``pip install crazyflow``; the
-  rows are skipped with a note otherwise): jitted scan (as ``benchmark_mjx``) and Python loop (as a
-  Gymnasium env), so every ratio to it is of figures of the same run; with ``--alternate R`` also the
-  JAX engine against crazyflow's scan in R alternating rounds of fresh processes, and the JAX-engine
-  vector env against the bare-MuJoCo floor in R alternating windows (the medians of the per-round
-  ratios: robust on a machine whose speed drifts within a run);
-* ``gym`` rows: ``gym.make("QuadSwarm-v0")`` (1 and 8 quads, defaults and each engine) against gymnasium's
-  ``Hopper-v5`` (random actions, resets included) in one fresh process with JAX's defaults, and the time
-  from ``gym.make`` to the first step's return in fresh processes (:mod:`quadswarm_mj.bench.gym_rows`);
-* for every row, the bare-MuJoCo ceiling for the same number of bodies: free bodies with the
-  Crazyflie's inertia, contacts off, Euler, 2 sub-steps per control step; ``1 core`` steps one model
-  holding all bodies with ``mj_step``, ``rollout`` steps them split in equal models on both cores
-  with ``mujoco.rollout`` (long rollouts, no Python in the loop). The ceiling is the faster of the two.
+Also the console command ``quadswarm-benchmark`` (same options)::
 
-Workloads (actions): ``hover`` = the hover command on every rotor (the quads drift and many crash
-after ~1 s: the floor model then runs every sub-step, as in early RL training); ``random`` =
-uniform in [-1, 1]; ``controller`` = the baseline position controller flying to the goals (only
-the env's ``step`` is timed, not the controller). Each figure is the best of ``--repeat`` runs of
-``--seconds`` each (the machine is shared: best-of is the least noisy estimate), and every ratio is
-of figures measured in the same run.
+    python scripts/benchmark.py                  # full table -> BENCHMARKS.md (above its notes marker)
+    python scripts/benchmark.py --quick --skip-mjx --no-write
+    python scripts/benchmark.py --rows single,vector --profile --no-write
 
-Also installed as the console command ``quadswarm-benchmark`` (same options)::
-
-    /work/venv/bin/python scripts/benchmark.py                 # full table -> BENCHMARKS.md
-    /work/venv/bin/python scripts/benchmark.py --quick --skip-mjx --no-write
-    /work/venv/bin/python scripts/benchmark.py --rows single,ceiling --single-n 8 --profile
-
-The measuring lives in :mod:`quadswarm_mj.bench` (one module per row family), the report writing in
-:mod:`quadswarm_mj.bench.report`; this module is the command line.
+Measuring lives in :mod:`quadswarm_mj.bench` (one module per row family), report writing in
+:mod:`quadswarm_mj.bench.report`; this module is the command line. Reading the table: BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -98,7 +76,7 @@ FIRST_STEP_ROWS = (("gym.make('QuadSwarm-v0', num_quads=1)", {"num_quads": 1}),
 
 def gym_rows(seconds: float, repeat: int) -> str:
     """The Gymnasium rows: rates vs Hopper-v5 in a fresh process with JAX's defaults (what a user gets), the
-    JAX engine's again in a fresh process with the opt-in ``tune_jax_cpu()`` (Hopper re-measured there), and
+    JAX engine's again in a fresh process with the opt-in ``tune_jax_cpu()`` (Hopper measured there too), and
     the first-step times in fresh processes with JAX's defaults."""
     call = f"gym_rates({seconds}, {max(repeat, 1)}"
     code = f"import json; from quadswarm_mj.bench.gym_rows import gym_rates; print('RESULT', json.dumps({call})))"

@@ -1,31 +1,20 @@
 """Evaluate a policy on the CPU env: K episodes per scenario, the SPEC §8 episode metrics.
 
-    python scripts/evaluate.py --policy pretrained:single --scenarios static_same_goal,dynamic_same_goal
     python scripts/evaluate.py --policy pretrained:swarm8 --scenarios static_diff_goal,swap_goals --episodes 50
     python scripts/evaluate.py --policy pretrained:swarm8_obstacles --episodes 100   # the obstacle scenarios
-    python scripts/evaluate.py --policy controller --num-quads 8 --env 'obstacles={"density": 0.2, "size": 0.6}'
     python scripts/evaluate.py --policy runs/single/final.npz          # a training checkpoint
     python scripts/evaluate.py --policy controller --num-quads 8 --scenarios swap_goals
-    python scripts/evaluate.py --policy random
 
-Default scenarios: the eleven paper scenarios for a swarm policy (the ten named ones and ``mix``),
-the obstacle scenarios (and ``mix`` with columns) for a policy trained among obstacles (or with
-``--env obstacles='{"density": 0.2}'``), static/dynamic same goal for one quad.
+Default scenarios: the eleven paper scenarios for a swarm policy, the obstacle scenarios for a policy
+trained among obstacles (or with ``--env obstacles='{"density": 0.2}'``), static/dynamic same goal for
+one quad. Prints, per scenario and with standard errors over episodes: success rate, collisions per quad,
+collision rate, obstacle collisions per quad, goal-reach rate, mean distance to goal (m), floor hits per
+quad (definitions: docs/model.md). ``--json FILE`` writes the same numbers (checked writable first,
+replaced atomically; on a failed write the JSON is printed and the exit status is 1).
 
-Prints, per scenario: success rate (fraction of quads with no collision after the grace period
-and mean distance to goal over the last 5 steps < 0.5 m), collisions per quad per episode
-(quad-quad, after the grace period), collision rate (fraction of quads with at least one
-collision, obstacles included), obstacle collisions per quad per episode (with obstacles),
-goal-reach rate (fraction of goal segments of >= 3 s in which the quad came within 0.3 m of its
-goal), mean distance to goal (m), floor hits per quad per episode, each with the standard error
-over episodes. ``--json FILE`` writes the same numbers (and wall and ceiling hits): the file is checked
-to be writable before the evaluation (an existing file that is not JSON is refused) and replaced
-atomically; if the write fails anyway, the JSON is printed on stdout and the exit status is 1.
-
-Episodes run with the environment defaults (motor_start "zero", all noise on) unless ``--env``
-overrides them. ``--mode gym`` steps ``QuadSwarmEnv`` one episode at a time; the default
-``batched`` mode steps the same CPU engine with many episodes at once (same metrics, faster).
-No JAX is needed.
+Episodes run with the environment defaults (motor_start "zero", all noise on) unless ``--env`` overrides
+them; ``--mode gym`` steps ``QuadSwarmEnv`` one episode at a time, the default ``batched`` mode the same
+CPU engine with many episodes at once. No JAX is needed.
 """
 
 from __future__ import annotations

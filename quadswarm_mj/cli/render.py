@@ -3,25 +3,17 @@
 Example (8 quads, the baseline position controller, 3 s, 640x480 at 30 fps)::
 
     python scripts/render_rollout.py --scenario swap_goals --num-quads 8 --seconds 3 --out swarm.mp4
-    quadswarm-render --scenario swap_goals --num-quads 8 --seconds 3 --out swarm.mp4   # the same, installed
+    quadswarm-render --scenario o_random --num-quads 8 --seconds 6 --out o.mp4   # among columns
 
-Runs one world of the CPU env (``QuadSwarmEnv``, 100 Hz control) and renders every k-th control
-step offscreen (EGL by default, no display needed) so the video plays in real time at ``--fps``.
-Policies: ``controller`` (``quadswarm_mj.controllers.PositionController``, default), ``hover``
-(constant hover thrust), ``random`` (uniform actions), and trained policies, ``pretrained:<name>``
-or a policy ``.npz`` path, loaded by ``quadswarm_mj.policies.load_policy`` (the env then takes the
-observation settings the policy was trained with).
+Runs one world of the CPU env (``QuadSwarmEnv``, 100 Hz control) and renders every k-th control step
+offscreen (EGL by default, no display needed) so the video plays in real time at ``--fps``. Policies:
+``controller`` (``quadswarm_mj.controllers.PositionController``, default), ``hover``, ``random``,
+``pretrained:<name>`` or a policy ``.npz`` (``quadswarm_mj.policies.load_policy``; the env then takes the
+policy's observation settings). ``--obstacles`` turns the columns on for any scenario (the ``o_*``
+scenarios do it themselves); the controller steers around them.
 
-Outputs are safe to point at existing files: ``--out`` and ``--still`` are checked to be writable
-before the flight, and each replaces its target only once complete. If writing the still fails anyway,
-the metrics are printed and the exit status is 1.
-
-Obstacles: ``--obstacles`` turns the columns on (``ObstacleConfig()``: 12 columns of 0.6 m on the
-8 x 8 m area, a new map per episode) for any scenario; the ``o_*`` scenarios turn them on by
-themselves. The columns are drawn and the controller steers around them (a potential-field term,
-``ControllerGains(obstacle_radius=...)``)::
-
-    python scripts/render_rollout.py --scenario o_random --num-quads 8 --seconds 6 --out o.mp4
+``--out`` and ``--still`` are checked to be writable before the flight and each replaces its target only
+once complete; if writing the still fails anyway, the metrics are printed and the exit status is 1.
 """
 
 from __future__ import annotations

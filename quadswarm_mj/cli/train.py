@@ -1,41 +1,23 @@
 """Train a quadswarm_mj policy with PPO (Brax's loss, networks and normalizer in JAX).
 
-Two rollout engines (``--engine``): ``mujoco`` (the default: the batched CPU MuJoCo engine, one jitted
-call per control step for the actions and one per iteration for the update) and ``jax``
-(``MjxQuadSwarmEnv``: rollouts and updates in one jitted function per iteration, no host round trip per
-step; runs unchanged on a GPU; the ``swarm8*`` presets' default; see ``quadswarm_mj.training.jax_ppo``).
+Two rollout engines (``--engine``): ``mujoco`` (the batched CPU MuJoCo engine, one jitted call per
+control step for the actions and one per iteration for the update) and ``jax`` (``MjxQuadSwarmEnv``:
+rollouts and updates in one jitted function per iteration, runs unchanged on a GPU; see
+``quadswarm_mj.training.jax_ppo``). Presets (``--preset``, the options given override them)::
 
-The default run trains the single-quad goal-reaching policy (static and jumping goals)::
+    python scripts/train.py --preset single --minutes 1 --out runs/single   # the default: one quad, < 1 min
+    python scripts/train.py --preset swarm8 --out runs/swarm8 --minutes 90  # 8 quads, deep sets, JAX engine
+    python scripts/train.py --resume runs/swarm8 --minutes 90               # continue from the last checkpoint
 
-    python scripts/train.py --out runs/single --minutes 30
+``single_v1`` and ``swarm8_v1`` are the recipes of ``pretrained:single`` and ``pretrained:swarm8_v1``;
+the other presets are listed in docs/training.md. Everything is configurable: ``--scenario``,
+``--num-quads``, ``--reward TERM=SCALE``, ``--env FIELD=VALUE``, ``--arch``, the PPO hyper-parameters,
+``--replay-prob``, ``--anneal-agent-steps``, the budget (``--minutes`` and/or ``--timesteps`` in
+agent-steps) and ``--seed``.
 
-The 8-quad swarm on the paper scenarios (``mix`` + ``run_away``, deep-sets encoder, annealed collision
-penalties, collision replay, JAX engine), and its obstacle and deployable (<= 2,000 actor parameters)
-variants::
-
-    python scripts/train.py --preset swarm8 --out runs/swarm8 --minutes 90
-    python scripts/train.py --preset swarm8_deployable --out runs/swarm8_dep --minutes 90
-    python scripts/train.py --preset swarm8_obstacles --out runs/swarm8_obst --minutes 90
-    python scripts/train.py --resume runs/swarm8 --minutes 90      # continue from the last checkpoint
-
-(``swarm8_v1`` is the recipe of today's shipped ``pretrained:swarm8``: CPU engine, MLP, two scenarios.)
-
-Everything is configurable: ``--scenario`` (repeat it or give a comma list to train on several at
-once), ``--num-quads``, reward scales ``--reward quad_collision=5 --reward proximity=10`` (fields of
-``RewardScales``), any EnvConfig field ``--env motor_start=hover``, the policy network ``--arch``
-(``mlp`` or an encoder preset of ``quadswarm_mj.policies.ARCH_PRESETS``, ``--arch-width``), the PPO
-hyper-parameters (``--num-worlds``, ``--unroll-length``, ``--lr``, ...), ``--replay-prob`` (JAX engine),
-``--anneal-agent-steps``, the budget of this run (``--minutes`` and/or ``--timesteps`` in agent-steps =
-quad control steps) and ``--seed``.
-
-Output in ``--out``: ``run.json`` (the configuration), ``progress.csv`` and ``progress.json`` (one row per
-iteration: agent-steps, wall time, reward per agent-step, losses, and per scenario the SPEC §8 episode
-metrics of the episodes that ended in that iteration; replay rate and buffer size with replay),
-``curves.png``, ``checkpoints/step_*.npz`` every ``--checkpoint-minutes`` with
-``checkpoints/train_state.npz`` (parameters, Adam state, normalizer, RNG, counters: what ``--resume``
-reads; pickle-free) and ``final.npz``. Every ``step_*.npz``/``final.npz`` is a policy file that
-``scripts/evaluate.py --policy <path>`` and ``quadswarm_mj.policies.load_policy`` read (encoder policies
-in format 2, recording architecture and observation layout).
+Output in ``--out``: ``run.json``, ``progress.csv``/``progress.json`` (per iteration), ``curves.png``,
+``checkpoints/step_*.npz`` with ``checkpoints/train_state.npz`` (what ``--resume`` reads) and
+``final.npz``; every ``step_*.npz``/``final.npz`` is a policy file for ``scripts/evaluate.py``.
 """
 
 from __future__ import annotations
@@ -66,7 +48,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # the recipe of the shipped pretrained:single (static and jumping goals, MuJoCo engine, 30 min)
     "single_v1": {"scenarios": ["static_same_goal", "dynamic_same_goal"], "num_quads": 1, "env": {}, "rewards": {},
                   "ppo": {"num_worlds": 1024, "unroll_length": 32}},
-    # the recipe of the shipped pretrained:swarm8 (CPU engine, two scenarios, MLP over the sorted neighbours)
+    # the recipe of the shipped pretrained:swarm8_v1 (CPU engine, two scenarios, MLP over the sorted neighbours)
     "swarm8_v1": {"scenarios": ["static_diff_goal", "swap_goals"], "num_quads": 8, "env": {}, "rewards": {},
                   "ppo": {"num_worlds": 128, "unroll_length": 32}},
     # 8 quads on the paper scenarios: `mix` (nine scenarios drawn per reset) plus run_away on a tenth of the
