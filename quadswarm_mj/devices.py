@@ -8,8 +8,9 @@ itself. For the JAX engine's many small kernels (arrays of a few hundred to a fe
 numbers) that intra-op split costs more than it gains; giving each core its own device and
 sharding the worlds over the devices (``quadswarm_mj.envs.sharding``: every device steps its own
 worlds, no communication) gives 1.6-1.9x the samples/s of one device on the 2-core machine
-(512 and 2048 worlds x 8 quads in the standard run of BENCHMARKS.md). The vector env (``engine="jax"``), ``benchmark_mjx`` and the JAX-engine trainer
-use every device whose count divides their number of worlds.
+(512 and 2048 worlds x 8 quads in the standard run of BENCHMARKS.md). The vector env
+(``engine="jax"``), ``benchmark_mjx`` and the JAX-engine trainer use every device whose count divides
+their number of worlds.
 
 The device count is fixed when JAX creates its CPU client, i.e. at the first JAX operation of the
 process, so call this first (or set the environment variable ``JAX_NUM_CPU_DEVICES``)::
