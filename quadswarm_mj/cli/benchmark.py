@@ -163,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.add("jax")
     if args.skip_mjx:
         rows -= {"mjx", "jax", "jaxsingle", "jaxvector", "peers", "obstacles", "gym"}
-    command = "/work/venv/bin/python scripts/benchmark.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    command = "python scripts/benchmark.py " + " ".join(sys.argv[1:] if argv is None else argv)
     started = datetime.datetime.now().astimezone()
     load0 = load()
     print(f"{machine()}\nload average at start: {load0}\n", flush=True)
