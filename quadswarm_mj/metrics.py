@@ -56,7 +56,7 @@ def update(m: dict[str, Any], t: Any, dist_to_goal: Any, new_contact: Any, hit_f
     xp = array_namespace(dist_to_goal)
     f = dist_to_goal.dtype
     after_grace = (t >= grace_s)
-    coll = new_contact.sum(axis=-1).astype(f) * after_grace
+    coll = new_contact.sum(axis=-1, dtype=f) * after_grace  # a count: exact in any float
     seg_len = t - m["seg_start"]
     close = goal_jump & (seg_len >= MIN_SEGMENT_S - 1e-9)
     reached = m["seg_reached"]

@@ -68,10 +68,6 @@ NONNEGATIVE = ("pos", "effort", "spin", "crash", "vel", "action_change", "quad_c
                "floor_hit", "wall_hit", "ceiling_hit")
 
 
-def _norm(xp: Any, x: Any) -> Any:
-    return norm_last(x)
-
-
 def reward_terms(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, action: Any,
                  f_norm: Any, prev_f_norm: Any, on_floor: Any, hit_floor: Any, hit_wall: Any,
                  hit_ceiling: Any, new_contact: Any, dist: Any, anneal: Any = 1.0,
@@ -80,33 +76,38 @@ def reward_terms(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: 
     ``goal_dist`` optionally passes ||goals - pos|| (..., N) when the caller has it already.
 
     Each term is -term_dt(cfg, term) * scale * cost (see the module doc). A term with a zero scale
-    whose cost cannot be negative is -0.0 (= -dt * 0 * cost) without computing the cost."""
+    whose cost cannot be negative is -0.0 (= -dt * 0 * cost) without computing the cost: all such
+    terms are one shared (..., N) array of -0.0 (read-only by convention, as every term)."""
     xp = array_namespace(pos, vel)
     s = cfg.rewards
     n = pos.shape[-2]
     falloff = s.proximity_falloff_arms * cfg.quad.arm
+    dtype = pos.dtype
     cost_fns = {
-        "pos": lambda: _norm(xp, goals - pos) if goal_dist is None else goal_dist,
-        "effort": lambda: _norm(xp, xp.minimum(xp.maximum(action, -1.0), 1.0)),  # the clipped action
-        "spin": lambda: _norm(xp, omega),
-        "crash": lambda: on_floor.astype(pos.dtype),
+        "pos": lambda: norm_last(goals - pos) if goal_dist is None else goal_dist,
+        "effort": lambda: norm_last(xp.minimum(xp.maximum(action, -1.0), 1.0)),  # the clipped action
+        "spin": lambda: norm_last(omega),
+        "crash": lambda: on_floor.astype(dtype),
         "orient": lambda: xp.where(on_floor, 1.0, -R[..., 2, 2]),
-        "vel": lambda: _norm(xp, vel),
-        "action_change": lambda: _norm(xp, f_norm - prev_f_norm),
+        "vel": lambda: norm_last(vel),
+        "action_change": lambda: norm_last(f_norm - prev_f_norm),
         "yaw": lambda: -R[..., 0, 0],
         "rot": lambda: -(R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0,
-        "quad_collision": lambda: new_contact.sum(axis=-1).astype(pos.dtype),
+        "quad_collision": lambda: new_contact.sum(axis=-1, dtype=dtype),  # a count: exact in any float
         # sum over the others within the falloff of (1 - d / falloff); max(., 0) does the masking
         "proximity": lambda: xp.maximum(1.0 - xp.where(off_diagonal(n), dist, xp.inf) / falloff, 0.0).sum(axis=-1),
-        "floor_hit": lambda: hit_floor.astype(pos.dtype),
-        "wall_hit": lambda: hit_wall.astype(pos.dtype),
-        "ceiling_hit": lambda: hit_ceiling.astype(pos.dtype),
+        "floor_hit": lambda: hit_floor.astype(dtype),
+        "wall_hit": lambda: hit_wall.astype(dtype),
+        "ceiling_hit": lambda: hit_ceiling.astype(dtype),
     }
     out = {}
+    zero = None
     for k in TERMS:
         base = getattr(s, k)
         if base == 0 and k in NONNEGATIVE:
-            out[k] = -0.0 * on_floor  # a fresh (..., N) array of -0.0 (default float type)
+            if zero is None:
+                zero = -0.0 * on_floor  # a fresh (..., N) array of -0.0 (default float type)
+            out[k] = zero
             continue
         scale = base * (anneal if k in ANNEALED else 1.0)
         out[k] = -term_dt(cfg, k) * scale * cost_fns[k]()

@@ -88,6 +88,7 @@ class QuadSwarmEnv(gym.Env):
         self._renderer: Any = None
         self._needs_reset = True
         self._seeded = False
+        self._params: dict[str, np.ndarray] = {}  # world 0's dynamics parameters of the episode (set by reset)
         self.closed = False
         self._flat = gym_flattener(self.cfg) if self.cfg.info_mode == "flat" else None  # envs/flat_info.py
 
@@ -97,14 +98,16 @@ class QuadSwarmEnv(gym.Env):
         return o[0] if self.single else o
 
     def _info(self) -> dict[str, Any]:
+        """The info entries of reset and step: fresh copies (nothing shared with the engine or with
+        another call's info)."""
         c = self.core
         return {
             "state": {k: v[0] for k, v in c.state_dict().items()},
             "goals": c.sstate.goals[0].copy(),
             "goal_vel": c.sstate.goal_vel[0].copy(),
-            "params": {k: v[0] for k, v in c.params_dict().items()},
+            "params": {k: v.copy() for k, v in self._params.items()},
             "on_floor": c.on_floor[0].copy(),
-            "time": float(c.steps[0] * self.cfg.control_dt),
+            "time": int(c.steps[0]) * self.cfg.control_dt,
             **({"obstacles": c.obstacle_centres(0)} if c.omap is not None else {}),
         }
 
@@ -154,6 +157,7 @@ class QuadSwarmEnv(gym.Env):
         if state is not None:
             state = {k: (v if isinstance(v, str) else v[None]) for k, v in state.items()}
         self.core.reset(state=state)
+        self._params = {k: v[0] for k, v in self.core.params_dict().items()}  # the episode's (copies)
         self._needs_reset = False
         obs = self._obs(self.core.observe())
         return obs, self._info_out(self._info(), obs)
@@ -175,13 +179,15 @@ class QuadSwarmEnv(gym.Env):
             raise
         truncated = bool(out["truncated"][0])
         info = self._info()
-        info["rewards"] = out["rewards"][0].copy()
-        info["reward_terms"] = {k: v[0].copy() for k, v in out["terms"].items()}
+        terms = out["terms"]
+        rows = np.concatenate([out["rewards"], *terms.values()])  # (1 + terms, N): one copy of them all
+        info["rewards"] = rows[0]
+        info["reward_terms"] = dict(zip(terms, rows[1:]))
         info["new_collisions"] = out["kin"]["new_contact"][0].any(-1)
         if truncated:
             info["episode_metrics"] = {k: float(v[0]) for k, v in self.core.episode_metrics().items()}
             self._needs_reset = True
-        reward = float(np.mean(out["rewards"][0]))
+        reward = float(np.add.reduce(rows[0])) / self.cfg.num_quads  # = np.mean: the same sum and division
         obs = self._obs(out["obs"])
         return obs, reward, False, truncated, self._info_out(info, obs)
 
