@@ -29,6 +29,7 @@ The per-quad reward is the exact sum of the terms. Pure, any batch dims, NumPy o
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 from quadswarm_mj._xp import array_namespace
@@ -102,16 +103,29 @@ def reward_terms(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: 
     }
     out = {}
     zero = None
-    for k in TERMS:
-        base = getattr(s, k)
-        if base == 0 and k in NONNEGATIVE:
+    for k, neg_dt, base in _term_factors(s, cfg.sim_dt, cfg.control_dt):
+        if base is None:
             if zero is None:
                 zero = -0.0 * on_floor  # a fresh (..., N) array of -0.0 (default float type)
             out[k] = zero
-            continue
-        scale = base * (anneal if k in ANNEALED else 1.0)
-        out[k] = -term_dt(cfg, k) * scale * cost_fns[k]()
+        elif k in ANNEALED:
+            out[k] = neg_dt * (base * anneal) * cost_fns[k]()
+        else:
+            out[k] = neg_dt * base * cost_fns[k]()  # = -term_dt(cfg, k) * scale * cost
     return out
+
+
+@functools.lru_cache(maxsize=64)
+def _term_factors(scales: RewardScales, sim_dt: float, control_dt: float
+                  ) -> tuple[tuple[str, float, float | None], ...]:
+    """(term, -term_dt, base scale) of each of ``TERMS`` in order; base None for a term that is exactly
+    -0.0 (zero scale, cost never negative). Depends on the config only: computed once per config."""
+    dt = {**dict.fromkeys(STATE_TERMS, sim_dt), **dict.fromkeys(CONTROL_DT_TERMS, control_dt)}
+    out = []
+    for k in TERMS:
+        base = getattr(scales, k)
+        out.append((k, -dt.get(k, 1.0), None if base == 0 and k in NONNEGATIVE else base))
+    return tuple(out)
 
 
 def zero_terms(cfg: EnvConfig) -> tuple[str, ...]:
