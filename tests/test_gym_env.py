@@ -55,6 +55,36 @@ def test_info_state_is_a_fresh_copy():
     assert np.abs(info2["state"]["pos"] - pos).max() < 0.1  # the env was not corrupted
 
 
+def _leaves(d, prefix=""):
+    for k, v in d.items():
+        if isinstance(v, dict):
+            yield from _leaves(v, f"{prefix}{k}/")
+        elif isinstance(v, np.ndarray):
+            yield f"{prefix}{k}", v
+
+
+def test_info_arrays_are_not_shared_between_calls_or_with_the_engine():
+    """Every array of an info is the caller's: none shares memory with another call's info or with
+    the engine (state, parameters, goals, reward terms, rewards), so editing one changes nothing else."""
+    env = QuadSwarmEnv(EnvConfig(num_quads=3, randomize=True))
+    _, info0 = env.reset(seed=0)
+    _, _, _, _, info1 = env.step(np.full((3, 4), HOVER))
+    _, _, _, _, info2 = env.step(np.full((3, 4), HOVER))
+    c = env.core
+    engine = [c.qpos, c.qvel, c.f_norm, c.on_floor, c.sstate.goals, c.sstate.goal_vel, *c.params.values()]
+    a, b = dict(_leaves(info1)), dict(_leaves(info2))
+    assert {"rewards", "reward_terms/pos", "params/mass", "state/pos"} <= set(a)
+    for name, x in a.items():
+        for other in [*b.values(), *dict(_leaves(info0)).values(), *engine]:
+            assert not np.shares_memory(x, other), name
+    for name, x in a.items():  # entries of one info may be rows of one buffer (one copy), never overlapping
+        for name2, y in a.items():
+            assert name2 == name or not np.shares_memory(x, y), (name, name2)
+    np.testing.assert_array_equal(info1["params"]["mass"], info0["params"]["mass"])  # the episode's
+    info1["reward_terms"]["pos"][:] = 1e9
+    assert np.all(info1["rewards"] < 1e9) and np.all(info2["reward_terms"]["pos"] < 1e9)
+
+
 def test_reset_state_is_exact_and_goals_kept():
     env = QuadSwarmEnv(EnvConfig(num_quads=2, scenario="static_same_goal"))
     c, s = np.cos(0.3), np.sin(0.3)
@@ -81,7 +111,7 @@ def test_reward_terms_sum_to_rewards_and_team_reward_is_mean():
         assert set(info["reward_terms"]) == set(TERMS)
         total = sum(info["reward_terms"][k] for k in TERMS)
         np.testing.assert_allclose(total, info["rewards"], rtol=1e-12, atol=1e-15)
-        assert isinstance(r, float) and r == pytest.approx(float(np.mean(info["rewards"])))
+        assert isinstance(r, float) and r == float(np.mean(info["rewards"]))  # exactly the mean
         assert not term
 
 
