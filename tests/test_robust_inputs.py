@@ -401,10 +401,20 @@ def test_closed_env_refuses_steps_and_resets(engine):
     if engine == "mujoco":  # (the JAX engine: no reset, so no compile)
         e.reset(seed=0)
     e.close()
-    for call in (lambda: e.step(np.zeros((N, 4))), lambda: e.reset(seed=0)):
+    for call in (lambda: e.step(np.zeros((N, 4))), lambda: e.reset(seed=0), e.render):
         with pytest.raises(RuntimeError, match="closed"):
             call()
     e.close()  # closing twice is fine
+
+
+def test_closed_env_does_not_reopen_its_renderer():
+    e = QuadSwarmEnv(num_quads=2, render_mode="rgb_array")
+    e.reset(seed=0)
+    assert e.render().ndim == 3
+    e.close()
+    with pytest.raises(RuntimeError, match="closed"):
+        e.render()
+    assert e._renderer is None
 
 
 def test_closed_parallel_env_refuses_steps():
@@ -415,6 +425,8 @@ def test_closed_parallel_env_refuses_steps():
         par.step({"quad_0": np.zeros(4), "quad_1": np.zeros(4)})
     with pytest.raises(RuntimeError, match="closed"):
         par.reset(seed=0)
+    with pytest.raises(RuntimeError, match="closed"):
+        par.render()
 
 
 # ------------------------------------------------------------------------ item 8: PettingZoo containers
