@@ -6,7 +6,6 @@ CPU path runs without JAX installed.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from types import ModuleType
 from typing import Any
 
@@ -34,32 +33,6 @@ def safe_normalize(xp: ModuleType, v: Any, eps: float = 1e-5) -> Any:
     return v / (n + eps)
 
 
-def worlds_last(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """``fn`` for unbatched JAX arrays, whose ``jax.vmap`` moves the mapped axis of every argument LAST
-    and calls ``fn`` on those arrays (``jax.custom_batching.custom_vmap``); the results' last axis is
-    moved back to the front. ``fn`` must accept trailing batch axes after its own axes (write it
-    "rows first": ``x[:, None] - x[None, :]``, reductions over named leading axes).
+from quadswarm_mj.perf.xla_cpu import worlds_last  # noqa: E402  re-export: its home is perf/ (speed code)
 
-    Why: XLA:CPU vectorizes along the last axis; the model's arrays end in short axes (N = 8 quads,
-    3 components), so a comparison or reduction over them runs at scalar speed, while with the worlds
-    axis last the same operations run along contiguous worlds. Same values (the same operations in
-    the same order), different memory layout. Integer or non-differentiated results only (no
-    autodiff rule: pass ``jax.lax.stop_gradient`` inputs)."""
-    import jax
-
-    @jax.custom_batching.custom_vmap
-    def mapped(*args: Any) -> Any:
-        return fn(*args)
-
-    @mapped.def_vmap
-    def _rule(axis_size: int, in_batched: list[bool], *args: Any) -> tuple[Any, Any]:
-        jnp = jax.numpy
-        if not any(in_batched):
-            out = mapped(*args)
-            return out, jax.tree.map(lambda _: False, out)
-        moved = [jnp.moveaxis(a, 0, -1) if b else jnp.asarray(a)[..., None] for a, b in zip(args, in_batched)]
-        out = jax.tree.map(lambda o: jnp.moveaxis(jnp.broadcast_to(o, o.shape[:-1] + (axis_size,)), -1, 0),
-                           fn(*moved))
-        return out, jax.tree.map(lambda _: True, out)
-
-    return mapped
+__all__ = ["array_namespace", "is_jax_array", "safe_normalize", "worlds_last"]

@@ -23,10 +23,11 @@ from typing import Any
 
 import numpy as np
 
+from quadswarm_mj import components as C
 from quadswarm_mj._xp import array_namespace
 from quadswarm_mj.config import QuadParams
 from quadswarm_mj.random_draws import DrawSpec, Normal
-from quadswarm_mj.spatial import BIG, sum_last
+from quadswarm_mj.spatial import sum_last
 
 #: xy signs of rotors 0..3: front-right, back-right, back-left, front-left.
 ROTOR_SIGNS = np.array([[1.0, -1.0], [-1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]])
@@ -162,27 +163,13 @@ def substep_wrench(u: Any, cmd: Any, noise: Any, params: dict[str, Any], R: Any,
     :func:`thrust_map` to ``f_norm`` before the wrench; ``rotor_gain`` (..., N, 4), e.g. the ground
     effect of :func:`quadswarm_mj.aerodynamics.ground_effect_gain`, multiplies each rotor's thrust
     and reaction torque. With the defaults (0.0, None) neither is evaluated (bit-identical to the
-    paper's chain). The returned ``f_norm`` is always the motor output before both.
+    paper's chain). The returned ``f_norm`` is always the motor output before both. One body:
+    :func:`quadswarm_mj.components.rotor_wrench` (``perf.numpy_small`` has the small-NumPy form).
     """
-    xp = array_namespace(u, cmd)
-    if (thrust_quadratic == 0.0 and rotor_gain is None and (mix is None or isinstance(mix, np.ndarray))
-            and (xp is not np or u.size >= BIG)):  # component form (one formula, quadswarm_mj.components)
-        from quadswarm_mj import components as C
-
-        mix = wrench_matrix(rotor_pos) if mix is None else mix
-        torque_spin = params["torque_max"] * SPIN if torque_spin is None else torque_spin
-        lead = R.shape[:-2]
-        r = C.rotor_wrench(C.split(u), C.split(cmd), C.split(noise), params["alpha"], C.split(params["thrust_max"]),
-                           C.split(torque_spin), np.asarray(mix), C.split(R.reshape(lead + (9,))))
-        return tuple(C.stack(x) for x in r)
-    # small NumPy arrays (or the thrust map / rotor gain): the same formulas in the fewest NumPy calls
-    u = motor_lag(u, cmd, params["alpha"])
-    f_norm = rotor_thrust(u, cmd, noise)
     mix = wrench_matrix(rotor_pos) if mix is None else mix
     torque_spin = params["torque_max"] * SPIN if torque_spin is None else torque_spin
-    f_eff = f_norm if thrust_quadratic == 0.0 else thrust_map(f_norm, thrust_quadratic)
-    if rotor_gain is not None:
-        f_eff = f_eff * rotor_gain
-    fz, torque_b = _thrust_torque(xp, f_eff, params["thrust_max"], torque_spin, mix)
-    force_w, torque_w = _rotate_wrench(R, fz, torque_b)
-    return u, f_norm, force_w, torque_w
+    lead = R.shape[:-2]
+    r = C.rotor_wrench(C.split(u), C.split(cmd), C.split(noise), params["alpha"], C.split(params["thrust_max"]),
+                       C.split(torque_spin), mix, C.split(R.reshape(lead + (9,))), thrust_quadratic,
+                       None if rotor_gain is None else C.split(rotor_gain))
+    return tuple(C.stack(x) for x in r)

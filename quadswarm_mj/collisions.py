@@ -17,14 +17,16 @@ from typing import Any
 
 import numpy as np
 
-from quadswarm_mj._xp import array_namespace, is_jax_array, safe_normalize, worlds_last
+from quadswarm_mj import components as C
+from quadswarm_mj._xp import array_namespace, is_jax_array, safe_normalize
+from quadswarm_mj.constants import FLOOR_TOL
+from quadswarm_mj.perf.xla_cpu import worlds_last
 from quadswarm_mj.random_draws import DrawSpec, Normal, Uniform
-from quadswarm_mj.spatial import BIG, norm_last, yaw_of, yaw_quat, yaw_rotmat
+from quadswarm_mj.spatial import norm_last
 
 # ---------------------------------------------------------------------------------------- floor
 
-#: z tolerance (m) above the floor height within which a grounded quad stays grounded.
-FLOOR_TOL = 1e-6
+__all__ = ["FLOOR_TOL"]  # re-exported: its home is quadswarm_mj.constants (a leaf)
 
 
 def floor_draw_spec(num_quads: int) -> DrawSpec:
@@ -39,31 +41,11 @@ def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any
     Normal force N = max(0, m g - F_z), so the vertical acceleration is not negative.
     Horizontal: static friction cancels the horizontal force while it is below mu N and the quad
     is at rest; otherwise kinetic friction mu N opposes the velocity (never reversing it within
-    one sub-step). Roll and pitch torques are removed (the quad stays flat, yaw-only).
+    one sub-step). Roll and pitch torques are removed (the quad stays flat, yaw-only). One body:
+    :func:`quadswarm_mj.components.floor_wrench` (``perf.numpy_small`` has the small-NumPy form).
     """
-    xp = array_namespace(force_w, vel)
-    if xp is not np or force_w.size >= BIG:  # component form (one formula, quadswarm_mj.components)
-        from quadswarm_mj import components as C
-
-        f, t = C.floor_wrench(on_floor, C.split(force_w), C.split(torque_w), C.split(vel), mass, gravity, friction, dt)
-        return C.stack(f), C.stack(t)
-    # small NumPy arrays: the same formulas in the fewest NumPy calls (tests/test_components.py)
-    weight = mass * gravity
-    normal = xp.maximum(0.0, weight - force_w[..., 2])
-    cap = friction * normal
-    f_h = force_w[..., :2]
-    f_mag = norm_last(f_h)
-    v_h = vel[..., :2]
-    speed = norm_last(v_h)
-    moving = speed > 1e-9
-    static_h = f_h * (xp.maximum(0.0, f_mag - cap) / xp.where(f_mag > 0, f_mag, 1.0))[..., None]
-    kinetic_mag = xp.minimum(cap, mass * speed / dt)
-    kinetic_h = f_h - (kinetic_mag / xp.where(moving, speed, 1.0))[..., None] * v_h
-    new_h = xp.where(moving[..., None], kinetic_h, static_h)
-    new_force = xp.concatenate([new_h, (force_w[..., 2] + normal)[..., None]], axis=-1)
-    new_torque = xp.concatenate([xp.zeros_like(torque_w[..., :2]), torque_w[..., 2:]], axis=-1)
-    g = on_floor[..., None]
-    return xp.where(g, new_force, force_w), xp.where(g, new_torque, torque_w)
+    f, t = C.floor_wrench(on_floor, C.split(force_w), C.split(torque_w), C.split(vel), mass, gravity, friction, dt)
+    return C.stack(f), C.stack(t)
 
 
 def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_floor: Any,
@@ -80,40 +62,17 @@ def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_f
 
     ``yaw_draw_cs`` (the JAX engine's trig-free path): (cos, sin) of the yaw draws instead of
     ``yaw_draw`` (then ignored); the yaw rotation is built from the heading's cosine and sine
-    (:func:`~quadswarm_mj.spatial.yaw_cos_sin`), equal to the angle path up to round-off.
+    (:func:`~quadswarm_mj.spatial.yaw_cos_sin`), equal to the angle path up to round-off. One body:
+    :func:`quadswarm_mj.components.floor_impact` (``perf.numpy_small`` has the small-NumPy form).
     """
-    xp = array_namespace(pos, vel)
-    if yaw_draw_cs is not None:  # the trig-free path is defined once, in component form
-        from quadswarm_mj import components as C
-
-        lead = R.shape[:-2]
-        r = C.floor_impact(C.split(pos), C.split(vel), C.split(omega), C.split(quat), C.split(R.reshape(lead + (9,))),
-                           C.split(u), on_floor, floor_z, yaw_draw_cs)
-        out = {k: C.stack(v) if isinstance(v, tuple) else v for k, v in r.items()}
-        if with_rotmat:
-            out["R"] = out["R"].reshape(lead + (3, 3))
-        else:
-            del out["R"]
-        return out
-    z = pos[..., 2]
-    hit = (z <= floor_z) & ~on_floor
-    staying = on_floor & (z <= floor_z + FLOOR_TOL)
-    grounded = hit | staying
-    upside_down = R[..., 2, 2] < 0
-    yaw = yaw_of(R) + xp.where(hit & upside_down, yaw_draw, 0.0)
-    yaw_q, yaw_R = yaw_quat(yaw), (yaw_rotmat(yaw) if with_rotmat else None)
-    new_pos = xp.concatenate([pos[..., :2], xp.where(grounded, floor_z, z)[..., None]], axis=-1)
-    zero2 = xp.zeros_like(vel[..., :2])
-    vel_stay = xp.concatenate([vel[..., :2], zero2[..., :1]], axis=-1)
-    new_vel = xp.where(hit[..., None], 0.0 * vel, xp.where(staying[..., None], vel_stay, vel))
-    omega_stay = xp.concatenate([zero2, omega[..., 2:]], axis=-1)
-    new_omega = xp.where(hit[..., None], 0.0 * omega, xp.where(staying[..., None], omega_stay, omega))
-    new_quat = xp.where(grounded[..., None], yaw_q, quat)
-    new_u = xp.where(hit[..., None], 0.0 * u, u)
-    out = {"pos": new_pos, "vel": new_vel, "omega": new_omega, "quat": new_quat, "u": new_u, "on_floor": grounded,
-           "hit_floor": hit}
+    lead = R.shape[:-2]
+    r = C.floor_impact(C.split(pos), C.split(vel), C.split(omega), C.split(quat), C.split(R.reshape(lead + (9,))),
+                       C.split(u), on_floor, floor_z, yaw_draw_cs, yaw_draw=yaw_draw)
+    out = {k: C.stack(v) if isinstance(v, tuple) else v for k, v in r.items()}
     if with_rotmat:
-        out["R"] = xp.where(grounded[..., None, None], yaw_R, R)
+        out["R"] = out["R"].reshape(lead + (3, 3))
+    else:
+        del out["R"]
     return out
 
 
@@ -268,7 +227,7 @@ def _pair_distances_rows_first(xp: Any, pos: Any) -> Any:
 @functools.cache
 def _pair_distances_jax() -> Any:
     """:func:`_pair_distances_rows_first` for one world's (N, 3) ``pos``; vmapped, the worlds axis is
-    last (:func:`quadswarm_mj._xp.worlds_last`: the 3-component sums run along contiguous worlds).
+    last (:func:`quadswarm_mj.perf.xla_cpu.worlds_last`: the 3-component sums run along contiguous worlds).
     Differentiable: d||r|| = r . dr / ||r|| (0 on the diagonal, where autodiff of the norm gives NaN)."""
     import jax
     import jax.numpy as jnp
@@ -564,7 +523,7 @@ def _pair_events_rows_first(xp: Any, pos: Any, prev_contact: Any, hitbox: Any, s
 def _pair_events_jax(slots: int) -> Any:
     """:func:`_pair_events_rows_first` for one world's (N, 3) ``pos``, (N, N) ``prev_contact`` and the
     hitbox (a scalar array, m) under JAX, vmapped with the worlds axis last
-    (:func:`quadswarm_mj._xp.worlds_last`)."""
+    (:func:`quadswarm_mj.perf.xla_cpu.worlds_last`)."""
     import jax.numpy as jnp
 
     return worlds_last(lambda pos, prev, hitbox: _pair_events_rows_first(jnp, pos, prev, hitbox, slots))

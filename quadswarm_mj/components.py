@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from quadswarm_mj._xp import array_namespace
-from quadswarm_mj.collisions import FLOOR_TOL
+from quadswarm_mj.constants import FLOOR_TOL
 from quadswarm_mj.spatial import yaw_cos_sin_components, yaw_half_cos_sin
 
 Vec3 = tuple[Any, Any, Any]
@@ -49,30 +49,30 @@ def _sum(terms: list[Any]) -> Any:
     return r
 
 
-def kernel_boundary(parts: tuple[Any, ...], one: Any) -> tuple[Any, ...]:
-    """``parts`` unchanged (each divided by ``one``, a traced scalar equal to 1.0, which is exact),
-    computed by XLA:CPU in their own kernels. XLA fuses cheap elementwise producers into every consumer,
-    recomputing them there, but does not duplicate a division (an "expensive" op); a value read by many
-    consumers is thus computed once and read back. ``one`` must be a run-time value (e.g. ``1 + 0 * i``
-    with the loop index ``i``), or XLA folds the division away."""
-    return tuple(p / one for p in parts)
-
-
 def rotor_wrench(u: Rotors, cmd: Rotors, noise: Rotors, alpha: Any, thrust_max: Rotors, torque_spin: Rotors,
-                 mix: np.ndarray, R: Rot) -> tuple[Rotors, Rotors, Vec3, Vec3]:
-    """:func:`quadswarm_mj.actuation.substep_wrench` (linear thrust map, no rotor gain) per component.
+                 mix: Any, R: Rot, thrust_quadratic: float = 0.0,
+                 rotor_gain: Rotors | None = None) -> tuple[Rotors, Rotors, Vec3, Vec3]:
+    """:func:`quadswarm_mj.actuation.substep_wrench` per component (the model's one body of it).
 
     ``u`` normalized rotor speeds, ``cmd`` commands in [0, 1], ``noise`` the motor noise, ``alpha`` (..., N)
     the motor filter gain, ``thrust_max`` (N) and ``torque_spin`` (N m, ``torque_max * SPIN``) per rotor,
-    ``mix`` the (3, 4) NumPy :func:`~quadswarm_mj.actuation.wrench_matrix`, ``R`` body->world. Returns the
-    new ``u``, ``f_norm`` (normalized thrusts), and the world force (N) and torque (N m) at the COM.
+    ``mix`` the (3, 4) :func:`~quadswarm_mj.actuation.wrench_matrix`, ``R`` body->world;
+    ``thrust_quadratic`` (a Python float) the static thrust map, ``rotor_gain`` per-rotor thrust gains
+    (e.g. ground effect; None: 1). Returns the new ``u``, ``f_norm`` (normalized motor output, before the
+    map and the gain), and the world force (N) and torque (N m) at the COM.
     """
     xp = array_namespace(*u, *cmd)
     u = tuple(u[i] + alpha * (xp.sqrt(cmd[i]) - u[i]) for i in range(4))  # motor_lag
     f = tuple(xp.minimum(xp.maximum(u[i] * u[i] + cmd[i] * noise[i], 0.0), 1.0) for i in range(4))  # rotor_thrust
-    thrust = [thrust_max[i] * f[i] for i in range(4)]
-    fz, tbx, tby = (_sum([thrust[i] * float(mix[r, i]) for i in range(4)]) for r in range(3))
-    tbz = _sum([torque_spin[i] * f[i] for i in range(4)])
+    f_eff = f if thrust_quadratic == 0.0 else tuple(fi * ((1.0 - thrust_quadratic) + thrust_quadratic * fi)
+                                                    for fi in f)  # actuation.thrust_map
+    if rotor_gain is not None:
+        f_eff = tuple(f_eff[i] * rotor_gain[i] for i in range(4))
+    # a NumPy mix enters as Python floats (constants under jit), a JAX one as traced entries
+    m = mix.tolist() if isinstance(mix, np.ndarray) else [[mix[r, i] for i in range(4)] for r in range(3)]
+    thrust = [thrust_max[i] * f_eff[i] for i in range(4)]
+    fz, tbx, tby = (_sum([thrust[i] * m[r][i] for i in range(4)]) for r in range(3))
+    tbz = _sum([torque_spin[i] * f_eff[i] for i in range(4)])
     force = (fz * R[2], fz * R[5], fz * R[8])
     torque = tuple(_sum([R[3 * k] * tbx, R[3 * k + 1] * tby, R[3 * k + 2] * tbz]) for k in range(3))
     return u, f, force, torque
@@ -100,26 +100,36 @@ def floor_wrench(on_floor: Any, force: Vec3, torque: Vec3, vel: Vec3, mass: Any,
 
 
 def floor_impact(pos: Vec3, vel: Vec3, omega: Vec3, quat: Quat, R: Rot, u: Rotors, on_floor: Any, floor_z: float,
-                 yaw_draw_cs: tuple[Any, Any],
-                 materialize: Callable[[tuple[Any, ...]], tuple[Any, ...]] | None = None) -> dict[str, Any]:
-    """:func:`quadswarm_mj.collisions.floor_impact` (its trig-free ``yaw_draw_cs`` path) per component.
+                 yaw_draw_cs: tuple[Any, Any] | None,
+                 materialize: Callable[[tuple[Any, ...]], tuple[Any, ...]] | None = None,
+                 yaw_draw: Any = None) -> dict[str, Any]:
+    """:func:`quadswarm_mj.collisions.floor_impact` per component (the model's one body of it).
 
-    ``materialize``: applied to the landing yaw's (cos, sin) (an identity on their values, e.g.
-    :func:`kernel_boundary`), so that XLA computes them once instead of inside each of the ~20 selects
-    that read them. Returns a dict of ``pos, vel, omega, quat, R, u`` (tuples) and ``on_floor,
-    hit_floor`` (..., N) bool."""
+    The landing yaw (the heading kept, plus the draw for an upside-down landing) comes either from
+    ``yaw_draw_cs`` = (cos, sin) of the draws, trig-free (the JAX engine), or from the angles
+    ``yaw_draw`` (rad, when ``yaw_draw_cs`` is None: ``atan2`` of the heading, then ``cos``/``sin``;
+    the CPU engine's seeded record); the two agree to round-off. ``materialize``: applied to the
+    landing yaw's (cos, sin) (an identity on their values, e.g. ``perf.xla_cpu.kernel_boundary``), so
+    that XLA computes them once instead of inside each of the ~20 selects that read them. Returns a
+    dict of ``pos, vel, omega, quat, R, u`` (tuples) and ``on_floor, hit_floor`` (..., N) bool."""
     xp = array_namespace(pos[0], vel[0])
     z = pos[2]
     hit = (z <= floor_z) & ~on_floor
     staying = on_floor & (z <= floor_z + FLOOR_TOL)
     grounded = hit | staying
-    c, s = yaw_cos_sin_components(R[0], R[3])
     flip = hit & (R[8] < 0)  # upside down
-    dc, ds = yaw_draw_cs
-    c, s = xp.where(flip, c * dc - s * ds, c), xp.where(flip, s * dc + c * ds, s)
-    if materialize is not None:
-        c, s = materialize((c, s))
-    ch, sh = yaw_half_cos_sin(c, s)
+    if yaw_draw_cs is None:  # the angle path (spatial.yaw_of, yaw_quat, yaw_rotmat)
+        yaw = xp.arctan2(R[3], R[0]) + xp.where(flip, yaw_draw, 0.0)
+        c, s = xp.cos(yaw), xp.sin(yaw)
+        h = 0.5 * yaw
+        ch, sh = xp.cos(h), xp.sin(h)
+    else:
+        c, s = yaw_cos_sin_components(R[0], R[3])
+        dc, ds = yaw_draw_cs
+        c, s = xp.where(flip, c * dc - s * ds, c), xp.where(flip, s * dc + c * ds, s)
+        if materialize is not None:
+            c, s = materialize((c, s))
+        ch, sh = yaw_half_cos_sin(c, s)
     zero, one = xp.zeros_like(c), xp.ones_like(c)
 
     def hit_or(a: Any, b: Any) -> Any:

@@ -31,9 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from quadswarm_mj._xp import array_namespace, worlds_last
+from quadswarm_mj._xp import array_namespace
 from quadswarm_mj.collisions import off_diagonal
 from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.perf.xla_cpu import worlds_last
 from quadswarm_mj.random_draws import DrawSpec, Normal
 from quadswarm_mj.spatial import norm_last, sum_last
 
@@ -152,7 +153,7 @@ def _sorted_position_bits(key: Any) -> Any:
 @functools.cache
 def _sorted_position_jax() -> Any:
     """:func:`_sorted_position_rows_first` for one (N, N) ``key`` under JAX, vmapped with the worlds
-    axis last (:func:`quadswarm_mj._xp.worlds_last`): the N^3 comparisons and the sum then run along
+    axis last (:func:`quadswarm_mj.perf.xla_cpu.worlds_last`): the N^3 comparisons and the sum then run along
     contiguous worlds (the rank kernel of a 512-world step 318 -> ~55 us, BENCHMARKS.md; the same
     integers), on integer sort keys (:func:`_sorted_position_bits`)."""
     return worlds_last(_sorted_position_bits)

@@ -27,7 +27,7 @@ from __future__ import annotations
 from typing import Any
 
 
-def make_substep_actuation(cfg: Any) -> Any:
+def make_substep_actuation(cfg: Any, wrench: Any = None) -> Any:
     """The sub-step actuation chain beyond the paper for ``cfg``, or None when there is nothing beyond
     it (``control_mode == "rotor"``, linear thrust map, aerodynamics off: the engines then call
     ``substep_wrench`` exactly as before, no extra work). Static Python switches, decided once.
@@ -42,8 +42,11 @@ def make_substep_actuation(cfg: Any) -> Any:
     2. ground-effect gain (``aerodynamics.ground_effect_stage``, ``pos`` world-local m);
     3. motor model and wrench (``substep_wrench`` with the thrust map and the gain);
     4. rotor drag added to the world force (``aerodynamics.drag_stage``, ``vel`` m/s world).
-    ``omega`` rad/s body, ``R`` body->world."""
+    ``omega`` rad/s body, ``R`` body->world. ``wrench``: the ``substep_wrench`` to call (None:
+    :func:`quadswarm_mj.actuation.substep_wrench`; the CPU engine passes its small-NumPy form)."""
     from quadswarm_mj.actuation import substep_wrench
+
+    substep_wrench = substep_wrench if wrench is None else wrench
     from quadswarm_mj.aerodynamics import drag_stage, ground_effect_stage
     from quadswarm_mj.control_modes import make_mode_controller
 

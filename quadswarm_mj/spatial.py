@@ -46,41 +46,18 @@ def norm_last(x: Any) -> Any:
     return sqrt(sumsq_last(x))
 
 
-# quat_to_rotmat for small arrays as one gather: R_k = base_k + coef_k * (P[ia_k] + sign_k * P[ib_k])
-# with P the outer product of (w, x, y, z) with itself flattened (index 4 a + b): entry by entry the
-# textbook formula (R_00 = 1 - 2 (yy + zz), R_01 = 2 (xy - wz), ...). coef = +-2 and sign = +-1 scale
-# exactly, so coef * P[ia] + coef * sign * P[ib], summed, rounds as the textbook expression (only the
-# sign of an exact zero may differ); 5 array operations instead of 30. Large arrays and JAX arrays use
-# the textbook expression itself (gathers along a short last axis are slow there and under XLA); a
-# test checks both agree.
-_Q_IAB = np.array([10, 6, 7, 6, 5, 11, 7, 11, 5,  # yy xy xz | xy xx yz | xz yz xx
-                   15, 3, 2, 3, 15, 1, 2, 1, 10])  # zz wz wy | wz zz wx | wy wx yy
-_Q_SIGN = np.array([1.0, -1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0])
-_Q_COEF = np.array([-2.0, 2.0, 2.0, 2.0, -2.0, 2.0, 2.0, 2.0, -2.0])
-_Q_SCALE = np.concatenate([_Q_COEF, _Q_COEF * _Q_SIGN])
-_Q_BASE = np.array([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
-
-
 def quat_to_rotmat(q: Any) -> Any:
-    """(..., 4) unit quaternion (w, x, y, z) -> (..., 3, 3) body-to-world rotation."""
+    """(..., 4) unit quaternion (w, x, y, z) -> (..., 3, 3) body-to-world rotation (the textbook
+    formula, :func:`quat_to_rotmat_components`; ``perf.numpy_small.quat_to_rotmat`` is its
+    fewest-calls form for small NumPy arrays)."""
     xp = array_namespace(q)
-    lead = q.shape[:-1]
-    if q.size >= BIG or xp is not np:  # under XLA the gather is a slow strided kernel: textbook
-        return _quat_to_rotmat_textbook(xp, q)
-    P = (q[..., :, None] * q[..., None, :]).reshape(lead + (16,))
-    t = (xp.take(P, _Q_IAB, axis=-1) * xp.asarray(_Q_SCALE, dtype=q.dtype)).reshape(lead + (2, 9)).sum(axis=-2)
-    return (xp.asarray(_Q_BASE, dtype=q.dtype) + t).reshape(lead + (3, 3))
-
-
-def _quat_to_rotmat_textbook(xp: Any, q: Any) -> Any:
     rows = quat_to_rotmat_components(q[..., 0], q[..., 1], q[..., 2], q[..., 3])
     return xp.stack(rows, axis=-1).reshape(q.shape[:-1] + (3, 3))
 
 
 def quat_to_rotmat_components(w: Any, x: Any, y: Any, z: Any) -> tuple[Any, ...]:
     """Body-to-world rotation of the unit quaternion (w, x, y, z) given as component arrays: the 9
-    entries (R00, R01, R02, R10, ..., R22), row-major, by the textbook formula (:func:`quat_to_rotmat`'s
-    path for large and JAX arrays)."""
+    entries (R00, R01, R02, R10, ..., R22), row-major, by the textbook formula (:func:`quat_to_rotmat`'s body)."""
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z

@@ -1,7 +1,8 @@
 """The component-form (structure-of-arrays) sub-step functions of ``quadswarm_mj.components``: the
-array-of-structures functions delegate to them for JAX and large NumPy arrays and keep a
-fewest-calls form for small NumPy arrays; both forms give the same bits (small arrays compared
-directly, large arrays against the small form chunk by chunk). The trig-free floor impact against
+model's one body of each sub-step function (the array-of-structures functions split, call them and
+stack); ``quadswarm_mj.perf.numpy_small`` keeps a fewest-calls form for small NumPy arrays (the CPU
+engine's); both forms give the same bits (small arrays compared directly, large arrays against the
+small form chunk by chunk). The trig-free floor impact against
 the angle path, and the JAX engine's component sub-step loop against its general loop, within
 round-off."""
 
@@ -10,20 +11,23 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from quadswarm_mj import actuation, collisions, spatial
 from quadswarm_mj import components as C
-from quadswarm_mj.actuation import SPIN, rotor_positions, substep_wrench, wrench_matrix
-from quadswarm_mj.collisions import floor_impact, floor_wrench
+from quadswarm_mj.actuation import SPIN, rotor_positions, wrench_matrix
+from quadswarm_mj.collisions import floor_impact
 from quadswarm_mj.config import EnvConfig, QuadParams
 from quadswarm_mj.freebody import freebody_step, freebody_step_components
+from quadswarm_mj.perf import numpy_small as small
+from quadswarm_mj.perf.xla_cpu import kernel_boundary
 from quadswarm_mj.spatial import quat_to_rotmat, quat_to_rotmat_components
 
-# (worlds, quads): a small batch takes the AoS functions' own NumPy form, a large one (>= spatial.BIG
-# elements) their delegation to the component functions
+# (worlds, quads): a small batch takes perf.numpy_small's own form, a large one (>= spatial.BIG
+# elements) its delegation to the model's body (the component functions)
 SHAPES = [(3, 8), (200, 8)]
 
 
 def _chunked(fn, *arrays, rows: int = 3):
-    """``fn`` applied to row chunks of the leading axis (each below spatial.BIG: the small NumPy form),
+    """``fn`` applied to row chunks of the leading axis (each below spatial.BIG: perf's small NumPy form),
     outputs concatenated: an independent reference for the large-array (component) path."""
     n = arrays[0].shape[0]
     outs = [fn(*(a[i:i + rows] for a in arrays)) for i in range(0, n, rows)]
@@ -53,16 +57,34 @@ def test_rotor_wrench_matches_substep_wrench_bitwise(lead):
     _, R = _random_rotations(rng, lead)
     mix = wrench_matrix(rotor_positions(quad))
     spin = params["torque_max"] * SPIN
-    def aos(u, cmd, noise, alpha, thrust_max, torque_max, R):
+    def aos(u, cmd, noise, alpha, thrust_max, torque_max, R, fn=small.substep_wrench):
         p = {"alpha": alpha, "thrust_max": thrust_max, "torque_max": torque_max}
-        return substep_wrench(u, cmd, noise, p, R, rotor_positions(quad), mix, torque_max * SPIN)
+        return fn(u, cmd, noise, p, R, rotor_positions(quad), mix, torque_max * SPIN)
 
     ref = _chunked(aos, u, cmd, noise, params["alpha"], params["thrust_max"], params["torque_max"], R)
     got = C.rotor_wrench(C.split(u), C.split(cmd), C.split(noise), params["alpha"], C.split(params["thrust_max"]),
                          C.split(spin), mix, C.split(R.reshape(lead + (9,))))
-    for a, b, c in zip(ref, got, aos(u, cmd, noise, params["alpha"], params["thrust_max"], params["torque_max"], R)):
+    args = (u, cmd, noise, params["alpha"], params["thrust_max"], params["torque_max"], R)
+    for a, b, c, d in zip(ref, got, aos(*args), aos(*args, fn=actuation.substep_wrench)):
         _same(a, C.stack(b))
-        _same(a, c)  # the AoS function at this size (its small form, or its delegation)
+        _same(a, c)  # perf's function at this size (its small form, or its delegation)
+        _same(a, d)  # the model's AoS function (split, the component body, stack)
+
+
+@pytest.mark.parametrize("lead", SHAPES)
+def test_rotor_wrench_with_thrust_map_and_gain_matches_bitwise(lead):
+    """The thrust map and a rotor gain (control modes, ground effect) in both forms."""
+    rng = np.random.default_rng(10)
+    quad = QuadParams()
+    u, cmd = rng.uniform(0, 1, lead + (4,)), rng.uniform(0, 1, lead + (4,))
+    noise, gain = rng.normal(0, 0.1, lead + (4,)), rng.uniform(1.0, 1.3, lead + (4,))
+    params = {"alpha": rng.uniform(0.2, 1, lead), "thrust_max": rng.uniform(0.1, 0.2, lead + (4,)),
+              "torque_max": rng.uniform(0.001, 0.003, lead + (4,))}
+    _, R = _random_rotations(rng, lead)
+    args = (u, cmd, noise, params, R, rotor_positions(quad))
+    for a, b in zip(small.substep_wrench(*args, thrust_quadratic=0.3, rotor_gain=gain),
+                    actuation.substep_wrench(*args, thrust_quadratic=0.3, rotor_gain=gain)):
+        _same(a, b)
 
 
 @pytest.mark.parametrize("lead", SHAPES)
@@ -73,14 +95,36 @@ def test_floor_wrench_matches_bitwise(lead):
     vel = rng.normal(0, 1, lead + (3,)) * (rng.uniform(size=lead + (1,)) < 0.5)  # half at rest
     force[..., :2] *= rng.uniform(size=lead + (1,)) < 0.7  # some without horizontal force
     mass = rng.uniform(0.025, 0.035, lead)
-    def aos(on_floor, force, torque, vel, mass):
-        return floor_wrench(on_floor, force, torque, vel, mass, 9.81, 0.3, 0.005)
+    def aos(on_floor, force, torque, vel, mass, fn=small.floor_wrench):
+        return fn(on_floor, force, torque, vel, mass, 9.81, 0.3, 0.005)
 
     ref = _chunked(aos, on_floor, force, torque, vel, mass)
     got = C.floor_wrench(on_floor, C.split(force), C.split(torque), C.split(vel), mass, 9.81, 0.3, 0.005)
-    for a, b, c in zip(ref, got, aos(on_floor, force, torque, vel, mass)):
+    args = (on_floor, force, torque, vel, mass)
+    for a, b, c, d in zip(ref, got, aos(*args), aos(*args, fn=collisions.floor_wrench)):
         _same(a, C.stack(b))
         _same(a, c)
+        _same(a, d)
+
+
+@pytest.mark.parametrize("lead", SHAPES)
+def test_floor_impact_angle_path_matches_bitwise(lead):
+    """The floor impact's angle path (the CPU engine's): perf's small form, the model's body."""
+    rng = np.random.default_rng(12)
+    arm = 0.046
+    pos = rng.uniform(-1, 1, lead + (3,))
+    pos[..., 2] = rng.choice([arm - 0.01, arm, arm + 5e-7, arm + 0.01, 1.0], size=lead)
+    on_floor = rng.uniform(size=lead) < 0.5
+    vel, omega = rng.normal(size=lead + (3,)), rng.normal(size=lead + (3,))
+    quat, R = _random_rotations(rng, lead)
+    u = rng.uniform(size=lead + (4,))
+    yaw = rng.uniform(-np.pi, np.pi, lead)
+    args = (pos, vel, omega, quat, R, u, on_floor, arm, yaw)
+    ref, got = small.floor_impact(*args), collisions.floor_impact(*args)
+    assert (ref["hit_floor"] & (R[..., 2, 2] < 0)).any()  # an upside-down landing takes its yaw draw
+    for key in ref:
+        _same(ref[key], got[key])
+    assert "R" not in small.floor_impact(*args, with_rotmat=False)
 
 
 @pytest.mark.parametrize("lead", SHAPES)
@@ -111,10 +155,13 @@ def test_floor_impact_trig_free_matches_the_angle_path(lead):
     np.testing.assert_allclose(dots, 1.0, rtol=0, atol=1e-12)
 
 
-def test_quat_to_rotmat_components_is_the_large_array_path():
+def test_quat_to_rotmat_components_is_the_body_and_the_gather_the_same_values():
     rng = np.random.default_rng(3)
-    q, _ = _random_rotations(rng, (2000,))  # >= spatial.BIG elements: the textbook path
+    q, _ = _random_rotations(rng, (2000,))  # >= spatial.BIG elements: perf delegates to the body
     _same(quat_to_rotmat(q), C.stack(quat_to_rotmat_components(*C.split(q))).reshape(-1, 3, 3))
+    _same(small.quat_to_rotmat(q), spatial.quat_to_rotmat(q))
+    q = np.concatenate([q[:8], np.eye(4)[:, [0, 1, 2, 3]]])  # small: the gather (zeros may differ in sign)
+    np.testing.assert_array_equal(small.quat_to_rotmat(q), spatial.quat_to_rotmat(q))
 
 
 def test_freebody_components_is_freebody_step():
@@ -170,7 +217,7 @@ def test_jax_component_substeps_match_the_general_loop():
 
 
 def test_kernel_boundary_is_an_exact_identity_that_xla_keeps() -> None:
-    """C.kernel_boundary: the same bits (division by exactly 1.0), and the division survives
+    """perf.xla_cpu.kernel_boundary: the same bits (division by exactly 1.0), and the division survives
     compilation when ``one`` is a run-time value (folded away, it would not make a kernel boundary)."""
     import jax
     import jax.numpy as jnp
@@ -178,7 +225,7 @@ def test_kernel_boundary_is_an_exact_identity_that_xla_keeps() -> None:
     x = jnp.asarray([0.0, -0.0, 1e-37, -3.5, 1e30, np.inf, -np.inf, 0.1], jnp.float32)
 
     def f(x: jax.Array, i: jax.Array) -> jax.Array:
-        return C.kernel_boundary((x,), 1.0 + 0.0 * i.astype(jnp.float32))[0]
+        return kernel_boundary((x,), 1.0 + 0.0 * i.astype(jnp.float32))[0]
 
     out = jax.jit(f)(x, jnp.int32(5))
     np.testing.assert_array_equal(np.asarray(out).view(np.uint32), np.asarray(x).view(np.uint32))

@@ -66,6 +66,20 @@ def test_single_env_copy_steps_like_original(copier, collision_model):
 
 
 @pytest.mark.parametrize("copier", COPIERS)
+def test_gym_make_env_copy_steps_like_original(copier):
+    """What users copy: the wrapped env ``gym.make`` returns (order enforcing, passive checker)."""
+    import gymnasium as gym
+
+    env = gym.make("QuadSwarm-v0", num_quads=3)
+    env.reset(seed=7)
+    twin = copier(env)
+    assert twin.unwrapped.core.data is not env.unwrapped.core.data
+    pos0 = env.unwrapped.core.kinematics()[0].copy()
+    _run_pair(env, twin, _actions((3, 4)))
+    _moved(pos0, twin.unwrapped.core.kinematics()[0])
+
+
+@pytest.mark.parametrize("copier", COPIERS)
 def test_single_env_copy_before_reset_and_with_renderer_state(copier):
     env = QuadSwarmEnv(num_quads=2)
     twin = copier(env)  # never reset: both must start the same from the same seed

@@ -83,7 +83,8 @@ def test_release_of_a_bad_file_keeps_the_shipped_policy(tmp_path, capsys):
     rc = release.main(["--name", "toy", "--policy", str(bad), "--scenarios", "static_same_goal", "--episodes", "1",
                        "--out", str(d)])
     assert rc == 2
-    assert "error" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "error" in err and repr(str(bad)) in err and ".tmp" not in err  # names the user's file, not a copy
     assert _snapshot(d) == before
     for missing in (tmp_path / "missing.npz", tmp_path):  # no such file; a directory
         rc = release.main(["--name", "toy", "--policy", str(missing), "--scenarios", "static_same_goal",

@@ -1,5 +1,6 @@
-"""The JAX engine's random words: the unrolled threefry hash and the materialized numbers are
-rewrites of JAX's own (same words, same uniforms; normals within a few float32 ulp)."""
+"""The JAX engine's random words (quadswarm_mj.perf.fused_draws): the unrolled threefry hash and the
+materialized numbers are rewrites of JAX's own (same words, same uniforms; normals within a few float32
+ulp)."""
 
 import jax
 import jax.numpy as jnp
@@ -7,7 +8,7 @@ import numpy as np
 import pytest
 from jax.extend.random import threefry_2x32
 
-from quadswarm_mj.envs.mjx_env import (
+from quadswarm_mj.perf.fused_draws import (
     FusedJaxSampler,
     _materialized_numbers,
     _unit_numbers,

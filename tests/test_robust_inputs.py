@@ -55,6 +55,7 @@ def _mujoco_warnings(env: QuadSwarmEnv) -> list[int]:
     ("omega", np.full((N, 3), 1e200), ["'omega'", f"{OMEGA_LIMIT:g} rad/s"]),  # item 3: inf in float32
     ("motors", np.full((N, 4), 1.5), ["'motors'", "[0, 1]"]),
     ("motors", np.full((N, 4), -0.1), ["'motors'", "[0, 1]"]),
+    ("vel", [[10**400, 0, 0]] * N, ["options['state']['vel']", "float64"]),  # item 8: no OverflowError
 ])
 def test_reset_state_beyond_the_physical_bounds_is_rejected(env, key, value, words):
     with pytest.raises(ValueError) as e:
@@ -103,6 +104,31 @@ def test_boundary_airframe_runs_finite_and_stable(engine):
             assert _mujoco_warnings(env) == [0] * len(_mujoco_warnings(env))
     finally:
         env.close()
+
+
+def test_vector_env_rejects_one_spinning_world_and_unknown_keys():
+    """The issue's reproduction: omega 1e6 rad/s in one world of a 16-world vector env (MuJoCo then
+    reset the shared data: every quad of the shard teleported) is refused, naming the field, the bound
+    and the world; so are misspelt option keys (naming the allowed ones); the env is unchanged."""
+    W = 16
+    vec = QuadSwarmVectorEnv(num_quads=2, num_envs=W, num_shards=1)
+    try:
+        _, info = vec.reset(seed=0)
+        ref = vec.step(np.zeros((W, 2, 4)))[4]["state"]["pos"].copy()
+        vec.reset(seed=0)
+        omega = np.zeros((W, 2, 3))
+        omega[5, 1, 2] = 1e6
+        bad = [({"state": {"omega": omega}}, ["options['state']['omega']", f"{OMEGA_LIMIT:g} rad/s", "(5, 1, 2)"]),
+               ({"State": {}}, ["'State'", "allowed", "'state'", "'reset_mask'"]),
+               ({"state": {"Pos": np.zeros((W, 2, 3))}}, ["'Pos'", "allowed", "'pos'"])]
+        for options, words in bad:
+            with pytest.raises(ValueError) as e:
+                vec.reset(seed=1, options=options)
+            for w in words:
+                assert w in str(e.value), (w, str(e.value))
+        np.testing.assert_array_equal(vec.step(np.zeros((W, 2, 4)))[4]["state"]["pos"], ref)
+    finally:
+        vec.close()
 
 
 # ------------------------------------------------------------------------ item 2: the instability backstop
@@ -273,7 +299,7 @@ def test_non_numeric_actions_are_rejected(env, kind):
         env.step(NON_NUMERIC[kind]((N, 4)))
 
 
-@pytest.mark.parametrize("kind", ["str", "bool", "complex", "datetime", "object", "list_of_str"])
+@pytest.mark.parametrize("kind", ["str", "bytes", "bool", "complex", "datetime", "object", "list_of_str"])
 @pytest.mark.parametrize("key,tail", [("pos", (3,)), ("vel", (3,)), ("omega", (3,)), ("motors", (4,)),
                                       ("goals", (3,))])
 def test_non_numeric_states_are_rejected(key, tail, kind):
@@ -334,7 +360,7 @@ def test_unknown_reset_options_are_rejected(env, options, words):
 
 def test_parallel_env_rejects_unknown_reset_options():
     par = QuadSwarmParallelEnv(num_quads=2)
-    with pytest.raises(ValueError, match=r"unknown reset options \['State'\]"):
+    with pytest.raises(ValueError, match=r"unknown reset options \['State'\]; allowed: \[.*'state'"):
         par.reset(seed=0, options={"State": {}})
 
 
@@ -401,10 +427,20 @@ def test_closed_env_refuses_steps_and_resets(engine):
     if engine == "mujoco":  # (the JAX engine: no reset, so no compile)
         e.reset(seed=0)
     e.close()
-    for call in (lambda: e.step(np.zeros((N, 4))), lambda: e.reset(seed=0)):
+    for call in (lambda: e.step(np.zeros((N, 4))), lambda: e.reset(seed=0), e.render):
         with pytest.raises(RuntimeError, match="closed"):
             call()
     e.close()  # closing twice is fine
+
+
+def test_closed_env_does_not_reopen_its_renderer():
+    e = QuadSwarmEnv(num_quads=2, render_mode="rgb_array")
+    e.reset(seed=0)
+    assert e.render().ndim == 3
+    e.close()
+    with pytest.raises(RuntimeError, match="closed"):
+        e.render()
+    assert e._renderer is None
 
 
 def test_closed_parallel_env_refuses_steps():
@@ -415,6 +451,8 @@ def test_closed_parallel_env_refuses_steps():
         par.step({"quad_0": np.zeros(4), "quad_1": np.zeros(4)})
     with pytest.raises(RuntimeError, match="closed"):
         par.reset(seed=0)
+    with pytest.raises(RuntimeError, match="closed"):
+        par.render()
 
 
 # ------------------------------------------------------------------------ item 8: PettingZoo containers

@@ -338,3 +338,35 @@ def test_single_preset_is_the_one_minute_recipe():
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(pytest.main([__file__, "-q"]))
+
+
+def test_learning_rate_is_injected_and_plain_adam_train_states_still_load(tmp_path):
+    """The schedule's learning rate is the optimizer's injected hyper-parameter (set by each update, kept in
+    the train state); a train state of the earlier plain-Adam layout (Adam at ``opt_state[1][0]``, no injected
+    leaves) resumes with its Adam moments."""
+    import jax
+    import jax.numpy as jnp
+
+    from quadswarm_mj.training.checkpoints import load_train_state, save_train_state
+    from quadswarm_mj.training.learner import learning_rate_of
+
+    ppo = PPOConfig(**{**TINY, "learning_rate": 1e-3})
+    tr = PPOTrainer([EnvConfig(num_quads=1, scenario="static_same_goal")], ppo, seed=1)
+    assert float(learning_rate_of(tr.state.opt_state)) == pytest.approx(1e-3)
+    data, _, _ = tr.collect(tr.batch.reset())
+    state, m = tr._update(tr.state, data, jax.random.PRNGKey(0), jnp.float32(0.25))
+    assert float(learning_rate_of(state.opt_state)) == pytest.approx(2.5e-4) == float(m["learning_rate"])
+    path = tmp_path / "train_state.npz"
+    save_train_state(path, state, jax.random.PRNGKey(5), {"iteration": 1})
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    legacy = {k.replace(".inner_state", ""): v for k, v in arrays.items()
+              if not k.startswith(("state.opt_state[1].hyperparams", "state.opt_state[1].count"))}
+    assert any(k.startswith("state.opt_state[1][0].mu") for k in legacy)
+    np.savez(tmp_path / "legacy.npz", **legacy)
+    back, _, sc, _ = load_train_state(tmp_path / "legacy.npz", tr.state)
+    assert sc == {"iteration": 1}
+    for a, b in zip(jax.tree.leaves(back.opt_state[1].inner_state), jax.tree.leaves(state.opt_state[1].inner_state)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for a, b in zip(jax.tree.leaves(back.params), jax.tree.leaves(state.params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

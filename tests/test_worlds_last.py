@@ -1,4 +1,4 @@
-"""quadswarm_mj._xp.worlds_last: JAX-only layouts (the vmapped worlds axis moved last) for the neighbour
+"""quadswarm_mj.perf.xla_cpu.worlds_last: JAX-only layouts (the vmapped worlds axis moved last) for the neighbour
 ranks and the pair distances give the same values as the plain forms, also under nested vmap and
 autodiff."""
 
@@ -8,9 +8,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from quadswarm_mj._xp import worlds_last
 from quadswarm_mj.collisions import pairwise_contacts
 from quadswarm_mj.observations import _nearest_one_hot, _sorted_position_bits, _sorted_position_rows_first
+from quadswarm_mj.perf.xla_cpu import worlds_last
 from quadswarm_mj.spatial import norm_last
 
 

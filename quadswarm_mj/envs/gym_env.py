@@ -192,6 +192,7 @@ class QuadSwarmEnv(gym.Env):
         return obs, reward, False, truncated, self._info_out(info, obs)
 
     def render(self) -> np.ndarray | None:
+        self._check_open()  # a closed env reopens nothing (its renderer is released)
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
             return None
@@ -213,7 +214,7 @@ class QuadSwarmEnv(gym.Env):
         return {**self.__dict__, "_renderer": None}
 
     def close(self) -> None:
-        """Release the renderer (and the JAX engine); afterwards ``step`` and ``reset`` raise RuntimeError."""
+        """Release the renderer (and the JAX engine); then ``step``, ``reset`` and ``render`` raise RuntimeError."""
         self.closed = True
         if self._jax is not None:
             self._jax.close()

@@ -151,10 +151,19 @@ from quadswarm_mj.downwash import (
     downwash_slot_spec,
     expand_downwash_draws,
 )
+from quadswarm_mj.envs.autoreset import AutoResetWrapper, _run_if, _select  # noqa: F401  re-exported
 from quadswarm_mj.envs.validation import check_obstacles, check_state
 from quadswarm_mj.freebody import freebody_step_components
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
-from quadswarm_mj.random_draws import DrawSpec, JaxSampler, MeanSampler, Normal, Uniform
+from quadswarm_mj.perf.fused_draws import (  # noqa: F401  re-exported (their home is perf/)
+    FusedJaxSampler,
+    erf_inv_f32,
+    step_key_and_numbers,
+    step_words,
+    threefry_2x32_unrolled,
+)
+from quadswarm_mj.perf.xla_cpu import kernel_boundary
+from quadswarm_mj.random_draws import DrawSpec, MeanSampler, Uniform
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
 from quadswarm_mj.rewards import anneal_factor, env_terms, total_reward
 from quadswarm_mj.scenarios import get_scenario
@@ -216,245 +225,6 @@ def _sub(draws: dict[str, Any], prefix: str) -> dict[str, Any]:
     """The draws named ``prefix/...`` with the prefix removed."""
     p = prefix + "/"
     return {k[len(p):]: v for k, v in draws.items() if k.startswith(p)}
-
-
-_ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
-
-
-def _threefry_rounds(x0: jax.Array, x1: jax.Array, ks: tuple[jax.Array, ...]) -> tuple[jax.Array, jax.Array]:
-    """Threefry-2x32's 20 rounds and key injections on the keyed block words (x0, x1)."""
-    for group in range(5):
-        for r in _ROTATIONS[group % 2]:
-            x0 = x0 + x1
-            x1 = (x1 << jnp.uint32(r)) | (x1 >> jnp.uint32(32 - r))
-            x1 = x1 ^ x0
-        x0 = x0 + ks[(group + 1) % 3]
-        x1 = x1 + ks[(group + 2) % 3] + jnp.uint32(group + 1)
-    return x0, x1
-
-
-def threefry_2x32_unrolled(key_data: jax.Array, count: jax.Array) -> jax.Array:
-    """``jax.extend.random.threefry_2x32(key_data, count)`` (same words) as straight-line code.
-
-    ``key_data`` (2,) uint32, ``count`` (2 M,) uint32 hashed as the pairs (count[:M], count[M:]).
-    On CPU, JAX lowers threefry to a rolled loop of 5 iterations (small compiles), which XLA runs as
-    ~40 small kernels; unrolled it is one elementwise kernel that XLA fuses with its consumer."""
-    k0, k1 = key_data[0], key_data[1]
-    ks = (k0, k1, k0 ^ k1 ^ jnp.uint32(0x1BD11BDA))
-    half = count.shape[0] // 2
-    x0, x1 = count[:half] + ks[0], count[half:] + ks[1]
-    x0, x1 = _threefry_rounds(x0, x1, ks)
-    return jnp.concatenate([x0, x1])
-
-
-#: Counter offset of the step's words (the pairs (2^31 + i, 2^31 + M + i)): never the small counters
-#: of ``jax.random.split`` / ``fold_in`` of the same key, so the streams stay disjoint.
-_COUNTER_BASE = np.uint32(2**31)
-
-
-def step_words(key: jax.Array, total: int) -> tuple[jax.Array, jax.Array]:
-    """(next key, ``total`` uint32 words) from a threefry key with ONE hash: the next key's data are
-    words 0-1, the draws the rest (counter mode; replaces ``split`` + ``split`` + ``bits``)."""
-    n = total + 2
-    n += n % 2
-    words = threefry_2x32_unrolled(jax.random.key_data(key), jnp.arange(n, dtype=jnp.uint32) + _COUNTER_BASE)
-    if not jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):  # a raw (legacy uint32) key stays raw
-        return words[:2], words[2:2 + total]
-    return jax.random.wrap_key_data(words[:2], impl=jax.random.key_impl(key)), words[2:2 + total]
-
-
-def _unit_numbers(words: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """(U[0, 1), N(0, 1)) from uint32 words as ``jax.random.uniform`` (23 mantissa bits, the same
-    floats) and ``jax.random.normal`` (sqrt(2) erfinv of a uniform on [nextafter(-1, 0), 1); the erfinv
-    is :func:`erf_inv_f32`, within a few float32 ulp of ``jax.lax.erf_inv``) make them."""
-    u01 = jax.lax.bitcast_convert_type((words >> 9) | jnp.uint32(0x3F800000), jnp.float32) - 1.0
-    lo_n = np.nextafter(np.float32(-1.0), np.float32(0.0))
-    return u01, np.sqrt(2.0).astype(np.float32) * erf_inv_f32(jnp.maximum(lo_n, lo_n + (1.0 - lo_n) * u01))
-
-
-def step_key_and_numbers(key: jax.Array, normal_mask: np.ndarray) -> tuple[jax.Array, jax.Array]:
-    """(next key, float32 unit numbers) equal to ``step_words`` followed by
-    :meth:`FusedJaxSampler.unit_numbers` (the same bits), in ONE pass over the threefry rounds.
-
-    An elementwise XLA:CPU kernel makes one output per element, so the block words x0 and x1 of
-    :func:`threefry_2x32_unrolled` come out of two kernels that each run all 20 rounds. Here each
-    block's two results (its two unit numbers, or the next key's raw words) leave the kernel as the
-    two halves of one complex64 (bit casts and selects only: no arithmetic on the carried bits),
-    made in a two-trip loop over halves of the blocks (a loop's result is a buffer XLA cannot fuse
-    back into its consumers; a one-trip loop would be inlined). ``normal_mask`` (total,) bool: the
-    positions of normals (N(0, 1)); the others are U[0, 1)."""
-    total = int(normal_mask.shape[0])
-    n = total + 2
-    n += n % 2
-    half = n // 2
-    q = (half + 1) // 2  # blocks per trip
-    # block m: x0 is word m, x1 is word half + m (threefry_2x32 pairs the counter's two halves)
-    full = np.zeros(2 * half, bool)
-    full[2:2 + total] = normal_mask
-    count = np.arange(2 * half, dtype=np.uint32) + _COUNTER_BASE
-
-    def padded(x: np.ndarray) -> np.ndarray:
-        return np.concatenate([x, np.zeros(2 * q - x.shape[0], x.dtype)])
-
-    count0, count1 = padded(count[:half]), padded(count[half:])
-    normal0, normal1 = padded(full[:half]), padded(full[half:])
-    is_key = padded(np.arange(half) < 2)
-    kd = jax.random.key_data(key)
-    k0, k1 = kd[0], kd[1]
-    ks = (k0, k1, k0 ^ k1 ^ jnp.uint32(0x1BD11BDA))
-
-    def body(i: jax.Array, acc: jax.Array) -> jax.Array:
-        def pick(c: np.ndarray) -> jax.Array:
-            return jnp.where(i == 0, c[:q], c[q:])
-
-        x0, x1 = pick(count0) + ks[0], pick(count1) + ks[1]
-        x0, x1 = _threefry_rounds(x0, x1, ks)
-        u0, n0 = _unit_numbers(x0)
-        u1, n1 = _unit_numbers(x1)
-        v0 = jnp.where(pick(is_key), jax.lax.bitcast_convert_type(x0, jnp.float32), jnp.where(pick(normal0), n0, u0))
-        v1 = jnp.where(pick(normal1), n1, u1)
-        return jax.lax.dynamic_update_slice(acc, jax.lax.complex(v0, v1), (i * q,))
-
-    pairs = jax.lax.fori_loop(0, 2, body, jnp.zeros((2 * q,), jnp.complex64))[:half]
-    flat = jnp.concatenate([jnp.real(pairs), jnp.imag(pairs)])
-    key_words = jax.lax.bitcast_convert_type(flat[:2], jnp.uint32)
-    if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
-        key_words = jax.random.wrap_key_data(key_words, impl=jax.random.key_impl(key))
-    return key_words, flat[2:2 + total]
-
-
-_ERF_INV_SMALL = np.array([2.81022636e-08, 3.43273939e-07, -3.5233877e-06, -4.39150654e-06, 0.00021858087,
-                           -0.00125372503, -0.00417768164, 0.246640727, 1.50140941], np.float32)
-_ERF_INV_LARGE = np.array([-0.000200214257, 0.000100950558, 0.00134934322, -0.00367342844, 0.00573950773,
-                           -0.0076224613, 0.00943887047, 1.00167406, 2.83297682], np.float32)
-
-
-def erf_inv_f32(x: jax.Array) -> jax.Array:
-    """erf^-1 of float32 ``x`` in (-1, 1): XLA's single-precision approximation (M. Giles, the same
-    two polynomials as ``jax.lax.erf_inv``) with w = -log((1 - x)(1 + x)) instead of -log1p(-x^2)
-    (XLA:CPU's log1p is the slower function: the step's numbers ~140 -> ~90 us for 512 worlds). (1 - x)
-    is exact for |x| >= 1/2, so the tails are more accurate too: within ~3 float32 ulp of the exact
-    erfinv over the uniforms' range, where ``jax.lax.erf_inv`` (log1p of a rounded x^2) is up to ~64
-    ulp off. ``x`` in (-1, 1) (the normals' uniforms never reach +-1)."""
-    w = -jnp.log((1.0 - x) * (1.0 + x))
-    small = w < 5.0
-    w = jnp.where(small, w - 2.5, jnp.sqrt(w) - 3.0)
-    p = jnp.where(small, _ERF_INV_SMALL[0], _ERF_INV_LARGE[0])
-    for a, b in zip(_ERF_INV_SMALL[1:], _ERF_INV_LARGE[1:]):
-        p = jnp.where(small, a, b) + p * w
-    return p * x
-
-
-def _materialized_numbers(words: jax.Array, normals: bool) -> tuple[jax.Array, jax.Array | None]:
-    """:func:`_unit_numbers` of flat ``words``, computed once into buffers.
-
-    XLA:CPU otherwise fuses the erf_inv polynomial (log, two branches of 9 coefficients) into every
-    consumer of every slice and recomputes it there (the observation, the collision scatters),
-    which cost more than all the draws themselves (``jax.lax.optimization_barrier`` does not stop
-    it on CPU). The numbers are computed in a loop of two chunks (a loop body cannot be fused into
-    its consumers; trip counts of 1 are inlined by XLA), which makes them ordinary buffers."""
-    if not normals:
-        return _unit_numbers(words)[0], None
-    total = words.shape[0]
-    half = (total + 1) // 2
-    padded = jnp.concatenate([words, jnp.zeros((2 * half - total,), words.dtype)]) if 2 * half != total else words
-    first, second = padded[:half], padded[half:]
-
-    def chunk(i: jax.Array, acc: tuple[jax.Array, ...]) -> tuple[jax.Array, ...]:
-        u, n = _unit_numbers(jnp.where(i == 0, first, second))
-        return (jnp.where(i == 0, u, acc[0]), jnp.where(i == 0, n, acc[1]),
-                jnp.where(i == 1, u, acc[2]), jnp.where(i == 1, n, acc[3]))
-
-    zeros = jnp.zeros((half,), jnp.float32)
-    ua, na, ub, nb = jax.lax.fori_loop(0, 2, chunk, (zeros, zeros, zeros, zeros))
-    return jnp.concatenate([ua, ub])[:total], jnp.concatenate([na, nb])[:total]
-
-
-class FusedJaxSampler(JaxSampler):
-    """A :class:`~quadswarm_mj.random_draws.JaxSampler` that draws a whole spec from ONE
-    ``jax.random.bits`` call (sliced per entry) instead of one call per entry: far less to compile
-    (each threefry call is a large graph on XLA:CPU) and fewer small kernels to run. The bits are
-    hashed with ``jax.extend.random.threefry_2x32`` on a counter, so one threefry block feeds two
-    numbers (with ``jax_threefry_partitionable``, ``jax.random.bits`` hashes one block per number). Uniforms and normals
-    are made from the words as ``jax.random.uniform`` / ``jax.random.normal`` make them
-    (23 mantissa bits; normal = sqrt(2) erfinv(U(-1, 1)), :func:`erf_inv_f32`): the same distributions. Used under
-    ``jit`` only (float32 and threefry keys; otherwise one uniform and one normal call)."""
-
-    @staticmethod
-    def fused(key: jax.Array, dtype: Any) -> bool:
-        """Whether the fused path applies (float32 numbers from a threefry key)."""
-        threefry = jax.random.key_impl(key) == jax.random.key_impl(jax.random.key(0, impl="threefry2x32"))
-        return jnp.dtype(dtype) == jnp.float32 and threefry
-
-    @staticmethod
-    def num_words(spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> int:
-        return sum(int(np.prod(tuple(batch_shape) + tuple(d.shape))) for d in spec.values())
-
-    def draw(self, spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
-        if not spec or not self.fused(self.key, self.dtype):
-            return self._draw_two_calls(spec, batch_shape)
-        from jax.extend.random import threefry_2x32
-
-        self.key, k = jax.random.split(self.key)
-        total = self.num_words(spec, batch_shape)
-        # threefry_2x32 hashes the counter array's two halves as (x0, x1) pairs: 2 words per block
-        words = threefry_2x32(jax.random.key_data(k), jnp.arange(total + total % 2, dtype=jnp.uint32))[:total]
-        return self.from_words(spec, words, batch_shape)
-
-    @staticmethod
-    def from_words(spec: DrawSpec, words: jax.Array, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
-        """The draws of ``spec`` from ``num_words(spec)`` uint32 ``words`` (float32)."""
-        u01, std_normal = _materialized_numbers(words, any(isinstance(d, Normal) for d in spec.values()))
-        return FusedJaxSampler._scaled(spec, u01, std_normal, batch_shape)
-
-    @staticmethod
-    def normal_mask(spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> np.ndarray:
-        """(num_words,) bool: the positions of the spec's normal draws."""
-        return np.concatenate([np.full(int(np.prod(tuple(batch_shape) + tuple(d.shape))), isinstance(d, Normal))
-                               for d in spec.values()])
-
-    @staticmethod
-    def unit_numbers(spec: DrawSpec, words: jax.Array) -> jax.Array:
-        """(num_words,) float32: U[0, 1) at the spec's uniform positions, N(0, 1) at its normal ones."""
-        u01, std_normal = _unit_numbers(words)
-        return jnp.where(FusedJaxSampler.normal_mask(spec), std_normal, u01)
-
-    @staticmethod
-    def from_numbers(spec: DrawSpec, numbers: jax.Array) -> dict[str, Any]:
-        """The draws of ``spec`` from its :meth:`unit_numbers`."""
-        return FusedJaxSampler._scaled(spec, numbers, numbers)
-
-    @staticmethod
-    def _scaled(spec: DrawSpec, u01: jax.Array, std_normal: jax.Array | None,
-                batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
-        items = [(name, d, tuple(batch_shape) + tuple(d.shape)) for name, d in spec.items()]
-        sizes = [int(np.prod(shape)) for _, _, shape in items]
-        out: dict[str, Any] = {}
-        start = 0
-        for (name, d, shape), size in zip(items, sizes):
-            if isinstance(d, Uniform):
-                x = u01[start:start + size].reshape(shape)
-                out[name] = jnp.maximum(d.low, d.low + (d.high - d.low) * x)
-            else:  # jax.random.normal: uniform on [nextafter(-1, 0), 1), then sqrt(2) erfinv
-                out[name] = d.mean + d.std * std_normal[start:start + size].reshape(shape)
-            start += size
-        return out
-
-    def _draw_two_calls(self, spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
-        self.key, k_u, k_n = jax.random.split(self.key, 3)
-        out: dict[str, Any] = {}
-        for kind, key in ((Uniform, k_u), (Normal, k_n)):
-            items = [(name, d, tuple(batch_shape) + tuple(d.shape)) for name, d in spec.items() if isinstance(d, kind)]
-            if not items:
-                continue
-            sizes = [int(np.prod(shape)) for _, _, shape in items]
-            flat = (jax.random.uniform if kind is Uniform else jax.random.normal)(key, (sum(sizes),), self.dtype)
-            start = 0
-            for (name, d, shape), size in zip(items, sizes):
-                x = flat[start:start + size].reshape(shape)
-                start += size
-                out[name] = d.low + (d.high - d.low) * x if kind is Uniform else d.mean + d.std * x
-        return out
 
 
 class MjxQuadSwarmEnv:
@@ -937,8 +707,8 @@ class MjxQuadSwarmEnv:
             d = expand_per_quad(landing, {"c": jnp.cos(yaw_i), "s": jnp.sin(yaw_i)})  # trig-free yaw draws
             # the landing yaw's (cos, sin) computed once, in their own kernels, instead of inside each
             # select of the floor impact that reads them (~25 % fewer operations in the loop body)
-            one = 1.0 + 0.0 * i.astype(f)  # 1.0 that XLA cannot fold: see components.kernel_boundary
-            mat = functools.partial(components.kernel_boundary, one=one)
+            one = 1.0 + 0.0 * i.astype(f)  # 1.0 that XLA cannot fold: see perf.xla_cpu.kernel_boundary
+            mat = functools.partial(kernel_boundary, one=one)
             r = components.floor_impact(pos, vel, omega, quat, R, u, on_floor, floor_z, (d["c"], d["s"]), mat)
             return (r["pos"], r["quat"], r["vel"], r["omega"], r["R"], r["u"], f_norm, r["on_floor"],
                     hit_floor | r["hit_floor"])
@@ -1018,110 +788,6 @@ class MjxQuadSwarmEnv:
                              "episode_metrics": self._episode_metrics(acc, om, t)})
         metrics = {f"reward/{name}": terms[name] for name in self._terms}
         return State(data=data, obs=obs, reward=reward, done=done, metrics=metrics, info=new_info)
-
-
-class AutoResetWrapper:
-    """Resets a finished world completely: physics data, dynamics parameters (redrawn), motor
-    state and noise, goals and scenario timers, flags, contacts, metrics and step counters.
-
-    (Brax's and Playground's default auto-reset restore only the physics data and observation
-    and keep ``info``, which here would keep the old goals, motors and timers.)
-
-    At a step that ends an episode the returned state is the fresh episode's first state, except
-    ``done`` (True), ``reward`` and ``metrics`` (the last step's) and ``info["episode_metrics"]``
-    (the finished episode's). ``info["total_steps"]`` carries over (reward annealing).
-
-    ``step`` is per world (vmap it): the fresh episode is computed every step and selected with
-    ``where``. ``vstep`` steps a batch of worlds (leading axis) and computes the resets only on
-    steps where some world finished (a one-trip ``while`` outside the vmap), which saves about a
-    fifth of the step time; :class:`~quadswarm_mj.envs.sharding.ShardedEnv`, :func:`benchmark_mjx` and the
-    Brax front end use it.
-    """
-
-    def __init__(self, env: MjxQuadSwarmEnv):
-        self.env = env
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.env, name)
-
-    def reset(self, key: jax.Array, init_state: dict[str, Any] | None = None) -> State:
-        return self.env.reset(key, init_state)
-
-    def step(self, state: State, action: jax.Array) -> State:
-        """One world: (State, (N, 4)) -> State."""
-        return self._renew(self.env.step(state, action))
-
-    def vstep(self, state: State, action: jax.Array) -> State:
-        """A batch of worlds: (State with leading axis W, (W, N, 4)) -> State."""
-        return self.renew_finished(jax.vmap(self.env.step)(state, action))
-
-    def renew_finished(self, s: State) -> State:
-        """A batch of stepped worlds (leading axis W) with the finished ones replaced by fresh
-        episodes (:meth:`_renew`), computed only when some world finished (a one-trip ``while``,
-        :func:`_run_if`)."""
-        if self.env.physics == "mjx":
-            return _run_if(jnp.any(s.done), jax.vmap(self._renew), s)
-        # freebody: only qpos, qvel, time (and the column pool's mocap_pos) of mjx.Data change; the
-        # (large: mass matrix and factor) rest of Data stays out of the loop
-        d = s.data
-        small = (s.done, s.obs, s.info, d.qpos, d.qvel, d.time, d.mocap_pos)
-        _, obs, info, qpos, qvel, t, mocap = _run_if(jnp.any(s.done), jax.vmap(self._renew_small), small)
-        return s.replace(obs=obs, info=info, data=d.replace(qpos=qpos, qvel=qvel, time=t, mocap_pos=mocap))
-
-    def _fresh_episode(self, info: dict[str, Any]) -> tuple[State, dict[str, Any]]:
-        """The fresh episode of one world and its info with the carried-over keys (the rules above).
-        A finished world continues from the fresh episode's key; the others keep their key (the
-        discarded reset drew from a key derived from it), so vstep's no-reset branch is the same."""
-        fresh = self.env.reset(jax.random.fold_in(info["rng"], 1))
-        return fresh, {**fresh.info, "total_steps": info["total_steps"],
-                       "episode_metrics": info["episode_metrics"], "truncation": info["truncation"]}
-
-    def _renew_small(self, small: tuple) -> tuple:
-        """:meth:`_renew` of (done, obs, info, qpos, qvel, time, mocap_pos) (freebody physics: the
-        rest of Data is constant)."""
-        done, obs, info, qpos, qvel, t, mocap = small
-        fresh, fresh_info = self._fresh_episode(info)
-
-        def pick(a: Any, b: Any) -> Any:
-            return _select(done, a, b)
-
-        fd = fresh.data
-        return (done, pick(fresh.obs, obs), jax.tree.map(pick, fresh_info, info), pick(fd.qpos, qpos),
-                pick(fd.qvel, qvel), pick(fd.time, t), pick(fd.mocap_pos, mocap))
-
-    def _renew(self, s: State) -> State:
-        """Replace a finished world's state by a fresh episode (identity where not done)."""
-        if self.env.physics != "mjx":  # freebody: the rest of Data is the model's constant initial data
-            d = s.data
-            _, obs, info, qpos, qvel, t, mocap = self._renew_small((s.done, s.obs, s.info, d.qpos, d.qvel, d.time,
-                                                                    d.mocap_pos))
-            return s.replace(obs=obs, info=info, data=d.replace(qpos=qpos, qvel=qvel, time=t, mocap_pos=mocap))
-        fresh, fresh_info = self._fresh_episode(s.info)
-
-        def pick(a: Any, b: Any) -> Any:
-            return _select(s.done, a, b)
-
-        info = jax.tree.map(pick, fresh_info, s.info)
-        data = jax.tree.map(pick, fresh.data, s.data)
-        return s.replace(data=data, obs=pick(fresh.obs, s.obs), info=info)
-
-
-def _run_if(pred: jax.Array, fn: Any, x: Any) -> Any:
-    """``fn(x)`` if ``pred`` else ``x``, as a ``while`` loop of at most one trip. Same results as
-    ``lax.cond(pred, fn, lambda x: x, x)``, but the loop's carry is updated in place: XLA's
-    conditional copies all of ``x`` through its identity branch (~100 us of a 512-world step)."""
-    def body(carry: tuple) -> tuple:
-        return jnp.zeros((), bool), fn(carry[1])
-
-    return jax.lax.while_loop(lambda carry: carry[0], body, (pred, x))[1]
-
-
-def _select(pred: jax.Array, a: Any, b: Any) -> Any:
-    """``where(pred, a, b)`` that also handles typed PRNG key arrays."""
-    if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
-        data = jnp.where(pred, jax.random.key_data(a), jax.random.key_data(b))
-        return jax.random.wrap_key_data(data, impl=jax.random.key_impl(a))
-    return jnp.where(pred, a, b)
 
 
 # ---------------------------------------------------------------------------------- benchmark

@@ -64,12 +64,12 @@ world. Results depend on (seed, num_envs, num_shards, chunk_worlds); ``num_shard
 (1 for fewer than 16 worlds) whatever the machine, so seeded runs are reproducible anywhere.
 
 ``engine="jax"`` runs the B worlds instead as jitted, vmapped MJX steps
-(:class:`quadswarm_mj.envs.jax_engine.JaxVectorBackend`; ``backend`` and ``chunk_worlds`` do not
+(:class:`quadswarm_mj.envs.jax_vector.JaxVectorBackend`; ``backend`` and ``chunk_worlds`` do not
 apply), with the same spaces, info, auto-reset and reset options. ``num_shards`` 1 runs them in this
 process (sharded over its JAX devices); k >= 2 in k worker processes, each a single-device JAX
-program pinned to one CPU core (:class:`~quadswarm_mj.envs.jax_engine.WorkerWorlds`, ~1.1x at 1024
+program pinned to one CPU core (:class:`~quadswarm_mj.envs.jax_workers.WorkerWorlds`, ~1.1x at 1024
 worlds on 2 cores, BENCHMARKS.md). The default is one worker per core on a CPU backend when every
-worker gets at least ``jax_engine.MIN_WORLDS_PER_WORKER`` (256) worlds, else 1. The reset keys are
+worker gets at least ``jax_workers.MIN_WORLDS_PER_WORKER`` (256) worlds, else 1. The reset keys are
 drawn in this process for every world, so a seed gives the same worlds whatever ``num_shards`` (bit
 for bit at 8 quads and an even number of worlds per part). Its arrays are the caller's: no later
 call writes into them (``copy`` does not apply; with workers they are views of shared output blocks,
@@ -131,7 +131,7 @@ def _default_jax_shards(B: int) -> int:
     with at least ``MIN_WORLDS_PER_WORKER`` worlds each; 1 (this process) otherwise or on accelerators."""
     import jax
 
-    from quadswarm_mj.envs.jax_engine import MIN_WORLDS_PER_WORKER
+    from quadswarm_mj.envs.jax_workers import MIN_WORLDS_PER_WORKER
 
     if jax.default_backend() != "cpu":
         return 1
@@ -233,7 +233,7 @@ class QuadSwarmVectorEnv(VectorEnv):
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, B)
         self.render_mode = None
         if self.engine == "jax":
-            from quadswarm_mj.envs.jax_engine import JaxVectorBackend
+            from quadswarm_mj.envs.jax_vector import JaxVectorBackend
 
             self._jax = JaxVectorBackend(self.cfg, B, info_keys=info_keys, copy=copy,
                                          num_workers=0 if self.num_shards == 1 else self.num_shards,

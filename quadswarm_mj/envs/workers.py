@@ -4,7 +4,7 @@ block (see :mod:`quadswarm_mj.envs.vector_env` for the protocol and the lifetime
 
 A worker builds its shard with ``init["factory"](init, arrays)`` (a module-level function, pickled by
 reference): :func:`quadswarm_mj.envs.vector_env.mujoco_shard` for the MuJoCo engine,
-:func:`quadswarm_mj.envs.jax_engine.jax_shard` for the JAX engine. A shard has ``step()`` (the
+:func:`quadswarm_mj.envs.jax_workers.jax_shard` for the JAX engine. A shard has ``step()`` (the
 one-byte ``STEP`` message), ``handle(command_tuple)`` (the rare commands) and, if it writes into one
 of several output blocks, ``step_into(block_index)`` (the ``STEP_INTO`` message).
 

@@ -40,27 +40,25 @@ from brax.training.acme import running_statistics
 
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.metrics import METRIC_KEYS
-from quadswarm_mj.training.ppo import (
+from quadswarm_mj.training.checkpoints import (
     TRAIN_STATE_FILE,
-    PPOConfig,
-    PPOTrainer,
+    load_init,
+    load_train_state,
+    save_policy_file,
+    save_train_state,
+)
+from quadswarm_mj.training.learner import (
     TrainState,
     init_params,
-    linear_lr_scale,
-    load_train_state,
     make_networks,
     make_optimizer,
     make_policy_step,
     make_update_fn,
     obs_layout,
-    plot_curves,
-    ppo_meta,
-    save_policy_file,
-    save_train_state,
-    start_run,
-    write_logs,
 )
+from quadswarm_mj.training.ppo_config import PPOConfig, linear_lr_scale, ppo_meta
 from quadswarm_mj.training.replay import ReplayConfig, init_replay, record, restart, tree_where
+from quadswarm_mj.training.run_logs import plot_curves, start_run, write_logs
 
 AXIS = "worlds"  # the device axis of the data-parallel iteration
 
@@ -143,9 +141,9 @@ class JaxPPOTrainer:
         self._resume_total_steps: list[np.ndarray] | None = None
         self.compile_s: float | None = None
 
-    # the CPU trainer's loaders do the transfer (MLP: zero weights for new neighbour inputs; encoders: same arch)
-    _load_init = PPOTrainer._load_init
-    _load_init_encoder = PPOTrainer._load_init_encoder
+    def _load_init(self, path: str, params: Any, normalizer: Any) -> tuple[Any, Any]:
+        """Warm start from a policy file (MLP: zero weights for new neighbour inputs; encoders: same arch)."""
+        return load_init(path, params, normalizer, self.arch, self.layout, self.obs_dim)
 
     # ------------------------------------------------------------------ rollout state
     def init_worlds(self, key: jax.Array) -> tuple[dict[str, Any], ...]:
@@ -465,6 +463,8 @@ def measure_trainers(cfg: EnvConfig, ppo: PPOConfig, iterations: int = 4, engine
     per_iter = ppo.num_worlds * cfg.num_quads * ppo.unroll_length
     for eng in engines:
         if eng in ("jax", "mujoco"):
+            from quadswarm_mj.training.ppo import PPOTrainer
+
             tr: Any = (JaxPPOTrainer([cfg], ppo) if eng == "jax" else PPOTrainer([cfg], ppo))
             t0 = time.perf_counter()
             rows = tr.train(total_steps=per_iter * (iterations + 1), progress=False)

@@ -85,7 +85,10 @@ def release(name: str, policy_path: str | Path, scenarios: list[str], directory:
     # exits in reverse order: the policy is replaced first, the manifest last; on an error, neither
     with replacing(mp) as tmp_manifest, replacing(dst) as tmp:
         shutil.copyfile(policy_path, tmp)  # the evaluated bytes are the shipped bytes
-        pol = load_policy_file(tmp, name=f"pretrained:{name}")
+        try:
+            pol = load_policy_file(tmp, name=f"pretrained:{name}")
+        except ValueError as e:  # name the user's file, not the private copy
+            raise ValueError(str(e).replace(repr(str(tmp)), repr(str(policy_path)))) from None
         for s in scenarios:  # every scenario name and the policy's fit to it, before any evaluation
             cfg = make_eval_config(pol, s)
             if pol.obs_dim != cfg.obs_dim:

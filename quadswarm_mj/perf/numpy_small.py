@@ -1,0 +1,112 @@
+"""The sub-step model functions in the fewest NumPy calls, for the small arrays of the CPU engine.
+
+The model defines :func:`quadswarm_mj.actuation.substep_wrench`, :func:`quadswarm_mj.collisions.
+floor_wrench`, :func:`quadswarm_mj.collisions.floor_impact` and :func:`quadswarm_mj.spatial.
+quat_to_rotmat` once each (component form, :mod:`quadswarm_mj.components`). On a single env's (1, N, .)
+arrays NumPy's per-call overhead dominates, so the CPU engine calls these instead: whole-array
+expressions of the same formulas with the same rounding (bit-identical, signs of zero included where
+stated; ``tests/test_components.py``). From ``spatial.BIG`` elements on they call the model's body
+(NumPy's per-row overhead of reductions over short axes then dominates; the component form wins).
+NumPy only.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from quadswarm_mj import actuation, collisions, spatial
+from quadswarm_mj.actuation import SPIN, motor_lag, rotor_thrust, thrust_map, wrench_matrix
+from quadswarm_mj.constants import FLOOR_TOL
+from quadswarm_mj.spatial import BIG, norm_last, sum_last, yaw_of, yaw_quat, yaw_rotmat
+
+
+def substep_wrench(u: Any, cmd: Any, noise: Any, params: dict[str, Any], R: Any, rotor_pos: Any,
+                   mix: Any | None = None, torque_spin: Any | None = None, thrust_quadratic: float = 0.0,
+                   rotor_gain: Any | None = None) -> tuple[Any, Any, Any, Any]:
+    """:func:`quadswarm_mj.actuation.substep_wrench` (same arguments, same bits)."""
+    if u.size >= BIG:
+        return actuation.substep_wrench(u, cmd, noise, params, R, rotor_pos, mix, torque_spin, thrust_quadratic,
+                                        rotor_gain)
+    u = motor_lag(u, cmd, params["alpha"])
+    f_norm = rotor_thrust(u, cmd, noise)
+    mix = wrench_matrix(rotor_pos) if mix is None else mix
+    torque_spin = params["torque_max"] * SPIN if torque_spin is None else torque_spin
+    f_eff = f_norm if thrust_quadratic == 0.0 else thrust_map(f_norm, thrust_quadratic)
+    if rotor_gain is not None:
+        f_eff = f_eff * rotor_gain
+    thrust = params["thrust_max"] * f_eff  # N per rotor
+    s = sum_last(thrust[..., None, :] * mix)  # F_z, tau_x, tau_y
+    tz = sum_last(torque_spin * f_eff)  # yaw reaction torque
+    torque_b = np.concatenate([s[..., 1:], tz[..., None]], axis=-1)
+    return u, f_norm, s[..., :1] * R[..., :, 2], sum_last(R * torque_b[..., None, :])
+
+
+def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any, gravity: float,
+                 friction: float, dt: float) -> tuple[Any, Any]:
+    """:func:`quadswarm_mj.collisions.floor_wrench` (same arguments, same bits)."""
+    if force_w.size >= BIG:
+        return collisions.floor_wrench(on_floor, force_w, torque_w, vel, mass, gravity, friction, dt)
+    normal = np.maximum(0.0, mass * gravity - force_w[..., 2])
+    cap = friction * normal
+    f_h = force_w[..., :2]
+    f_mag = norm_last(f_h)
+    v_h = vel[..., :2]
+    speed = norm_last(v_h)
+    moving = speed > 1e-9
+    static_h = f_h * (np.maximum(0.0, f_mag - cap) / np.where(f_mag > 0, f_mag, 1.0))[..., None]
+    kinetic_mag = np.minimum(cap, mass * speed / dt)
+    kinetic_h = f_h - (kinetic_mag / np.where(moving, speed, 1.0))[..., None] * v_h
+    new_h = np.where(moving[..., None], kinetic_h, static_h)
+    new_force = np.concatenate([new_h, (force_w[..., 2] + normal)[..., None]], axis=-1)
+    new_torque = np.concatenate([np.zeros_like(torque_w[..., :2]), torque_w[..., 2:]], axis=-1)
+    g = on_floor[..., None]
+    return np.where(g, new_force, force_w), np.where(g, new_torque, torque_w)
+
+
+def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_floor: Any, floor_z: float,
+                 yaw_draw: Any, with_rotmat: bool = True) -> dict[str, Any]:
+    """:func:`quadswarm_mj.collisions.floor_impact` on its angle path (yaw draws in rad; same bits)."""
+    if pos.size >= BIG:
+        return collisions.floor_impact(pos, vel, omega, quat, R, u, on_floor, floor_z, yaw_draw, with_rotmat)
+    z = pos[..., 2]
+    hit = (z <= floor_z) & ~on_floor
+    staying = on_floor & (z <= floor_z + FLOOR_TOL)
+    grounded = hit | staying
+    yaw = yaw_of(R) + np.where(hit & (R[..., 2, 2] < 0), yaw_draw, 0.0)
+    new_pos = np.concatenate([pos[..., :2], np.where(grounded, floor_z, z)[..., None]], axis=-1)
+    zero2 = np.zeros_like(vel[..., :2])
+    vel_stay = np.concatenate([vel[..., :2], zero2[..., :1]], axis=-1)
+    new_vel = np.where(hit[..., None], 0.0 * vel, np.where(staying[..., None], vel_stay, vel))
+    omega_stay = np.concatenate([zero2, omega[..., 2:]], axis=-1)
+    new_omega = np.where(hit[..., None], 0.0 * omega, np.where(staying[..., None], omega_stay, omega))
+    out = {"pos": new_pos, "vel": new_vel, "omega": new_omega,
+           "quat": np.where(grounded[..., None], yaw_quat(yaw), quat), "u": np.where(hit[..., None], 0.0 * u, u),
+           "on_floor": grounded, "hit_floor": hit}
+    if with_rotmat:
+        out["R"] = np.where(grounded[..., None, None], yaw_rotmat(yaw), R)
+    return out
+
+
+# quat_to_rotmat as one gather: R_k = base_k + coef_k * (P[ia_k] + sign_k * P[ib_k]) with P the outer
+# product of (w, x, y, z) with itself flattened (index 4 a + b): entry by entry the textbook formula
+# (R_00 = 1 - 2 (yy + zz), R_01 = 2 (xy - wz), ...). coef = +-2 and sign = +-1 scale exactly, so
+# coef * P[ia] + coef * sign * P[ib], summed, rounds as the textbook expression (only the sign of an
+# exact zero may differ); 5 array operations instead of 30.
+_Q_IAB = np.array([10, 6, 7, 6, 5, 11, 7, 11, 5,  # yy xy xz | xy xx yz | xz yz xx
+                   15, 3, 2, 3, 15, 1, 2, 1, 10])  # zz wz wy | wz zz wx | wy wx yy
+_Q_SIGN = np.array([1.0, -1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0])
+_Q_COEF = np.array([-2.0, 2.0, 2.0, 2.0, -2.0, 2.0, 2.0, 2.0, -2.0])
+_Q_SCALE = np.concatenate([_Q_COEF, _Q_COEF * _Q_SIGN])
+_Q_BASE = np.array([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
+
+
+def quat_to_rotmat(q: Any) -> Any:
+    """:func:`quadswarm_mj.spatial.quat_to_rotmat` (the same values; the sign of an exact zero may differ)."""
+    if q.size >= BIG:
+        return spatial.quat_to_rotmat(q)
+    lead = q.shape[:-1]
+    P = (q[..., :, None] * q[..., None, :]).reshape(lead + (16,))
+    t = (np.take(P, _Q_IAB, axis=-1) * _Q_SCALE).reshape(lead + (2, 9)).sum(axis=-2)
+    return (_Q_BASE + t).reshape(lead + (3, 3))

@@ -1,0 +1,95 @@
+"""PPO hyper-parameters (:class:`PPOConfig`), the activation and architecture names of ``--act``/``--arch``,
+and the learning-rate schedule's factor (:func:`linear_lr_scale`; the optimizer applies it as an injected
+hyper-parameter, :func:`quadswarm_mj.training.learner.make_optimizer`).
+
+Imports flax (the activations) but no engine.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from flax import linen
+
+from quadswarm_mj.policies import ARCH_PRESETS
+
+ACTIVATIONS: dict[str, Callable[[Any], Any]] = {"tanh": linen.tanh, "relu": linen.relu, "swish": linen.swish,
+                                                "elu": linen.elu}
+#: policy architectures of ``--arch``: the MLP and the encoder presets of ``quadswarm_mj.policies``.
+ARCH_NAMES = ("mlp", *ARCH_PRESETS)
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """PPO hyper-parameters. Sizes count agents (quads), not worlds, where noted."""
+
+    num_worlds: int = 1024  # worlds stepped together (split evenly over the scenarios)
+    unroll_length: int = 32  # control steps per agent per iteration
+    num_minibatches: int = 32
+    num_epochs: int = 4
+    learning_rate: float = 3e-4
+    entropy_cost: float = 1e-3
+    discounting: float = 0.99
+    gae_lambda: float = 0.95
+    clipping_epsilon: float = 0.2
+    reward_scaling: float = 1.0
+    max_grad_norm: float = 1.0
+    policy_hidden: tuple[int, ...] = (64, 64)
+    value_hidden: tuple[int, ...] = (64, 64)
+    activation: str = "tanh"
+    normalize_observations: bool = True
+    lr_schedule: str = "linear"  # "constant", or "linear": decays to lr_final_fraction at the end of the budget
+    lr_final_fraction: float = 0.1
+    init_std: float = 0.6  # initial std of the pre-tanh Gaussian (Brax's default is softplus(0) = 0.69)
+    desync_episodes: bool = True  # truncate each world's first episode after a random number of steps
+    arch: str = "mlp"  # policy network: "mlp" (policy_hidden) or a quadswarm_mj.policies.ARCH_PRESETS name
+    arch_width: int | None = None  # encoders: every hidden width of the preset set to this (heads: 2x); None: as is
+
+    def __post_init__(self) -> None:
+        for n in ("num_worlds", "unroll_length", "num_minibatches", "num_epochs"):
+            v = getattr(self, n)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"ppo.{n} must be an int >= 1, got {v!r}")
+        for n in ("learning_rate", "discounting", "gae_lambda", "clipping_epsilon", "reward_scaling", "max_grad_norm",
+                  "init_std"):
+            v = getattr(self, n)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"ppo.{n} must be a finite number > 0, got {v!r}")
+        if not (0 <= self.entropy_cost < 1):
+            raise ValueError(f"ppo.entropy_cost must be in [0, 1), got {self.entropy_cost!r}")
+        if self.discounting > 1 or self.gae_lambda > 1:
+            raise ValueError("ppo.discounting and ppo.gae_lambda must be <= 1")
+        if self.lr_schedule not in ("constant", "linear"):
+            raise ValueError(f"ppo.lr_schedule must be 'constant' or 'linear', got {self.lr_schedule!r}")
+        if not (0 <= self.lr_final_fraction <= 1):
+            raise ValueError(f"ppo.lr_final_fraction must be in [0, 1], got {self.lr_final_fraction!r}")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"ppo.activation must be one of {tuple(ACTIVATIONS)}, got {self.activation!r}")
+        if self.arch not in ARCH_NAMES:
+            raise ValueError(f"ppo.arch must be one of {ARCH_NAMES}, got {self.arch!r}")
+        if self.arch_width is not None and (not isinstance(self.arch_width, int) or isinstance(self.arch_width, bool)
+                                            or self.arch_width < 1):
+            raise ValueError(f"ppo.arch_width must be None or an int >= 1, got {self.arch_width!r}")
+        for n in ("policy_hidden", "value_hidden"):
+            v = tuple(getattr(self, n))
+            if not v or any(not isinstance(h, int) or h < 1 for h in v):
+                raise ValueError(f"ppo.{n} must be a non-empty tuple of positive ints, got {v!r}")
+            object.__setattr__(self, n, v)
+
+
+def ppo_meta(ppo: PPOConfig) -> dict[str, Any]:
+    """The configuration as JSON-ready values (tuples as lists), as policy files record it."""
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(ppo).items()}
+
+
+def linear_lr_scale(ppo: PPOConfig, frac: float, start: float = 1.0) -> float:
+    """Learning-rate factor at budget fraction ``frac``: constant ``start``, or linear from ``start`` to
+    ``lr_final_fraction`` (resumed runs start from the checkpoint's factor)."""
+    if ppo.lr_schedule != "linear":
+        return start
+    end = min(ppo.lr_final_fraction, start)
+    return start - (start - end) * min(max(frac, 0.0), 1.0)
