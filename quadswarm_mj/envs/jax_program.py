@@ -25,6 +25,7 @@ from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv, State
 from quadswarm_mj.envs.sharding import WorldSharding
 from quadswarm_mj.metrics import METRIC_KEYS, OBSTACLE_METRIC_KEYS
 from quadswarm_mj.perf.packing import LeafPacker, OutputLayout, StatePacker, key_shape, wrap_keys
+from quadswarm_mj.perf.xla_options import one_world_options
 from quadswarm_mj.rewards import OBSTACLE_TERMS, TERMS
 
 STATE_KEYS = ("pos", "vel", "rot", "omega", "thrust")
@@ -103,8 +104,10 @@ class Program:
     holds the outputs fixed for an episode (:attr:`episode_layout`: parameters, column map), which
     B worlds return only from resets and renewals."""
 
-    def __init__(self, cfg: EnvConfig, batch: int | None):
+    def __init__(self, cfg: EnvConfig, batch: int | None, compiler_options: dict[str, Any] | None = None):
         self.cfg, self.batch = cfg, batch
+        #: XLA compile options of the one-world programs (default: quadswarm_mj.perf.xla_options)
+        self.compiler_options = one_world_options() if compiler_options is None else dict(compiler_options)
         self.env = MjxQuadSwarmEnv(cfg)
         check_mjx_batch(self.env.physics, batch or 1)  # a clear error where jax >= 0.10 would hang (devices.py)
         self.auto = AutoResetWrapper(self.env)
@@ -156,7 +159,9 @@ class Program:
     def _jit(self, impl: Any, donate: bool) -> Any:
         """``jax.jit(impl)`` (first argument donated if ``donate``); with B worlds on several devices
         run per device on its slice of worlds (every argument and result has the leading worlds axis)."""
-        kw = {"donate_argnums": 0} if donate else {}
+        kw: dict[str, Any] = {"donate_argnums": 0} if donate else {}
+        if self.batch is None and self.compiler_options:
+            kw["compiler_options"] = self.compiler_options
         ws = self.worlds
         if ws is None or ws.num_devices == 1:
             return jax.jit(impl, **kw)
@@ -218,7 +223,7 @@ class Program:
                 def impl(key_data: jax.Array, arrays: dict[str, jax.Array]) -> tuple:
                     s = one_reset(key_data, arrays)
                     return self._pack(s), self.layout.pack(self._outs(s, s), self.float)
-                self._resets[key] = jax.jit(impl)
+                self._resets[key] = self._jit(impl, donate=False)
             elif not masked:
                 def impl(key_data: jax.Array, arrays: dict[str, jax.Array]) -> tuple:
                     s = jax.vmap(one_reset)(key_data, arrays)

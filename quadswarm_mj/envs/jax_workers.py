@@ -4,14 +4,14 @@ single-device JAX program pinned to one CPU core (:class:`WorkerWorlds` in the e
 with the MuJoCo engine's vector env.
 
 The control block (actions, final observations, episode constants, flags) is one shared block;
-observations and per-step outputs go into output blocks that the env hands out as views and takes
-back once no array views them (at most :data:`MAX_OUTPUT_BLOCKS`).
+observations and per-step outputs go into the transport's output blocks
+(:class:`~quadswarm_mj.envs.workers.OutputBlocks`), handed out as views and taken back once no
+array views them. Only the layout of the blocks and the shard's commands are the JAX engine's.
 """
 
 from __future__ import annotations
 
 import os
-import weakref
 from typing import Any
 
 import numpy as np
@@ -22,11 +22,13 @@ from quadswarm_mj.envs.jax_worlds import LocalWorlds
 from quadswarm_mj.envs.workers import (
     DEFAULT_WORKER_TIMEOUT_S,
     STEP_INTO,
+    OutputBlocks,
     Resources,
     SharedBlock,
     Worker,
     layout_bytes,
     map_arrays,
+    map_block_rows,
     run_on_workers,
     wait_started,
 )
@@ -64,9 +66,7 @@ class WorkerShard:
         """("map", block, name), ("reset", keys, mask, state, block) or ("call", fn, *args) (a test
         hook: fn(shard, *args))."""
         if msg[0] == "map":  # a new output block of the env
-            shm = SharedBlock(name=msg[2])
-            arrays = map_arrays(shm.buf, self.out_layout)
-            self.blocks[msg[1]] = (shm, {k: v[self.lo:self.hi] for k, v in arrays.items()})
+            self.blocks[msg[1]] = map_block_rows(msg[2], self.out_layout, self.lo, self.hi)
             return None
         if msg[0] == "reset":
             self.worlds.reset(msg[1], msg[2], msg[3], self._out(msg[4]))
@@ -100,12 +100,10 @@ class WorkerWorlds:
     late and shares the cores' threads.
 
     Transport (:mod:`quadswarm_mj.envs.workers`): a control block (actions, final observations,
-    episode constants, flags) and output blocks of shared memory. Each step's observations and
-    per-step outputs are written by the workers straight into an output block that nothing refers
-    to any more, and the env returns views of it: no copy in this process. A block is free again when
-    every array viewing it is gone (``weakref.finalize`` on the step's carrier array); at most
-    :data:`MAX_OUTPUT_BLOCKS` exist, and if a caller keeps all of them alive the step goes through a
-    scratch block and is copied out."""
+    episode constants, flags) and output blocks of shared memory
+    (:class:`~quadswarm_mj.envs.workers.OutputBlocks`, at most :data:`MAX_OUTPUT_BLOCKS`). Each
+    step's observations and per-step outputs are written by the workers straight into an output
+    block that nothing views any more, and the env returns views of it: no copy in this process."""
 
     def __init__(self, cfg: EnvConfig, num_worlds: int, num_workers: int,
                  timeout: float | None = DEFAULT_WORKER_TIMEOUT_S):
@@ -115,13 +113,11 @@ class WorkerWorlds:
         self.layout = [("actions", (self.B, N, 4), np.float32), ("final_obs", (self.B, N, D), np.float32),
                        ("episode", (self.B, prog.episode_layout.size), np.float64), ("renewed", (self.n,), np.bool_)]
         self.out_layout = [("obs", (self.B, N, D), np.float32), ("rest", (self.B, prog.step_layout.size), np.float64)]
-        self._out_bytes = layout_bytes(self.out_layout)
         edges = np.linspace(0, self.B, self.n + 1).round().astype(int)
         self.bounds = [(int(edges[k]), int(edges[k + 1])) for k in range(self.n)]
         cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else [None]
         self.res = res = Resources()
-        self.blocks: list[Any] = []  # output blocks; 0 is the scratch block (copied out, never handed out)
-        self.free: list[bool] = []
+        self.out: OutputBlocks | None = None  # the output blocks
         try:
             self.a = map_arrays(res.create_block(layout_bytes(self.layout)).buf, self.layout)
             env = worker_environ()
@@ -132,7 +128,7 @@ class WorkerWorlds:
                 res.workers.append(Worker(k, lo, hi, init, environ=env))
             wait_started(res.workers)
             res.unlink()  # every worker has mapped the block: its name can go
-            self._new_block()  # the scratch block
+            self.out = OutputBlocks(self.out_layout, MAX_OUTPUT_BLOCKS, self._run)
         except BaseException:
             self.close()
             raise
@@ -140,35 +136,15 @@ class WorkerWorlds:
     def _run(self, what: str, msg_for: Any) -> None:
         run_on_workers(self.res.workers, what, msg_for, self.n)
 
-    def _new_block(self) -> int:
-        block = SharedBlock(create=True, size=self._out_bytes)
-        try:
-            k = len(self.blocks)
-            self._run("map", lambda _: ("map", k, block.name))
-        finally:
-            block.unlink()  # mapped by every worker (or failed): the name can go
-        self.blocks.append(block)
-        self.free.append(k != 0)
-        return k
+    @property
+    def blocks(self) -> list[SharedBlock]:
+        """The output blocks (0: the scratch block)."""
+        return [] if self.out is None else self.out.blocks
 
-    def _acquire(self) -> int:
-        """A free output block (a new one while fewer than MAX_OUTPUT_BLOCKS exist), else 0 (scratch)."""
-        for k in range(1, len(self.blocks)):
-            if self.free[k]:
-                return k
-        if len(self.blocks) <= MAX_OUTPUT_BLOCKS:
-            return self._new_block()
-        return 0
-
-    def _outputs(self, k: int) -> dict[str, np.ndarray]:
-        """``obs`` and ``rest`` of block k as new arrays (scratch) or views that free the block when gone."""
-        carrier = np.frombuffer(self.blocks[k].buf, np.uint8, count=self._out_bytes)
-        out = map_arrays(carrier, self.out_layout)
-        if k == 0:
-            return {name: x.copy() for name, x in out.items()}
-        self.free[k] = False
-        weakref.finalize(carrier, self.free.__setitem__, k, True)
-        return out
+    @property
+    def free(self) -> list[bool]:
+        """Which output blocks no returned array views."""
+        return [] if self.out is None else self.out.free
 
     def _episode_outputs(self, out: dict[str, np.ndarray], renewed: np.ndarray | None) -> dict[str, np.ndarray]:
         a = self.a
@@ -188,7 +164,7 @@ class WorkerWorlds:
             lo, hi = self.bounds[k]
             return None if x is None else x[lo:hi]
 
-        block = self._acquire()
+        block = self.out.acquire()
 
         def msg(k: int) -> tuple:
             sub = None if state is None else {key: (v if isinstance(v, str) or v is None else rows(v, k))
@@ -196,17 +172,17 @@ class WorkerWorlds:
             return ("reset", rows(keys, k), rows(mask, k), sub, block)
 
         self._run("reset", msg)
-        return self._episode_outputs(self._outputs(block), None)
+        return self._episode_outputs(self.out.arrays(block), None)
 
     def step(self, actions: np.ndarray) -> tuple[dict[str, np.ndarray], bool]:
         """Step every worker: (``obs`` and ``rest``, with ``final_obs`` and ``episode`` if an episode
         ended anywhere; every world's stepped observation in ``final_obs``), and whether one ended."""
         a = self.a
         np.copyto(a["actions"], actions, casting="same_kind")
-        block = self._acquire()
+        block = self.out.acquire()
         msg = STEP_INTO + block.to_bytes(2, "little")
         self._run("step", lambda _: msg)
-        out = self._outputs(block)
+        out = self.out.arrays(block)
         renewed = a["renewed"]
         if not renewed.any():
             return out, False
@@ -214,6 +190,5 @@ class WorkerWorlds:
 
     def close(self) -> None:
         self.res.release()
-        for block in self.blocks:
-            block.close()
-        self.blocks, self.free = [], []
+        if self.out is not None:
+            self.out.close()

@@ -6,7 +6,8 @@ A worker builds its shard with ``init["factory"](init, arrays)`` (a module-level
 reference): :func:`quadswarm_mj.envs.vector_env.mujoco_shard` for the MuJoCo engine,
 :func:`quadswarm_mj.envs.jax_workers.jax_shard` for the JAX engine. A shard has ``step()`` (the
 one-byte ``STEP`` message), ``handle(command_tuple)`` (the rare commands) and, if it writes into one
-of several output blocks, ``step_into(block_index)`` (the ``STEP_INTO`` message).
+of several output blocks (:class:`OutputBlocks`, mapped in the worker by :func:`map_block_rows`),
+``step_into(block_index)`` (the ``STEP_INTO`` message).
 
 No hangs: every wait for a reply is bounded by the worker's ``timeout`` (the envs' ``worker_timeout``;
 a worker that does not answer, e.g. stopped by SIGSTOP, raises :class:`WorkerError` naming it); the
@@ -409,6 +410,68 @@ class Resources:
             self.unlink()
             self.shm.close()
             self.shm = None
+
+
+class OutputBlocks:
+    """Output blocks of shared memory, all of one layout, that every worker maps (the ``("map", index,
+    name)`` command) and writes its rows into when a step names the block (``STEP_INTO``). The env
+    hands a step's outputs out as NumPy views of a block that nothing views any more, so no copy is
+    made in its process; a block is free again when every array viewing it is gone
+    (``weakref.finalize`` on the step's carrier array). At most ``max_blocks`` exist; when the caller
+    keeps all of them alive a step goes through block 0, the scratch block, and is copied out.
+
+    ``run(what, msg_for)`` sends ``msg_for(k)`` to every worker and waits for the replies
+    (:func:`run_on_workers`)."""
+
+    def __init__(self, layout: list, max_blocks: int, run: Callable[[str, Callable[[int], Any]], Any]):
+        self.layout, self.max_blocks, self._run = layout, int(max_blocks), run
+        self.size = layout_bytes(layout)
+        self.blocks: list[SharedBlock] = []  # 0 is the scratch block (copied out, never handed out)
+        self.free: list[bool] = []
+        self.new()
+
+    def new(self) -> int:
+        """Create a block, have every worker map it, unlink its name; returns its index."""
+        block = SharedBlock(create=True, size=self.size)
+        try:
+            k = len(self.blocks)
+            self._run("map", lambda _: ("map", k, block.name))
+        finally:
+            block.unlink()  # mapped by every worker (or failed): the name can go
+        self.blocks.append(block)
+        self.free.append(k != 0)
+        return k
+
+    def acquire(self) -> int:
+        """A free block (a new one while fewer than ``max_blocks`` exist), else 0 (the scratch block)."""
+        for k in range(1, len(self.blocks)):
+            if self.free[k]:
+                return k
+        if len(self.blocks) <= self.max_blocks:
+            return self.new()
+        return 0
+
+    def arrays(self, k: int) -> dict[str, np.ndarray]:
+        """Block k's arrays: new copies (scratch block) or views that free the block when all are gone."""
+        carrier = np.frombuffer(self.blocks[k].buf, np.uint8, count=self.size)
+        out = map_arrays(carrier, self.layout)
+        if k == 0:
+            return {name: x.copy() for name, x in out.items()}
+        self.free[k] = False
+        weakref.finalize(carrier, self.free.__setitem__, k, True)
+        return out
+
+    def close(self) -> None:
+        for block in self.blocks:
+            block.close()
+        self.blocks, self.free = [], []
+
+
+def map_block_rows(name: str, layout: list, lo: int, hi: int) -> tuple[SharedBlock, dict[str, np.ndarray]]:
+    """A worker's side of an output block: the block ``name`` and views of rows [lo, hi) of its arrays."""
+    shm = SharedBlock(name=name)
+    arrays = map_arrays(shm.buf, layout)
+    return shm, {k: v[lo:hi] for k, v in arrays.items()}
 
 
 def wait_started(workers: list[Worker]) -> None:

@@ -1,0 +1,45 @@
+"""Per-program XLA:CPU compile options for the JAX engine's one-world programs: process-local speed
+without :func:`quadswarm_mj.tune_jax_cpu`'s process-wide settings.
+
+``jax.jit(f, compiler_options=...)`` sets XLA ``DebugOptions`` fields for that program only (no
+``XLA_FLAGS``, no JAX config). The option that measured to pay for the one-world step is
+``xla_cpu_use_fusion_emitters=False`` (XLA:CPU's older fused-loop emitter). Measured on the 2-core
+machine under heavy, varying load (``python /tmp/opt_rate.py`` style loops: one
+``QuadSwarmEnv(engine="jax")``, random actions, best of 3 x 1.5 s, fresh process per row): 1.1-4.9x
+the steps/s of JAX's defaults and 0.6-0.8x the time from construction to the first step's return;
+``tune_jax_cpu()`` stays faster in some rounds. The small-loop threshold of ``tune_jax_cpu`` cannot be set
+this way (``xla_backend_extra_options`` is a map field, which compile options do not take), nor can
+synchronous dispatch (a client setting). Results are the same bit for bit
+(``tests/test_perf_xla_options.py``). Applied on the CPU backend only, and only where this jax
+accepts the option (:func:`one_world_options` probes it once); ``ENABLED = False`` turns it off.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+#: the compile options of the one-world programs on CPU
+ONE_WORLD_CPU_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
+#: set to False (before the first env of a config is built) for JAX's default compile options
+ENABLED = True
+
+
+@functools.lru_cache(maxsize=1)
+def _accepted() -> dict[str, Any]:
+    import jax
+    import jax.numpy as jnp
+
+    if jax.default_backend() != "cpu":
+        return {}
+    try:
+        jax.jit(lambda x: x + 1, compiler_options=ONE_WORLD_CPU_OPTIONS).lower(jnp.zeros(2)).compile()
+    except Exception:  # noqa: BLE001 - an XLA without this option: JAX's defaults
+        return {}
+    return dict(ONE_WORLD_CPU_OPTIONS)
+
+
+def one_world_options() -> dict[str, Any]:
+    """The compile options for a one-world program here: :data:`ONE_WORLD_CPU_OPTIONS` on a CPU
+    backend whose XLA accepts them and with :data:`ENABLED`, else ``{}`` (JAX's defaults)."""
+    return _accepted() if ENABLED else {}
