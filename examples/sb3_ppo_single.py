@@ -3,7 +3,7 @@
 SB3 trains on the batched JAX engine through the VecEnv adapter (``QuadSwarmSB3VecEnv``: W worlds of one
 quad are W SB3 envs, stepped in one jitted call), with the settings that learn (docs/examples.md):
 
-    python examples/sb3_ppo_single.py --total-steps 3000000        # the recorded run (docs/examples.md)
+    python examples/sb3_ppo_single.py --total-steps 2000000        # the recorded run (docs/examples.md)
     python examples/sb3_ppo_single.py --smoke                      # a few hundred steps (CI)
 
 The held-out evaluation flies ``--eval-episodes`` fresh episodes (seed ``--seed + 1000``, never used in
@@ -32,25 +32,27 @@ def make_cfg(episode_seconds: float) -> EnvConfig:
 
 
 class Progress(BaseCallback):
-    """Prints agent-steps, steps/s and the training episodes' mean distance every ``every`` seconds."""
+    """Prints agent-steps, agent-steps/s and the mean reward per step (unnormalized) every ``every`` seconds."""
 
-    def __init__(self, every: float = 20.0):
+    def __init__(self, every: float = 30.0):
         super().__init__()
-        self.every, self.t0, self.last = every, time.time(), 0.0
+        self.every, self.t0, self.last, self.rewards = every, time.time(), 0.0, []
 
     def _on_step(self) -> bool:
+        self.rewards.append(float(self.training_env.get_original_reward().mean()))
         now = time.time()
         if now - self.last >= self.every:
             self.last = now
-            rew = self.model.rollout_buffer.rewards.mean() if self.model.rollout_buffer.full else float("nan")
-            print(f"{self.num_timesteps:>9,d} steps  {self.num_timesteps / (now - self.t0):7.0f} steps/s  "
-                  f"{now - self.t0:6.0f} s  normalized reward/step {rew:+.3f}", flush=True)
+            print(f"{self.num_timesteps:>10,d} agent-steps  {self.num_timesteps / (now - self.t0):6.0f}/s  "
+                  f"{now - self.t0:5.0f} s  reward/step {np.mean(self.rewards):+.4f}", flush=True)
+            self.rewards.clear()
         return True
 
 
-def evaluate(model: PPO, norm: VecNormalize, cfg: EnvConfig, episodes: int, seed: int) -> dict[str, float]:
+def evaluate(model: PPO, norm: VecNormalize, cfg: EnvConfig, episodes: int, seed: int, engine: str
+             ) -> dict[str, float]:
     """``episodes`` worlds flown once each with the deterministic policy; means over the episodes (m)."""
-    env = QuadSwarmVectorEnv(cfg, num_envs=episodes, engine="jax", info_keys=("rewards",))
+    env = QuadSwarmVectorEnv(cfg, num_envs=episodes, engine=engine, info_keys=("rewards",))
     obs, _ = env.reset(seed=seed)
     for _ in range(cfg.episode_steps):
         act, _ = model.predict(norm.normalize_obs(obs.reshape(episodes, -1)), deterministic=True)
@@ -65,10 +67,11 @@ def evaluate(model: PPO, norm: VecNormalize, cfg: EnvConfig, episodes: int, seed
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--total-steps", type=int, default=3_000_000, help="agent-steps (the lr schedule's span)")
+    p.add_argument("--total-steps", type=int, default=2_000_000, help="agent-steps (the lr schedule's span)")
     p.add_argument("--worlds", type=int, default=64, help="worlds of one quad stepped together (SB3 envs)")
     p.add_argument("--n-steps", type=int, default=256, help="rollout steps per world per PPO update")
     p.add_argument("--lr", type=float, default=2e-3, help="initial learning rate, decaying linearly to 10 %%")
+    p.add_argument("--engine", choices=("jax", "mujoco"), default="jax", help="the smoke test uses mujoco (no compile)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--eval-episodes", type=int, default=20)
     p.add_argument("--save", help="write the model (.zip) and the normalizer (.pkl) with this prefix")
@@ -77,11 +80,11 @@ def main() -> None:
     episode_seconds = 15.0
     if args.smoke:
         args.total_steps, args.worlds, args.n_steps, args.eval_episodes = 512, 4, 32, 2
-        episode_seconds = 0.5
+        episode_seconds, args.engine = 0.5, "mujoco"
     torch.manual_seed(args.seed)
     torch.set_num_threads(1)  # small networks: one thread, and no contention with the JAX engine's threads
     cfg = make_cfg(episode_seconds)
-    venv = QuadSwarmSB3VecEnv(cfg=cfg, num_envs=args.worlds, engine="jax")
+    venv = QuadSwarmSB3VecEnv(cfg=cfg, num_envs=args.worlds, engine=args.engine)
     venv.seed(args.seed)
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=0.99)
     lr0 = args.lr
@@ -97,7 +100,7 @@ def main() -> None:
         model.save(args.save + ".zip")
         venv.save(args.save + "_vecnormalize.pkl")
     venv.close()
-    r = evaluate(model, venv, cfg, args.eval_episodes, seed=args.seed + 1000)
+    r = evaluate(model, venv, cfg, args.eval_episodes, seed=args.seed + 1000, engine=args.engine)
     print(f"held-out ({args.eval_episodes} episodes, seed {args.seed + 1000}): mean distance "
           f"{r['mean_distance']:.3f} m, final distance {r['final_distance']:.3f} +- {r['final_distance_std']:.3f} m, "
           f"success {r['success']:.2f}  (train {train_s:.0f} s)", flush=True)

@@ -4,7 +4,7 @@
 quad; SB3 sees each quad as an env of its own (observation: own state + 6 nearest neighbours, 54 floats),
 and time-limit ends arrive as ``TimeLimit.truncated`` so that PPO bootstraps them. No SuperSuit needed.
 
-    python examples/sb3_ppo_swarm.py --total-steps 4000000          # the recorded run (docs/examples.md)
+    python examples/sb3_ppo_swarm.py --total-steps 2000000          # the recorded run (docs/examples.md)
     python examples/sb3_ppo_swarm.py --smoke                        # a few hundred steps (CI)
 
 The held-out evaluation flies ``--eval-episodes`` fresh episodes (seed ``--seed + 1000``) with the
@@ -27,24 +27,27 @@ from quadswarm_mj.envs.sb3_vec_env import QuadSwarmSB3VecEnv
 
 
 class Progress(BaseCallback):
-    """Prints agent-steps and agent-steps/s every ``every`` seconds."""
+    """Prints agent-steps, agent-steps/s and the mean reward per step (unnormalized) every ``every`` seconds."""
 
     def __init__(self, every: float = 30.0):
         super().__init__()
-        self.every, self.t0, self.last = every, time.time(), 0.0
+        self.every, self.t0, self.last, self.rewards = every, time.time(), 0.0, []
 
     def _on_step(self) -> bool:
+        self.rewards.append(float(self.training_env.get_original_reward().mean()))
         now = time.time()
         if now - self.last >= self.every:
             self.last = now
             print(f"{self.num_timesteps:>10,d} agent-steps  {self.num_timesteps / (now - self.t0):6.0f}/s  "
-                  f"{now - self.t0:5.0f} s", flush=True)
+                  f"{now - self.t0:5.0f} s  reward/step {np.mean(self.rewards):+.4f}", flush=True)
+            self.rewards.clear()
         return True
 
 
-def evaluate(model: PPO, norm: VecNormalize, cfg: EnvConfig, episodes: int, seed: int) -> dict[str, float]:
+def evaluate(model: PPO, norm: VecNormalize, cfg: EnvConfig, episodes: int, seed: int, engine: str
+             ) -> dict[str, float]:
     """``episodes`` worlds flown once each with the deterministic shared policy; episode-metric means."""
-    env = QuadSwarmVectorEnv(cfg, num_envs=episodes, engine="jax", info_keys=("rewards",))
+    env = QuadSwarmVectorEnv(cfg, num_envs=episodes, engine=engine, info_keys=("rewards",))
     obs, _ = env.reset(seed=seed)
     n = cfg.num_quads
     for _ in range(cfg.episode_steps):
@@ -58,11 +61,12 @@ def evaluate(model: PPO, norm: VecNormalize, cfg: EnvConfig, episodes: int, seed
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--total-steps", type=int, default=4_000_000, help="agent-steps (quads x control steps)")
+    p.add_argument("--total-steps", type=int, default=2_000_000, help="agent-steps (quads x control steps)")
     p.add_argument("--scenario", default="static_diff_goal", help="quadswarm_mj.list_scenarios()")
-    p.add_argument("--worlds", type=int, default=8, help="worlds of 8 quads (SB3 envs: worlds x 8)")
-    p.add_argument("--n-steps", type=int, default=256, help="rollout steps per quad per PPO update")
+    p.add_argument("--worlds", type=int, default=16, help="worlds of 8 quads (SB3 envs: worlds x 8)")
+    p.add_argument("--n-steps", type=int, default=128, help="rollout steps per quad per PPO update")
     p.add_argument("--lr", type=float, default=2e-3, help="initial learning rate, decaying linearly to 10 %%")
+    p.add_argument("--engine", choices=("jax", "mujoco"), default="jax", help="the smoke test uses mujoco (no compile)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--eval-episodes", type=int, default=20)
     p.add_argument("--smoke", action="store_true", help="a few hundred steps on 0.5 s episodes (CI)")
@@ -70,11 +74,11 @@ def main() -> None:
     episode_seconds = 15.0
     if args.smoke:
         args.total_steps, args.worlds, args.n_steps, args.eval_episodes = 512, 2, 32, 2
-        episode_seconds = 0.5
+        episode_seconds, args.engine = 0.5, "mujoco"
     torch.manual_seed(args.seed)
     torch.set_num_threads(1)  # small networks: one thread, and no contention with the JAX engine's threads
     cfg = EnvConfig(num_quads=8, scenario=args.scenario, rewards={"pos": 3.0}, episode_seconds=episode_seconds)
-    venv = QuadSwarmSB3VecEnv(cfg=cfg, num_envs=args.worlds, engine="jax")  # worlds x 8 SB3 envs
+    venv = QuadSwarmSB3VecEnv(cfg=cfg, num_envs=args.worlds, engine=args.engine)  # worlds x 8 SB3 envs
     venv.seed(args.seed)
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=0.99)
     lr0 = args.lr
@@ -88,7 +92,7 @@ def main() -> None:
     model.learn(args.total_steps, callback=Progress())
     train_s = time.time() - t0
     venv.close()
-    r = evaluate(model, venv, cfg, args.eval_episodes, seed=args.seed + 1000)
+    r = evaluate(model, venv, cfg, args.eval_episodes, seed=args.seed + 1000, engine=args.engine)
     print(f"held-out ({args.eval_episodes} episodes, seed {args.seed + 1000}, {args.scenario}): mean distance "
           f"{r['mean_distance']:.3f} m, success {r['success']:.2f}, collisions/quad {r['collisions']:.2f}, "
           f"floor hits/quad {r['floor_hits']:.2f}  (train {train_s:.0f} s)", flush=True)

@@ -81,15 +81,16 @@ def main() -> None:
     p.add_argument("--scenario", default="static_diff_goal", help="quadswarm_mj.list_scenarios()")
     p.add_argument("--rollouts", type=int, default=2048, help="env steps per PPO update")
     p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--engine", choices=("jax", "mujoco"), default="jax", help="the smoke test uses mujoco (no compile)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--eval-episodes", type=int, default=5)
     p.add_argument("--smoke", action="store_true", help="a few hundred steps on 0.5 s episodes (CI)")
     args = p.parse_args()
     env_kwargs = {"num_quads": args.num_quads, "scenario": args.scenario, "rewards": {"pos": 3.0},
-                  "engine": "jax"}
+                  "engine": args.engine}
     if args.smoke:
         args.total_steps, args.rollouts, args.eval_episodes = 300, 100, 1
-        env_kwargs["episode_seconds"] = 0.5
+        env_kwargs.update(episode_seconds=0.5, engine="mujoco")
     torch.manual_seed(args.seed)
     raw = quadswarm_v0.parallel_env(**env_kwargs)
     raw.reset(seed=args.seed)

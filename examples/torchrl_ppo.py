@@ -2,7 +2,8 @@
 
 TorchRL builds its specs from the env's ``info``, so the env runs with ``info_mode="flat"`` (every info entry
 an array of stable shape: ``episode_metrics/mean_distance`` is NaN until an episode ends). The id
-``quadswarm_mj:QuadSwarm-v0`` imports the package itself (also in TorchRL's worker processes).
+``quadswarm_mj:QuadSwarm-v0`` imports the package itself (also in worker processes). One ``GymEnv`` steps at
+a few hundred frames/s here (TorchRL's per-step cost); 16 envs in a ``SyncVectorEnv`` share that cost.
 
     python examples/torchrl_ppo.py --total-steps 1000000     # the recorded run (docs/examples.md)
     python examples/torchrl_ppo.py --smoke                   # a few hundred steps (CI)
@@ -16,6 +17,7 @@ from __future__ import annotations
 import argparse
 import time
 
+import gymnasium as gym
 import numpy as np
 import torch
 from tensordict.nn import NormalParamExtractor, TensorDictModule
@@ -25,8 +27,8 @@ try:  # TorchRL >= 0.11 names the single-process collector Collector
     from torchrl.collectors import Collector
 except ImportError:  # pragma: no cover - older TorchRL
     from torchrl.collectors import SyncDataCollector as Collector
-from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement
-from torchrl.envs import Compose, DoubleToFloat, GymEnv, ObservationNorm, TransformedEnv
+from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement, Unbounded
+from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv
 from torchrl.envs.gym_like import default_info_dict_reader
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
@@ -36,17 +38,21 @@ from torchrl.objectives.value import GAE
 METRIC = "episode_metrics/mean_distance"  # m, NaN until an episode ends (info_mode="flat")
 
 
-def make_env(episode_seconds: float, seed: int, norm: ObservationNorm | None = None) -> TransformedEnv:
-    """One quad on static_same_goal, the position term at 3x the paper's scale, observations normalized
-    (with ``norm``'s statistics if given, else to be initialized with ``init_stats``)."""
-    base = GymEnv("quadswarm_mj:QuadSwarm-v0", num_quads=1, scenario="static_same_goal", engine="jax",
-                  info_mode="flat", rewards={"pos": 3.0}, episode_seconds=episode_seconds)
-    base.set_info_dict_reader(default_info_dict_reader([METRIC]))  # the flat info's key into the tensordict
-    stats = {} if norm is None else {"loc": norm.loc.clone(), "scale": norm.scale.clone()}
-    env = TransformedEnv(base, Compose(ObservationNorm(in_keys=["observation"], standard_normal=True, **stats),
-                                       DoubleToFloat()))
+def make_env(num_envs: int, episode_seconds: float, seed: int, engine: str) -> TransformedEnv:
+    """``num_envs`` envs of one quad on static_same_goal (the position term at 3x the paper's scale, observations
+    scaled into [-1, 1] by the env) in one gymnasium ``SyncVectorEnv`` (same-step auto-reset, as TorchRL's
+    ``GymWrapper`` wants): TorchRL's per-step cost is paid once for the batch."""
+    def make() -> gym.Env:
+        return gym.make("quadswarm_mj:QuadSwarm-v0", num_quads=1, scenario="static_same_goal", engine=engine,
+                        info_mode="flat", rewards={"pos": 3.0}, normalize_obs=True, episode_seconds=episode_seconds)
+
+    venv = gym.vector.SyncVectorEnv([make] * num_envs, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+    env = GymWrapper(venv)
+    # the flat info's key into the tensordict (batched spec given: TorchRL cannot infer it through the wrapper)
+    env.base_env.set_info_dict_reader(default_info_dict_reader(
+        [METRIC], spec={METRIC: Unbounded(shape=(num_envs,), dtype=torch.float32)}))
     env.set_seed(seed)
-    return env
+    return TransformedEnv(env, DoubleToFloat())
 
 
 def mlp(n_out: int) -> nn.Sequential:
@@ -56,22 +62,23 @@ def mlp(n_out: int) -> nn.Sequential:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--total-steps", type=int, default=1_000_000, help="env steps (frames)")
+    p.add_argument("--num-envs", type=int, default=16, help="envs stepped together (a gymnasium SyncVectorEnv)")
     p.add_argument("--frames-per-batch", type=int, default=4096)
     p.add_argument("--minibatch", type=int, default=512)
     p.add_argument("--epochs", type=int, default=4)
     p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--engine", choices=("jax", "mujoco"), default="jax", help="the smoke test uses mujoco (no compile)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--eval-episodes", type=int, default=5)
     p.add_argument("--smoke", action="store_true", help="a few hundred steps on 0.5 s episodes (CI)")
     args = p.parse_args()
     episode_seconds = 15.0
     if args.smoke:
-        args.total_steps, args.frames_per_batch, args.minibatch, args.eval_episodes = 256, 128, 64, 1
-        episode_seconds = 0.5
+        args.total_steps, args.frames_per_batch, args.minibatch, args.eval_episodes, args.num_envs = 256, 128, 64, 2, 2
+        episode_seconds, args.engine = 0.5, "mujoco"
     torch.manual_seed(args.seed)
     torch.set_num_threads(1)
-    env = make_env(episode_seconds, args.seed)
-    env.transform[0].init_stats(num_iter=min(2000, args.total_steps), reduce_dim=0, cat_dim=0)  # obs mean/std
+    env = make_env(args.num_envs, episode_seconds, args.seed, args.engine)
     act_spec = env.action_spec_unbatched if hasattr(env, "action_spec_unbatched") else env.action_spec
     actor_net = nn.Sequential(mlp(2 * act_spec.shape[-1]), NormalParamExtractor())
     actor = ProbabilisticActor(TensorDictModule(actor_net, in_keys=["observation"], out_keys=["loc", "scale"]),
@@ -111,14 +118,11 @@ def main() -> None:
             print(f"{frames:>9,d} frames  {frames / (time.time() - t0):6.0f}/s  reward/step "
                   f"{batch['next', 'reward'].mean().item():+.4f}", flush=True)
     train_s = time.time() - t0
-    dists = []
-    env = make_env(episode_seconds, args.seed + 1000, norm=env.transform[0])  # the collector closed its env
-    steps = int(round(episode_seconds * 100))
+    env.close()  # the held-out episodes: fresh envs, one episode each, the mode of the policy
+    env = make_env(args.eval_episodes, episode_seconds, args.seed + 1000, args.engine)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        for ep in range(args.eval_episodes):
-            env.set_seed(args.seed + 1000 + ep)
-            td = env.rollout(steps + 1, actor, break_when_any_done=True)
-            dists.append(td["next", METRIC][-1].item())
+        td = env.rollout(int(round(episode_seconds * 100)), actor, break_when_any_done=False)
+    dists = td["next", METRIC][:, -1].numpy()  # (episodes,) at the episodes' last step
     env.close()
     print(f"held-out ({args.eval_episodes} episodes, seeds {args.seed + 1000}+): mean distance "
           f"{np.mean(dists):.3f} m  (train {frames:,d} frames in {train_s:.0f} s)", flush=True)
