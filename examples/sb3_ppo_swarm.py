@@ -4,7 +4,7 @@
 quad; SB3 sees each quad as an env of its own (observation: own state + 6 nearest neighbours, 54 floats),
 and time-limit ends arrive as ``TimeLimit.truncated`` so that PPO bootstraps them. No SuperSuit needed.
 
-    python examples/sb3_ppo_swarm.py --total-steps 2000000          # the recorded run (docs/examples.md)
+    python examples/sb3_ppo_swarm.py --total-steps 4000000          # the recorded run (docs/examples.md)
     python examples/sb3_ppo_swarm.py --smoke                        # a few hundred steps (CI)
 
 The held-out evaluation flies ``--eval-episodes`` fresh episodes (seed ``--seed + 1000``) with the
@@ -61,7 +61,7 @@ def evaluate(model: PPO, norm: VecNormalize, cfg: EnvConfig, episodes: int, seed
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--total-steps", type=int, default=2_000_000, help="agent-steps (quads x control steps)")
+    p.add_argument("--total-steps", type=int, default=4_000_000, help="agent-steps (quads x control steps)")
     p.add_argument("--scenario", default="static_diff_goal", help="quadswarm_mj.list_scenarios()")
     p.add_argument("--worlds", type=int, default=16, help="worlds of 8 quads (SB3 envs: worlds x 8)")
     p.add_argument("--n-steps", type=int, default=128, help="rollout steps per quad per PPO update")
