@@ -5,7 +5,7 @@ an array of stable shape: ``episode_metrics/mean_distance`` is NaN until an epis
 ``quadswarm_mj:QuadSwarm-v0`` imports the package itself (also in worker processes). One ``GymEnv`` steps at
 a few hundred frames/s here (TorchRL's per-step cost); 16 envs in a ``SyncVectorEnv`` share that cost.
 
-    python examples/torchrl_ppo.py --total-steps 1000000     # the recorded run (docs/examples.md)
+    python examples/torchrl_ppo.py --total-steps 2000000     # the budget SB3 needed (docs/examples.md)
     python examples/torchrl_ppo.py --smoke                   # a few hundred steps (CI)
 
 The held-out evaluation flies ``--eval-episodes`` episodes (seed ``--seed + 1000``) with the deterministic
@@ -61,7 +61,7 @@ def mlp(n_out: int) -> nn.Sequential:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--total-steps", type=int, default=1_000_000, help="env steps (frames)")
+    p.add_argument("--total-steps", type=int, default=2_000_000, help="env steps (frames)")
     p.add_argument("--num-envs", type=int, default=16, help="envs stepped together (a gymnasium SyncVectorEnv)")
     p.add_argument("--frames-per-batch", type=int, default=4096)
     p.add_argument("--minibatch", type=int, default=512)
