@@ -116,11 +116,13 @@ def test_cli_options_are_checked(tmp_path):
 
 @pytest.mark.slow
 def test_two_processes_learn_as_one_and_resume(tmp_path):
-    """A short single-quad run: 2 processes x 32 worlds learn as 1 process x 64 worlds (the final rewards
-    within the spread between two seeds of the 1-process run, all improving); the 2-process run then resumes
-    from its checkpoint with the same parameters on both processes."""
+    """A short single-quad run: the reward curve of 2 processes x 32 worlds is as close to the 1-process
+    x 64 worlds curve of the same seed as two seeds of the 1-process run are to each other (mean absolute
+    difference over 5-iteration windows); the 2-process run then resumes from its checkpoint with the same
+    parameters on both processes."""
     argv = ["--engine", "jax", "--preset", "single", "--num-worlds", "64", "--unroll-length", "16",
-            "--timesteps", str(64 * 16 * 40), "--no-progress", "--checkpoint-minutes", "100"]
+            "--num-minibatches", "4", "--env", "episode_seconds=2", "--timesteps", str(64 * 16 * 40),
+            "--no-progress", "--checkpoint-minutes", "100"]
     multi = _multi([*argv, "--out", str(tmp_path / "two")], tmp_path / "rec_two", tmp_path / "two.log")
     _wait(multi, [tmp_path / "two.log"])
     ones = [_single([*argv, "--seed", str(s), "--out", str(tmp_path / f"one{s}")], tmp_path / f"rec_one{s}", 1,
@@ -128,15 +130,13 @@ def test_two_processes_learn_as_one_and_resume(tmp_path):
     _wait(ones, [tmp_path / "one0.log", tmp_path / "one1.log"])
 
     def curve(d: str) -> np.ndarray:
-        return np.array([r["reward_per_step"] for r in json.loads((tmp_path / d / "progress.json").read_text())])
+        r = np.array([r["reward_per_step"] for r in json.loads((tmp_path / d / "progress.json").read_text())])
+        return r.reshape(-1, 5).mean(1)
 
     two, one0, one1 = curve("two"), curve("one0"), curve("one1")
-    assert len(two) == len(one0) == 40
-    late = {k: float(c[-10:].mean()) for k, c in (("two", two), ("one0", one0), ("one1", one1))}
-    for c in (two, one0, one1):
-        assert c[-10:].mean() > c[:5].mean()  # learning
-    spread = abs(late["one0"] - late["one1"])
-    assert abs(late["two"] - late["one0"]) <= max(3 * spread, 0.1 * abs(late["one0"])), late
+    assert len(two) == len(one0) == 8 and np.all(np.isfinite(two))
+    d_two, d_seeds = float(np.abs(two - one0).mean()), float(np.abs(one1 - one0).mean())
+    assert d_two <= 2 * d_seeds + 1e-3, (d_two, d_seeds, two, one0, one1)
 
     _wait(_multi(["--resume", str(tmp_path / "two"), "--timesteps", str(64 * 16 * 2), "--no-progress"],
                  tmp_path / "rec_res", tmp_path / "res.log"), [tmp_path / "res.log"])
