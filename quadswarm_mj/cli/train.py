@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -123,7 +124,14 @@ def _kv(items: list[str] | None, what: str) -> dict[str, Any]:
     return out
 
 
-BUDGET_ARGS = ("--minutes", "--timesteps", "--checkpoint-minutes", "--out", "--resume")
+#: options of one launch, not of the run's configuration: a resumed run takes them from its new command line
+BUDGET_ARGS = ("--minutes", "--timesteps", "--checkpoint-minutes", "--out", "--resume", "--num-processes",
+               "--process-id", "--coordinator")
+
+
+def _env_int(name: str) -> int | None:
+    v = os.environ.get(name)
+    return int(v) if v not in (None, "") else None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -136,6 +144,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--engine jax: JAX CPU devices the iteration runs data parallel on: 'cores' (default: one per "
                         "core, quadswarm_mj.use_cpu_cores()) or an int (1: JAX's single default device). Results "
                         "depend on the device count (each device draws its own streams)")
+    p.add_argument("--num-processes", type=int, default=_env_int("QUADSWARM_NUM_PROCESSES"),
+                   help="--engine jax: data parallel over this many processes (hosts) with jax.distributed; every "
+                        "process runs the same command with its --process-id (env QUADSWARM_NUM_PROCESSES)")
+    p.add_argument("--process-id", type=int, default=_env_int("QUADSWARM_PROCESS_ID"),
+                   help="this process's index in [0, --num-processes); 0 writes the output (env QUADSWARM_PROCESS_ID; "
+                        "left out: detected on SLURM/Open MPI clusters)")
+    p.add_argument("--coordinator", default=os.environ.get("QUADSWARM_COORDINATOR"), metavar="HOST:PORT",
+                   help="address of process 0's coordinator, e.g. 10.0.0.1:1234 (env QUADSWARM_COORDINATOR; left "
+                        "out: detected on clusters)")
     p.add_argument("--scenario", action="append", help="training scenario(s); repeat or comma-separate")
     p.add_argument("--num-quads", type=int, help="quads per world (N)")
     p.add_argument("--reward", action="append", metavar="TERM=SCALE", help="reward scale (RewardScales field)")
@@ -219,13 +236,23 @@ def main(argv: list[str] | None = None) -> int:
     from quadswarm_mj.training.ppo import PPOConfig, PPOTrainer
 
     engine = args.engine or preset.get("engine", "mujoco")
+    nproc = args.num_processes or 1
+    if nproc > 1 and engine != "jax":
+        raise SystemExit("error: --num-processes needs --engine jax (the data-parallel trainer)")
     if engine == "jax":  # before any JAX operation: the device count is fixed when JAX starts
         from quadswarm_mj.devices import cpu_devices_option, use_cpu_cores
 
         try:
-            use_cpu_cores(cpu_devices_option(args.cpu_devices), strict=False)
-        except ValueError as e:
+            ndev = cpu_devices_option(args.cpu_devices)
+            if nproc > 1:  # this process joins the job (gloo CPU collectives, then jax.distributed.initialize)
+                from quadswarm_mj.training.distributed import initialize
+
+                initialize(nproc, args.process_id, args.coordinator, ndev)
+            else:
+                use_cpu_cores(ndev, strict=False)
+        except (ValueError, RuntimeError) as e:
             raise SystemExit(f"error: {e}") from None
+    main_process = nproc == 1 or _process_index() == 0
     scenarios = [s.strip() for item in (args.scenario or preset["scenarios"]) for s in item.split(",") if s.strip()]
     weights = preset.get("weights") if args.scenario is None else None
     n = args.num_quads if args.num_quads is not None else preset["num_quads"]
@@ -272,24 +299,28 @@ def main(argv: list[str] | None = None) -> int:
     except (TypeError, ValueError) as e:
         raise SystemExit(f"error: {e}") from None
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if main_process:
+        out.mkdir(parents=True, exist_ok=True)
     agents = trainer.num_agents if engine == "jax" else trainer.batch.num_agents
     run = {"argv": argv, "engine": engine, "scenarios": scenarios, "weights": weights, "num_quads": n,
            "env": {k: (list(v) if isinstance(v, tuple) else v) for k, v in env.items()}, "rewards": rewards,
            "ppo": {k: (list(v) if isinstance(v, tuple) else v) for k, v in ppo.__dict__.items()},
-           "replay_prob": replay_prob, "seed": args.seed, "init_from": init_from, "agents": agents,
+           "replay_prob": replay_prob, "seed": args.seed, "init_from": init_from, "agents": agents, "processes": nproc,
            "obs_dim": trainer.obs_dim, "resumed_from": args.resume,
            "resumed_at_env_steps": int(trainer.env_steps) if args.resume else None}
-    if not (args.resume and Path(args.resume).resolve() == out.resolve()):
+    if not main_process:
+        pass
+    elif not (args.resume and Path(args.resume).resolve() == out.resolve()):
         (out / "run.json").write_text(json.dumps(run, indent=1, default=str))
     else:
         (out / f"run_resume_{int(trainer.env_steps)}.json").write_text(json.dumps(run, indent=1, default=str))
-    print(f"training {', '.join(scenarios)} with N={n} on the {engine} engine: {agents} agents, obs_dim "
-          f"{trainer.obs_dim}, arch {ppo.arch}; output in {out}"
-          + (f" (resumed at {trainer.env_steps} agent-steps)" if args.resume else ""), flush=True)
+    if main_process:
+        print(f"training {', '.join(scenarios)} with N={n} on the {engine} engine: {agents} agents, obs_dim "
+              f"{trainer.obs_dim}, arch {ppo.arch}; output in {out}"
+              + (f" (resumed at {trainer.env_steps} agent-steps)" if args.resume else ""), flush=True)
 
     def log(row: dict[str, Any]) -> None:
-        if args.no_progress:
+        if args.no_progress and main_process:
             parts = [f"it {row['iteration']}", f"{row['env_steps'] / 1e6:.2f} M steps", f"{row['wall_s'] / 60:.1f} min",
                      f"{row['steps_per_s']:.0f} steps/s", f"r/step {row['reward_per_step']:.4f}"]
             for s in scenarios:
@@ -306,8 +337,15 @@ def main(argv: list[str] | None = None) -> int:
                   seconds=None if args.minutes is None else 60.0 * args.minutes, out_dir=out,
                   checkpoint_every_s=60.0 * args.checkpoint_minutes, progress=not args.no_progress, callback=log,
                   history=history)
-    print(f"done: {trainer.env_steps} agent-steps; policy {out / 'final.npz'}, curves {out / 'curves.png'}")
+    if main_process:
+        print(f"done: {trainer.env_steps} agent-steps; policy {out / 'final.npz'}, curves {out / 'curves.png'}")
     return 0
+
+
+def _process_index() -> int:
+    import jax
+
+    return jax.process_index()
 
 
 if __name__ == "__main__":

@@ -264,8 +264,8 @@ class MjxQuadSwarmEnv:
         self.N = n = cfg.num_quads
         self.arena = build_arena(cfg, 1)
         self.mj_model = self.arena.model
-        self.mjx_model = mjx.put_model(self.mj_model)
-        self._data0 = mjx.make_data(self.mjx_model)
+        self.mjx_model = mjx.put_model(self.mj_model, device=(dev := jax.local_devices()[0]))  # this process's:
+        self._data0 = mjx.make_data(self.mjx_model, device=dev)  # mjx's default, jax.devices()[0], is process 0's
         self._qs, self._vs = self.arena.qpos_start, self.arena.qvel_start
         self._fb = self.arena.first_body
         # the quads' free joints are the whole qpos/qvel: read and write them with reshapes, no scatter

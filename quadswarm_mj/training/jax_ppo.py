@@ -47,6 +47,7 @@ from quadswarm_mj.training.checkpoints import (
     save_policy_file,
     save_train_state,
 )
+from quadswarm_mj.training.distributed import broadcast_from_main, gather_worlds, global_array
 from quadswarm_mj.training.learner import (
     TrainState,
     init_params,
@@ -128,6 +129,7 @@ class JaxPPOTrainer:
             params, normalizer = self._load_init(init_from, params, normalizer)
         self.state = TrainState(params=params, opt_state=self.optimizer.init(params), normalizer=normalizer)
         self._policy_step = make_policy_step(self.networks)
+        self.num_processes, self.is_main = jax.process_count(), jax.process_index() == 0
         self.num_devices = self._data_parallel_devices(devices)
         self._update = make_update_fn(self.networks, self.optimizer, ppo,
                                       axis_name=AXIS if self.num_devices > 1 else None)
@@ -164,7 +166,10 @@ class JaxPPOTrainer:
             if self.replay is not None:
                 wd["replay"] = init_replay(st, self.replay)
             out.append(wd)
-        if self.num_devices > 1:  # every leaf has the leading worlds axis: each device gets its slice
+        if self.num_processes > 1:  # every process computed all worlds: it places its own devices' slices
+            ws, rep = self._world_sharding()
+            out = jax.tree.map(lambda x: global_array(x, ws if x.size else rep), out)
+        elif self.num_devices > 1:  # every leaf has the leading worlds axis: each device gets its slice
             ws, rep = self._world_sharding()  # (empty arrays come back replicated: place them so, no recompile)
             out = jax.tree.map(lambda x: jax.device_put(x, ws if x.size else rep), out)
         return tuple(out)
@@ -173,8 +178,21 @@ class JaxPPOTrainer:
     def _data_parallel_devices(self, devices: int | None) -> int:
         """The devices the iteration runs on (data parallel): ``devices`` (None: as many of
         ``jax.devices()`` as divide every scenario's worlds and the minibatches; 1 with replay,
-        whose buffer is shared by all worlds)."""
+        whose buffer is shared by all worlds). Over several processes (``jax.distributed``): every
+        device of every process."""
         avail = len(jax.devices())
+        if self.num_processes > 1:
+            if self.replay is not None:
+                raise ValueError("collision replay runs on one device: training over several processes needs "
+                                 "replay off (replay prob 0)")
+            if devices not in (None, avail):
+                raise ValueError(f"over {self.num_processes} processes the iteration runs on all {avail} devices "
+                                 f"(jax.devices()), got devices={devices!r}")
+            if not all(w % avail == 0 for w in self.worlds) or (self.num_agents // avail) % self.ppo.num_minibatches:
+                raise ValueError(f"the {avail} devices of the {self.num_processes} processes must divide every "
+                                 f"scenario's worlds {self.worlds} and leave a multiple of "
+                                 f"num_minibatches={self.ppo.num_minibatches} agents per device")
+            return avail
         if devices is not None:
             if not isinstance(devices, int) or not 1 <= devices <= avail:
                 raise ValueError(f"devices must be an int in [1, {avail}] (jax.devices()), got {devices!r}")
@@ -312,18 +330,25 @@ class JaxPPOTrainer:
         return {"engine": "jax", "scenarios": [c.scenario for c in self.cfgs], "worlds": list(self.worlds),
                 "env_steps": int(self.env_steps), "iterations": int(self.iteration), "seed": self.seed,
                 "ppo": ppo_meta(self.ppo), "replay": None if self.replay is None else vars(self.replay),
-                **(extra_meta or {})}
+                "processes": self.num_processes, "devices": self.num_devices, **(extra_meta or {})}
 
-    def save(self, path: str | Path, extra_meta: dict[str, Any] | None = None) -> str:
-        """Write the policy file (MLP format 1 or encoder format 2); returns its SHA-256."""
+    def save(self, path: str | Path, extra_meta: dict[str, Any] | None = None) -> str | None:
+        """Write the policy file (MLP format 1 or encoder format 2); returns its SHA-256. Over several
+        processes only process 0 writes (the others return None)."""
+        if not self.is_main:
+            return None
         return save_policy_file(path, self.ppo, self.arch, self.cfgs[0], self.state, self.train_meta(extra_meta))
 
     def save_state(self, path: str | Path, wds: tuple[dict[str, Any], ...] | None = None) -> None:
-        """The resumable learner state, RNG key, counters and the worlds' ``total_steps`` (annealing)."""
+        """The resumable learner state, RNG key, counters and the worlds' ``total_steps`` (annealing).
+        Over several processes every process must call it (the worlds' clocks are gathered) and process 0
+        writes."""
         extra = {}
         if wds is not None:
             for k, wd in enumerate(wds):
-                extra[f"total_steps_{k}"] = np.asarray(wd["env"].info["total_steps"])
+                extra[f"total_steps_{k}"] = gather_worlds(wd["env"].info["total_steps"])
+        if not self.is_main:
+            return
         save_train_state(path, self.state, self.key, {"engine": "jax", "env_steps": int(self.env_steps),
                                                       "iteration": int(self.iteration),
                                                       "lr_scale": float(self._lr_scale)}, extra)
@@ -346,14 +371,23 @@ class JaxPPOTrainer:
               history: list[dict[str, Any]] | None = None) -> list[dict[str, Any]]:
         """Train until this run has done ``total_steps`` agent-steps or ``seconds`` of wall time (the
         compile counts against ``seconds``). Writes ``progress.csv``/``progress.json``, ``curves.png``,
-        ``checkpoints/`` (policy files and ``train_state.npz``) and ``final.npz`` into ``out_dir``."""
-        out, rows, self._wall0, bar = start_run(out_dir, history, total_steps, seconds, progress)
+        ``checkpoints/`` (policy files and ``train_state.npz``) and ``final.npz`` into ``out_dir``.
+
+        Over several processes every process calls it with the same arguments; process 0's clock decides
+        when to stop and to checkpoint and sets the learning rate (broadcast each iteration), process 0
+        alone writes files and shows the progress bar; every process returns the same rows."""
+        out, rows, self._wall0, bar = start_run(out_dir if self.is_main else None, history, total_steps, seconds,
+                                                progress and self.is_main)
+        want_ckpt = out_dir is not None  # every process joins the checkpoint's gather, process 0 writes
         per_iter = self.num_agents * self.ppo.unroll_length
         t0 = time.perf_counter()
         last_ckpt = t0
         self.key, k_env = jax.random.split(self.key)
         carry = (self.state, self.init_worlds(k_env), self.key)
-        if self.num_devices > 1:  # placed as the iteration returns them: no second compile
+        if self.num_processes > 1:  # host values onto the global mesh (replicated)
+            rep = self._world_sharding()[1]
+            carry = (jax.tree.map(lambda x: global_array(x, rep), self.state), carry[1], global_array(self.key, rep))
+        elif self.num_devices > 1:  # placed as the iteration returns them: no second compile
             rep = self._world_sharding()[1]
             carry = (jax.device_put(self.state, rep), carry[1], jax.device_put(self.key, rep))
         steps0 = self._steps0 = self.env_steps
@@ -361,18 +395,26 @@ class JaxPPOTrainer:
             bar.steps0 = steps0
         t_first = None
         while True:
-            elapsed = time.perf_counter() - t0
-            if total_steps is not None and self.env_steps - steps0 >= total_steps:
-                break
-            if seconds is not None and elapsed >= seconds:
-                break
+            now = time.perf_counter()
+            elapsed = now - t0
+            stop = ((total_steps is not None and self.env_steps - steps0 >= total_steps)
+                    or (seconds is not None and elapsed >= seconds))
             # the learning-rate schedule follows the step budget when there is one (the wall clock then only
             # caps the run, so a run that reaches its budget is reproducible from its seed), else the clock
-            if total_steps is not None:
-                frac = (self.env_steps - steps0) / max(total_steps, 1)
-            else:
-                frac = elapsed / seconds
-            self._lr_scale = linear_lr_scale(self.ppo, frac, self.lr_start)
+            frac = (self.env_steps - steps0) / max(total_steps, 1) if total_steps is not None else elapsed / seconds
+            lr_scale = linear_lr_scale(self.ppo, frac, self.lr_start)
+            ckpt = want_ckpt and now - last_ckpt >= checkpoint_every_s
+            stop, ckpt, lr_scale = broadcast_from_main(np.array([stop, ckpt, lr_scale], np.float64))
+            if ckpt and not stop:
+                self.save(out / "checkpoints" / f"step_{self.env_steps:012d}.npz" if out else "")
+                self.save_state(out / "checkpoints" / TRAIN_STATE_FILE if out else "", carry[1])
+                last_ckpt = now
+                if out is not None:
+                    write_logs(out, rows)
+                    plot_curves(out / "progress.json", out / "curves.png")
+            if stop:
+                break
+            self._lr_scale = float(lr_scale)
             carry, m, sums = self._iteration(carry, jnp.float32(self._lr_scale))
             m, sums = jax.device_get((m, sums))  # one small transfer per iteration
             self.state, wds, self.key = carry
@@ -393,17 +435,12 @@ class JaxPPOTrainer:
                 callback(row)
             if out is not None and self.iteration % (10 * log_every) == 0:
                 write_logs(out, rows)
-            if out is not None and now - last_ckpt >= checkpoint_every_s:
-                self.save(out / "checkpoints" / f"step_{self.env_steps:012d}.npz")
-                self.save_state(out / "checkpoints" / TRAIN_STATE_FILE, wds)
-                last_ckpt = now
-                write_logs(out, rows)
-                plot_curves(out / "progress.json", out / "curves.png")
         if bar is not None:
             bar.close(rows[-1] if rows else None)
+        if want_ckpt:
+            self.save(out / "final.npz" if out else "", {"wall_seconds": round(time.perf_counter() - t0, 1)})
+            self.save_state(out / "checkpoints" / TRAIN_STATE_FILE if out else "", carry[1])
         if out is not None:
-            self.save(out / "final.npz", {"wall_seconds": round(time.perf_counter() - t0, 1)})
-            self.save_state(out / "checkpoints" / TRAIN_STATE_FILE, carry[1])
             write_logs(out, rows)
             plot_curves(out / "progress.json", out / "curves.png")
         return rows
