@@ -404,7 +404,7 @@ class SwarmRenderer:
                 for k in range(dirs.shape[0]):
                     self._line(pos[i], ends[i, k], beam, 2.5)
                     if ok[i, k]:
-                        self._add_geom(mujoco.mjtGeom.mjGEOM_SPHERE, (0.025,) * 3, ends[i, k], beam, emission=0.8)
+                        self._add_geom(mujoco.mjtGeom.mjGEOM_SPHERE, (0.04,) * 3, ends[i, k], beam, emission=0.8)
         if s.depth is not None and "depth" in readings:
             h, w = s.depth
             depth = np.asarray(readings["depth"], dtype=np.float64).reshape(self.num_quads, h, w)
@@ -420,7 +420,7 @@ class SwarmRenderer:
                     self._line(pos[i], far[c], rgba, 2.0)
                     self._line(far[c], far[(c + 1) % 4], rgba, 2.0)
                 for k in range(h * w):
-                    self._add_geom(mujoco.mjtGeom.mjGEOM_SPHERE, (0.012,) * 3, hits[i, k], rgba, emission=0.8)
+                    self._add_geom(mujoco.mjtGeom.mjGEOM_SPHERE, (0.02,) * 3, hits[i, k], rgba, emission=0.8)
 
     def _sync_obstacles(self, obstacles: Any | None) -> None:
         """Columns of the drawn world: from the engine (``data.mocap_pos``, radii from its model), or
