@@ -242,7 +242,7 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
     into [low, high] and divided by ``scale`` when normalization is on. ``dist``: optional
     (..., N, N) distances between the true ``pos`` (see :func:`neighbor_obs`); ``obstacle_feats``:
     optional (..., N, 9) features of these ``pos`` already computed (the CPU engine's obstacle stage).
-    With ``cfg.sensors`` on, the deck readings of the true state (:func:`quadswarm_mj.sensors.deck_readings`,
+    With ``cfg.sensors`` on, the deck readings of the true state (:func:`quadswarm_mj.sensors.deck_part`,
     noise from ``deck_draws`` = draws of ``sensors.deck_draw_spec``, None: noise-free) come last.
 
     The neighbour clip of :func:`neighbor_obs` is folded into the final clip: clipping into one
@@ -267,9 +267,9 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
 
         parts.append(obstacle_feats if obstacle_feats is not None else obstacle_features(pos, *obstacles))
     if cfg.sensors.any:
-        from quadswarm_mj.sensors import deck_obs, deck_readings
+        from quadswarm_mj.sensors import deck_part
 
-        parts.append(deck_obs(cfg, deck_readings(cfg, pos, vel, R, omega, obstacles, deck_draws)))
+        parts.append(deck_part(cfg, pos, vel, R, omega, obstacles, deck_draws))
     if xp is np:
         obs = np.minimum(np.maximum(np.concatenate(parts, axis=-1), low), high)  # = clip into the bounds
     else:  # each part clipped into its bounds, then concatenated: the same values, and XLA:CPU then

@@ -8,6 +8,14 @@ frames (H, W, 3) uint8:
   and its goal is drawn as a small unlit sphere of the same colour (a user geom added to the scene
   with ``mjv_initGeom``; no body is added to the model);
 * optional trails: a polyline of each quad's last ``trail_length`` rendered positions;
+* optional deck sensors (``sensors=SensorConfig``, readings passed to :meth:`~SwarmRenderer.render`):
+  each range beam of the multi-ranger and the flow deck is a line in the quad's colour from the quad
+  to its reading, ending in a small sphere where the reading is valid (a hit); the depth camera is
+  drawn as its frustum (the four edge rays, ``FRUSTUM_LENGTH`` long, and the far rectangle) and the
+  hit points of its pixels;
+* several worlds: :meth:`~SwarmRenderer.set_world` switches the drawn world (trails and camera
+  smoothing are kept per world), :class:`TiledRenderer` puts R x C worlds side by side in one frame
+  with one offscreen context;
 * cameras: ``"overview"`` (default) is a free camera that frames every quad and goal of the world
   (look-at the centre of their bounding sphere, distance from the field of view, smoothed over
   frames: it widens at once and narrows slowly), ``"chase"`` follows quad ``chase_quad`` from
@@ -48,6 +56,8 @@ from quadswarm_mj.spatial import yaw_of
 #: geoms of each quad that carry its colour (suffixes of the attached geom names).
 TINTED_GEOMS = ("plate", "prop_fr", "prop_br", "prop_bl", "prop_fl")
 CAMERAS = ("overview", "chase")
+#: length (m) of the depth camera's drawn frustum edges
+FRUSTUM_LENGTH = 0.5
 _FIX_HINT = (
     "Fix: install Mesa's EGL driver (Debian/Ubuntu: `apt-get install libegl1 libgl1-mesa-dri libegl-mesa0`), "
     "or use software OSMesa (`apt-get install libosmesa6` and run with MUJOCO_GL=osmesa). MUJOCO_GL must be "
@@ -151,12 +161,14 @@ class SwarmRenderer:
         antialias: 4x multisampling (costs about 2x more in software GL; barely visible in videos).
         smooth_camera: smooth the overview camera over frames (for videos).
         chase_quad: the quad the chase camera follows.
+        sensors: the ``SensorConfig`` of the readings to draw (``render(..., readings=...)``; None:
+            no sensor drawing).
     """
 
     def __init__(self, core: Any, width: int = 640, height: int = 480, camera: Any = "overview",
                  world: int = 0, trail_length: int = 0, show_goals: bool = True, marker_radius: float = 0.05,
                  marker_alpha: float = 0.55, shadows: bool = True, antialias: bool = False,
-                 smooth_camera: bool = True, chase_quad: int = 0):
+                 smooth_camera: bool = True, chase_quad: int = 0, sensors: Any = None):
         for name, v in (("width", width), ("height", height)):
             if not isinstance(v, int) or isinstance(v, bool) or not 16 <= v <= 8192:
                 raise ValueError(f"{name} must be an int in [16, 8192] pixels, got {v!r}")
@@ -180,15 +192,13 @@ class SwarmRenderer:
         self.model.vis.global_.offheight = max(height, self.model.vis.global_.offheight)
         self.model.vis.quality.offsamples = 4 if antialias else 0
         self.data = mujoco.MjData(self.model)
-        self.body_ids = np.asarray(arena.body_ids[world])
-        self.world_offset = np.asarray(arena.world_offsets[world], dtype=np.float64)
-        self._tint(arena)
+        self.sensors = sensors if sensors is not None and getattr(sensors, "any", False) else None
+        self._rgba0 = self.model.geom_rgba.copy()  # the room's own colours (before any tint)
         self._obst_ids = None if getattr(arena, "obstacle_geom_ids", None) is None else arena.obstacle_geom_ids
-        if self._obst_ids is not None:  # other worlds' columns overlap this one's in the "paper" model: hide
-            others = np.delete(self._obst_ids, world, axis=0).ravel()
-            self.model.geom_rgba[others, 3] = 0.0
+        self._states: dict[int, tuple] = {}  # per world: trails and camera smoothing (set_world)
+        self._show_world(world)
         self.camera = self._resolve_camera(camera)  # validates the default camera
-        max_geom = int(self.model.ngeom + self.num_quads * (2 + trail_length) + 100)
+        max_geom = int(self.model.ngeom + self.num_quads * (2 + trail_length + self._sensor_geoms()) + 100)
         self._renderer = start_renderer(self.model, width, height, max_geom)
         self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = bool(shadows)
         self._option = mujoco.MjvOption()
@@ -199,6 +209,41 @@ class SwarmRenderer:
         self._last_time = -1.0
 
     # ------------------------------------------------------------------ set-up
+    def _show_world(self, world: int) -> None:
+        """Tint world ``world``'s quads and hide the other worlds' quads and columns."""
+        arena = self.core.arena
+        self.world = world
+        self.body_ids = np.asarray(arena.body_ids[world])
+        self.world_offset = np.asarray(arena.world_offsets[world], dtype=np.float64)
+        self.model.geom_rgba[:] = self._rgba0
+        self._tint(arena)
+        if self._obst_ids is not None:  # other worlds' columns overlap this one's in the "paper" model: hide
+            others = np.delete(self._obst_ids, world, axis=0).ravel()
+            self.model.geom_rgba[others, 3] = 0.0
+
+    def set_world(self, world: int) -> None:
+        """Draw world ``world`` from now on (its trails and camera smoothing are kept separately)."""
+        if not 0 <= world < self.core.arena.num_worlds:
+            raise ValueError(f"world must be in [0, {self.core.arena.num_worlds}), got {world!r}")
+        if world == self.world:
+            return
+        self._states[self.world] = (self._trail, self._trail_count, self._cam_state, self._chase_yaw,
+                                    self._last_time)
+        self._show_world(world)
+        if world in self._states:
+            self._trail, self._trail_count, self._cam_state, self._chase_yaw, self._last_time = self._states[world]
+        else:
+            self._trail = np.zeros((max(self.trail_length, 1), self.num_quads, 3))
+            self._trail_count, self._cam_state, self._chase_yaw, self._last_time = 0, None, None, -1.0
+
+    def _sensor_geoms(self) -> int:
+        """Scene geoms per quad for the sensor drawing: 2 per range beam, 8 frustum lines, 1 per pixel."""
+        s = self.sensors
+        if s is None:
+            return 0
+        h, w = s.depth or (0, 0)
+        return 2 * (5 * s.multiranger + s.flow) + (8 + h * w if s.depth is not None else 0)
+
     def _tint(self, arena: Any) -> None:
         m = self.model
         quad_of_body = {int(b): i for i, b in enumerate(self.body_ids)}
@@ -331,6 +376,52 @@ class SwarmRenderer:
                     return
                 mujoco.mjv_connector(g, mujoco.mjtGeom.mjGEOM_LINE, 3.0, pts[j, i], pts[j + 1, i])
 
+    def _line(self, a: np.ndarray, b: np.ndarray, rgba: Any, width: float) -> None:
+        g = self._add_geom(mujoco.mjtGeom.mjGEOM_LINE, (1, 1, 1), a, rgba, emission=1.0)
+        if g is not None:
+            mujoco.mjv_connector(g, mujoco.mjtGeom.mjGEOM_LINE, width, a, b)
+
+    def _draw_sensors(self, pos: np.ndarray, readings: dict[str, Any]) -> None:
+        """Range beams (line to the reading, a sphere at a valid hit) and the depth camera's frustum
+        and hit points of every quad of the drawn world; ``readings`` as ``info`` gives them (m)."""
+        from quadswarm_mj.sensors import DOWN_DIR, MULTIRANGER_DIRS, depth_directions
+
+        s = self.sensors
+        R = self.data.xmat[self.body_ids].reshape(-1, 3, 3)  # body -> world
+        beams = []  # (body dirs (K, 3), ranges (N, K), valid (N, K))
+        if s.multiranger and "multiranger" in readings:
+            r = np.asarray(readings["multiranger"], dtype=np.float64).reshape(self.num_quads, 5)
+            ok = np.asarray(readings.get("multiranger_valid", np.ones_like(r, bool))).reshape(self.num_quads, 5)
+            beams.append((np.asarray(MULTIRANGER_DIRS), r, ok))
+        if s.flow and "flow" in readings:
+            r = np.asarray(readings["flow"], dtype=np.float64).reshape(self.num_quads, 3)[:, :1]
+            ok = np.asarray(readings.get("flow_valid", np.ones((self.num_quads, 2), bool))).reshape(-1, 2)[:, :1]
+            beams.append((np.asarray([DOWN_DIR]), r, ok))
+        for dirs, r, ok in beams:
+            ends = pos[:, None, :] + r[..., None] * np.einsum("nab,kb->nka", R, dirs)  # (N, K, 3)
+            for i in range(self.num_quads):  # scene decoration, not simulation: a loop is fine
+                beam = np.concatenate([self.colors[i, :3], [0.9]])
+                for k in range(dirs.shape[0]):
+                    self._line(pos[i], ends[i, k], beam, 2.5)
+                    if ok[i, k]:
+                        self._add_geom(mujoco.mjtGeom.mjGEOM_SPHERE, (0.04,) * 3, ends[i, k], beam, emission=0.8)
+        if s.depth is not None and "depth" in readings:
+            h, w = s.depth
+            depth = np.asarray(readings["depth"], dtype=np.float64).reshape(self.num_quads, h, w)
+            tu, tv = (math.tan(math.radians(f) / 2.0) for f in s.depth_fov)
+            corners = np.array([[1.0, tu, tv], [1.0, -tu, tv], [1.0, -tu, -tv], [1.0, tu, -tv]])  # body, +y left
+            corners /= np.linalg.norm(corners, axis=1, keepdims=True)
+            pix = np.einsum("nab,kb->nka", R, depth_directions(s.depth, s.depth_fov).reshape(-1, 3))
+            hits = pos[:, None, :] + depth.reshape(self.num_quads, -1)[..., None] * pix
+            for i in range(self.num_quads):
+                rgba = np.concatenate([self.colors[i, :3], [0.9]])
+                far = pos[i] + FRUSTUM_LENGTH * (R[i] @ corners.T).T
+                for c in range(4):
+                    self._line(pos[i], far[c], rgba, 2.0)
+                    self._line(far[c], far[(c + 1) % 4], rgba, 2.0)
+                for k in range(h * w):
+                    self._add_geom(mujoco.mjtGeom.mjGEOM_SPHERE, (0.02,) * 3, hits[i, k], rgba, emission=0.8)
+
     def _sync_obstacles(self, obstacles: Any | None) -> None:
         """Columns of the drawn world: from the engine (``data.mocap_pos``, radii from its model), or
         the given (M, 2) centres (m, world-local) with the other columns parked."""
@@ -355,12 +446,15 @@ class SwarmRenderer:
         self.data.mocap_pos[mids] = obstacle_positions(arena, full, valid, H, worlds=[self.world])[0]
 
     def render(self, camera: Any = None, qpos: Any | None = None, goals: Any | None = None,
-               obstacles: Any | None = None) -> np.ndarray:
+               obstacles: Any | None = None, readings: dict[str, Any] | None = None) -> np.ndarray:
         """One RGB frame (height, width, 3) uint8 of the current state.
 
         ``camera`` overrides the default camera for this frame. ``qpos`` (model nq), ``goals``
         (N, 3, world-local m) and ``obstacles`` (M, 2 column centres, world-local m) draw a given
-        state instead of the engine's (e.g. an MJX state copied to NumPy).
+        state instead of the engine's (e.g. an MJX state copied to NumPy). ``readings``: the drawn
+        world's deck readings (``info["multiranger"]``, ``"multiranger_valid"``, ``"flow"``,
+        ``"flow_valid"``, ``"depth"`` as the env reports them, m), drawn when the renderer was made
+        with ``sensors``.
         """
         self._sync_obstacles(obstacles)
         cam_key = self.camera if camera is None else self._resolve_camera(camera)
@@ -385,6 +479,8 @@ class SwarmRenderer:
             self._draw_goals(goal_w)
         if self.trail_length:
             self._draw_trails()
+        if self.sensors is not None and readings:
+            self._draw_sensors(pos, readings)
         return self._renderer.render()
 
     def close(self) -> None:
@@ -395,6 +491,61 @@ class SwarmRenderer:
             self._renderer = None
 
     def __enter__(self) -> SwarmRenderer:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+class TiledRenderer:
+    """R x C worlds of a multi-world engine side by side in one frame, with ONE offscreen context.
+
+    Tile (r, c) shows world ``r * cols + c`` (row-major, from the top left), each with its own
+    camera smoothing and trails; a 2-pixel dark gap separates the tiles. The frame is
+    (rows * tile_height, cols * tile_width, 3) uint8, tile sizes ``width / cols`` and ``height / rows``
+    rounded down to even numbers (h264 needs even frame sizes). Keyword arguments go to the one
+    :class:`SwarmRenderer` used for every tile (``camera``, ``trail_length``, ``sensors``, ...).
+    """
+
+    GAP = 2  # pixels between tiles
+
+    def __init__(self, core: Any, rows: int, cols: int, width: int = 640, height: int = 480, **kwargs: Any):
+        for name, v in (("rows", rows), ("cols", cols)):
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"{name} must be an int >= 1, got {v!r}")
+        if rows * cols > core.arena.num_worlds:
+            raise ValueError(f"a {rows}x{cols} tiling needs {rows * cols} worlds; the engine has "
+                             f"{core.arena.num_worlds}")
+        self.rows, self.cols = rows, cols
+        self.tile_width, self.tile_height = 2 * (width // (2 * cols)), 2 * (height // (2 * rows))  # even
+        if min(self.tile_width, self.tile_height) < 16:
+            raise ValueError(f"tiles of {width}x{height} / {cols}x{rows} are under 16 pixels")
+        self.width, self.height = self.tile_width * cols, self.tile_height * rows
+        self.renderer = SwarmRenderer(core, width=self.tile_width, height=self.tile_height, **kwargs)
+
+    def render(self, readings: dict[str, Any] | None = None, **kwargs: Any) -> np.ndarray:
+        """One frame of all tiles; ``readings``: the deck readings of all worlds ((B, N, ...) arrays
+        as the vector env's info gives them) to draw with ``sensors``; other keyword arguments go to
+        :meth:`SwarmRenderer.render` of every tile (``camera``)."""
+        frame = np.zeros((self.height, self.width, 3), np.uint8)
+        th, tw, g = self.tile_height, self.tile_width, self.GAP // 2
+        for w in range(self.rows * self.cols):  # one context drawn once per world
+            self.renderer.set_world(w)
+            rd = None if readings is None else {k: np.asarray(v)[w] for k, v in readings.items()}
+            tile = self.renderer.render(readings=rd, **kwargs)
+            r, c = divmod(w, self.cols)
+            frame[r * th:(r + 1) * th, c * tw:(c + 1) * tw] = tile
+        for r in range(1, self.rows):  # dark gaps between the tiles
+            frame[r * th - g:r * th + g] = 24
+        for c in range(1, self.cols):
+            frame[:, c * tw - g:c * tw + g] = 24
+        return frame
+
+    def close(self) -> None:
+        """Free the GL resources (idempotent)."""
+        self.renderer.close()
+
+    def __enter__(self) -> TiledRenderer:
         return self
 
     def __exit__(self, *exc: Any) -> None:

@@ -95,36 +95,46 @@ def ray_directions(s: SensorConfig) -> np.ndarray:
 # ------------------------------------------------------------------------------ ray casting
 
 
+# The casters work axis by axis (x, y, z arrays of shape (..., N, K)), and the ray-versus-object arrays
+# are laid out (..., N, objects, K) with the minimum over the objects' axis: both keep XLA:CPU's vector
+# loops along the rays instead of along the 3 components or the 8 quads (scripts/sensor_benchmark.py).
+
+
 def room_hits(pos: Any, dirs: Any, room_low: Any, room_high: Any) -> Any:
     """(..., N, K) distance (m) from ``pos`` (..., N, 3) along the unit rays ``dirs`` (..., N, K, 3) to
     the room's planes (the box [room_low, room_high], seen from inside; >= 0)."""
     xp = array_namespace(pos, dirs)
-    p = pos[..., :, None, :]
-    lo = xp.asarray(room_low, dtype=pos.dtype)
-    hi = xp.asarray(room_high, dtype=pos.dtype)
-    pos_d, neg_d = dirs > _EPS, dirs < -_EPS
-    safe = xp.where(pos_d | neg_d, dirs, 1.0)
-    t = xp.where(pos_d, (hi - p) / safe, xp.where(neg_d, (lo - p) / safe, xp.inf))
-    return xp.maximum(xp.min(t, axis=-1), 0.0)
+    t = None
+    for a in range(3):  # the three axes x, y, z
+        pa = pos[..., :, None, a]  # (..., N, 1)
+        # the gaps to the high and low planes, kept > 0 and < 0 (a zero gap would make 0 / 0 for a
+        # parallel ray); the plane ahead is the larger quotient (a parallel ray: +inf)
+        gap_hi = xp.maximum(room_high[a] - pa, 1e-30)
+        gap_lo = xp.minimum(room_low[a] - pa, -1e-30)
+        ta = xp.maximum(gap_hi / dirs[..., a], gap_lo / dirs[..., a])
+        t = ta if t is None else xp.minimum(t, ta)
+    return t
 
 
 def column_hits(pos: Any, dirs: Any, centres: Any, valid: Any, radius: Any) -> Any:
     """(..., N, K) distance (m) along each ray to the nearest valid vertical column (infinite
     cylinders, centres (..., M, 2), valid (..., M), radius (...,)); inf without a hit, 0 from inside."""
     xp = array_namespace(pos, dirs, centres)
-    r = xp.asarray(radius, dtype=pos.dtype)[..., None, None, None]
-    px = pos[..., :, None, None, 0] - centres[..., None, None, :, 0]  # (..., N, 1, M)
-    py = pos[..., :, None, None, 1] - centres[..., None, None, :, 1]
-    dx, dy = dirs[..., :, :, None, 0], dirs[..., :, :, None, 1]  # (..., N, K, 1)
+    r = xp.asarray(radius, dtype=pos.dtype)[..., None, None]
+    ox = pos[..., :, None, 0] - centres[..., None, :, 0]  # (..., N, M) quad - centre
+    oy = pos[..., :, None, 1] - centres[..., None, :, 1]
+    c = ox * ox + oy * oy - r * r
+    ok = valid[..., None, :]
+    inside = xp.any((c < 0.0) & ok, axis=-1)  # (..., N)
+    neg_s = xp.where(ok, -xp.sqrt(xp.maximum(c, 0.0)), -xp.inf)[..., None]  # invalid slots: never hit
+    dx, dy = dirs[..., :, None, :, 0], dirs[..., :, None, :, 1]  # (..., N, 1, K)
     a = dx * dx + dy * dy
-    b = dx * px + dy * py  # (..., N, K, M)
-    c = px * px + py * py - r * r  # (..., N, 1, M)
-    disc = b * b - a * c
-    t = (-b - xp.sqrt(xp.maximum(disc, 0.0))) / xp.where(a > _EPS, a, 1.0)
-    hit = (disc >= 0.0) & (a > _EPS) & (t >= 0.0)
-    t = xp.where(c < 0.0, 0.0, xp.where(hit, t, xp.inf))
-    t = xp.where(valid[..., None, None, :], t, xp.inf)
-    return xp.min(t, axis=-1)
+    b = dx * ox[..., None] + dy * oy[..., None]  # (..., N, M, K)
+    # |o + t d|^2 = r^2 in the plane: a t^2 + 2 b t + c = 0; a hit ahead from outside needs
+    # b < -sqrt(a c) (strict: a vertical ray, a = 0, never hits)
+    t = -(b + xp.sqrt(xp.maximum(b * b - a * c[..., None], 0.0))) / xp.maximum(a, 1e-30)
+    t = xp.min(xp.where(b < xp.sqrt(a) * neg_s, t, xp.inf), axis=-2)
+    return xp.where(inside[..., None], 0.0, t)
 
 
 def sphere_hits(pos: Any, dirs: Any, radius: float) -> Any:
@@ -132,14 +142,15 @@ def sphere_hits(pos: Any, dirs: Any, radius: float) -> Any:
     another quad j != i; inf without a hit, 0 from inside."""
     xp = array_namespace(pos, dirs)
     n = pos.shape[-2]
-    oc = [pos[..., :, None, None, c] - pos[..., None, None, :, c] for c in range(3)]  # (..., N, 1, N)
-    b = sum(dirs[..., :, :, None, c] * oc[c] for c in range(3))  # (..., N, K, N)
-    c2 = sum(o * o for o in oc) - radius * radius  # (..., N, 1, N)
-    disc = b * b - c2
-    t = -b - xp.sqrt(xp.maximum(disc, 0.0))
-    t = xp.where(c2 < 0.0, 0.0, xp.where((disc >= 0.0) & (t >= 0.0), t, xp.inf))
-    other = ~np.eye(n, dtype=bool)[:, None, :]  # (N, 1, N)
-    return xp.min(xp.where(other, t, xp.inf), axis=-1)
+    o = [pos[..., :, None, a] - pos[..., None, :, a] for a in range(3)]  # (..., N, N) quad i - quad j
+    c = xp.where(np.eye(n, dtype=bool), xp.inf, o[0] * o[0] + o[1] * o[1] + o[2] * o[2] - radius * radius)
+    inside = xp.any(c < 0.0, axis=-1)  # (..., N); the own sphere (c = inf) never counts
+    neg_s = -xp.sqrt(xp.maximum(c, 0.0))[..., None]
+    b = sum(dirs[..., :, None, :, a] * o[a][..., None] for a in range(3))  # (..., N, N, K): d_ik . o_ij
+    # |o + t d|^2 = r^2: t^2 + 2 b t + c = 0; a hit ahead from outside needs b <= -sqrt(c)
+    t = -(b + xp.sqrt(xp.maximum(b * b - c[..., None], 0.0)))
+    t = xp.min(xp.where(b <= neg_s, t, xp.inf), axis=-2)
+    return xp.where(inside[..., None], 0.0, t)
 
 
 def cast_rays(pos: Any, dirs: Any, room_low: Any, room_high: Any, columns: Any = None,
@@ -148,11 +159,12 @@ def cast_rays(pos: Any, dirs: Any, room_low: Any, room_high: Any, columns: Any =
     centres ``pos`` (..., N, 3) to the first surface: the room, the ``columns`` = (centres, valid,
     radius) of an obstacle map (or None) and the other quads' hitbox spheres (``quad_radius``, or None)."""
     xp = array_namespace(pos, dirs)
-    t = room_hits(pos, dirs, room_low, room_high)
-    if columns is not None:
-        t = xp.minimum(t, column_hits(pos, dirs, *columns))
-    if quad_radius is not None and pos.shape[-2] > 1:
-        t = xp.minimum(t, sphere_hits(pos, dirs, quad_radius))
+    with np.errstate(divide="ignore", invalid="ignore"):  # NumPy: x / 0 = inf for parallel rays (intended)
+        t = room_hits(pos, dirs, tuple(room_low), tuple(room_high))
+        if columns is not None:
+            t = xp.minimum(t, column_hits(pos, dirs, *columns))
+        if quad_radius is not None and pos.shape[-2] > 1:
+            t = xp.minimum(t, sphere_hits(pos, dirs, quad_radius))
     return t
 
 
@@ -189,15 +201,14 @@ def deck_draw_spec(cfg: Any) -> DrawSpec:
     return spec
 
 
-def _tof_reading(xp: Any, t: Any, limit: float, z: Any, u: Any, dropout: float) -> tuple[Any, Any]:
-    """(reading, valid): valid where the true range ``t`` is within ``limit`` and not dropped; a valid
-    reading is ``t + tof_std(t) z`` clipped to [0, limit], an invalid one reads ``limit``."""
-    valid = t <= limit
-    r = t
-    if z is not None:
-        valid = valid & (u >= dropout)
-        r = t + tof_std(t) * z
-    return xp.where(valid, xp.minimum(xp.maximum(r, 0.0), limit), limit), valid
+@functools.lru_cache(maxsize=32)
+def ray_limits(s: SensorConfig) -> np.ndarray:
+    """(K,) reading limit (m) of each ray of :func:`ray_directions`: ``range_limit`` for the multi-ranger
+    and the flow deck, ``depth_max_range`` for the depth pixels. Read-only."""
+    h, w = s.depth or (0, 0)
+    out = np.concatenate([np.full(5 * s.multiranger + s.flow, s.range_limit), np.full(h * w, s.depth_max_range)])
+    out.setflags(write=False)
+    return out
 
 
 def flow_pixels(v_body: Any, omega: Any, d: Any) -> tuple[Any, Any, Any]:
@@ -213,50 +224,58 @@ def flow_pixels(v_body: Any, omega: Any, d: Any) -> tuple[Any, Any, Any]:
     return FLOW_GAIN * wx, FLOW_GAIN * wy, ok
 
 
-def deck_readings(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
-                  draws: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The deck readings of every quad from the TRUE state: ``pos`` (..., N, 3) m and ``vel`` (..., N,
-    3) m/s (world), R (..., N, 3, 3) body -> world, ``omega`` (..., N, 3) rad/s (body); ``obstacles``
-    = (centres, valid, radius) of the column map or None; ``draws`` from :func:`deck_draw_spec` (None:
-    noise-free). Returns the sensors that are on: ``multiranger`` (..., N, 5) m and
-    ``multiranger_valid`` (..., N, 5) bool; ``flow`` (..., N, 3) = (down range m, flow x, flow y
-    pixels per frame) and ``flow_valid`` (..., N, 2) bool (range, flow); ``depth`` (..., N, H, W) m."""
+def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
+              draws: dict[str, Any] | None = None) -> Any:
+    """(..., N, sensors.obs_dim) the deck sensors' observation part (:func:`deck_layout` order, flags
+    as 0.0 / 1.0; :func:`deck_readings` gives it as named readings) from the TRUE state: ``pos`` (...,
+    N, 3) m and ``vel`` (..., N, 3) m/s (world), R (..., N, 3, 3) body -> world, ``omega`` (..., N, 3)
+    rad/s (body); ``obstacles`` = (centres, valid, radius) of the column map or None; ``draws`` from
+    :func:`deck_draw_spec` (None: noise-free).
+
+    Every ToF reading (VL53L1x model, all rays at once) is valid where the true range ``t`` is within
+    its limit and not dropped (draw >= dropout); a valid reading is ``t + tof_std(t) z`` clipped to
+    [0, limit], an invalid one reads the limit."""
     xp = array_namespace(pos, vel, R)
     s = cfg.sensors
-    dirs = world_rays(R, ray_directions(s))
-    t = cast_rays(pos, dirs, cfg.room_low, cfg.room_high, obstacles, cfg.hitbox)  # (..., N, K)
-    z = None if draws is None else draws["range_noise"]
-    u = None if draws is None else draws["range_drop"]
-    out: dict[str, Any] = {}
+    t = cast_rays(pos, world_rays(R, ray_directions(s)), cfg.room_low, cfg.room_high, obstacles, cfg.hitbox)
+    limit = xp.asarray(ray_limits(s), dtype=t.dtype)
+    valid = t <= limit
+    r = t
+    if draws is not None:
+        valid = valid & (draws["range_drop"] >= s.dropout)
+        r = t + tof_std(t) * draws["range_noise"]
+    r = xp.where(valid, xp.minimum(xp.maximum(r, 0.0), limit), limit)
+    flags = valid.astype(t.dtype)
+    parts: list[Any] = []
     k = 0
-
-    def take(w: int) -> tuple[Any, Any, Any]:
-        """The true ranges, noise and dropout draws of the next ``w`` rays."""
-        return (t[..., k:k + w], None if z is None else z[..., k:k + w], None if u is None else u[..., k:k + w])
-
     if s.multiranger:
-        tm, zm, um = take(5)
-        out["multiranger"], out["multiranger_valid"] = _tof_reading(xp, tm, s.range_limit, zm, um, s.dropout)
-        k += 5
+        parts += [r[..., :5], flags[..., :5]]
+        k = 5
     if s.flow:
-        td, zd, ud = (None if a is None else a[..., 0] for a in take(1))
-        rd, rvalid = _tof_reading(xp, td, s.range_limit, zd, ud, s.dropout)
+        d = t[..., k]  # the true range along body -z
         v_body = sum(R[..., c, :] * vel[..., c, None] for c in range(3))  # R^T v
-        fx, fy, rate_ok = flow_pixels(v_body, omega, td)
-        fvalid = rate_ok & (td >= FLOW_MIN_RANGE) & (s.light_lux >= FLOW_MIN_LUX)
+        fx, fy, rate_ok = flow_pixels(v_body, omega, d)
+        fvalid = rate_ok & (d >= FLOW_MIN_RANGE)
+        if s.light_lux < FLOW_MIN_LUX:  # too dark: never valid
+            fvalid = xp.zeros_like(fvalid)
         f = xp.stack([fx, fy], axis=-1)
         if draws is not None:
             f = f + FLOW_STD_PX * draws["flow_noise"]
         f = xp.where(fvalid[..., None], xp.minimum(xp.maximum(f, -FLOW_LIMIT_PX), FLOW_LIMIT_PX), 0.0)
-        out["flow"] = xp.concatenate([rd[..., None], f], axis=-1)
-        out["flow_valid"] = xp.stack([rvalid, fvalid], axis=-1)
+        parts += [r[..., k:k + 1], f, flags[..., k:k + 1], fvalid[..., None].astype(t.dtype)]
         k += 1
     if s.depth is not None:
-        h, w = s.depth
-        tz, zz, uz = take(h * w)
-        r, _ = _tof_reading(xp, tz, s.depth_max_range, zz, uz, s.dropout)
-        out["depth"] = r.reshape(r.shape[:-1] + (h, w))
-    return out
+        parts.append(r[..., k:])
+    return parts[0] if len(parts) == 1 else xp.concatenate(parts, axis=-1)
+
+
+def deck_readings(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
+                  draws: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The deck readings of every quad (arguments as :func:`deck_part`). Returns the sensors that are
+    on: ``multiranger`` (..., N, 5) m and ``multiranger_valid`` (..., N, 5) bool; ``flow`` (..., N, 3)
+    = (down range m, flow x, flow y pixels per frame) and ``flow_valid`` (..., N, 2) bool (range,
+    flow); ``depth`` (..., N, H, W) m."""
+    return _split(cfg.sensors, deck_part(cfg, pos, vel, R, omega, obstacles, draws))
 
 
 # ------------------------------------------------------------------------------ observation layout
@@ -277,7 +296,8 @@ def deck_layout(s: SensorConfig) -> list[tuple[str, int]]:
 
 
 def deck_obs(cfg: Any, readings: dict[str, Any]) -> Any:
-    """(..., N, sensors.obs_dim) observation part of :func:`deck_readings`, in :func:`deck_layout` order."""
+    """(..., N, sensors.obs_dim) observation part of :func:`deck_readings`, in :func:`deck_layout` order
+    (= :func:`deck_part` of the same state)."""
     first = next(iter(readings.values()))
     xp = array_namespace(first)
     f = readings.get("multiranger", readings.get("flow", readings.get("depth"))).dtype
@@ -286,6 +306,21 @@ def deck_obs(cfg: Any, readings: dict[str, Any]) -> Any:
         v = readings[name]
         parts.append(v.astype(f).reshape(v.shape[:-2 if name == "depth" else -1] + (w,)))
     return xp.concatenate(parts, axis=-1)
+
+
+def _split(s: SensorConfig, part: Any) -> dict[str, Any]:
+    """The named readings (:func:`deck_readings`) of a deck observation part (..., N, S) in metres."""
+    out: dict[str, Any] = {}
+    k = 0
+    for name, w in deck_layout(s):
+        v = part[..., k:k + w]
+        if name.endswith("_valid"):
+            v = v > 0.5
+        elif name == "depth":
+            v = v.reshape(v.shape[:-1] + s.depth)
+        out[name] = v
+        k += w
+    return out
 
 
 def deck_bounds(cfg: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -325,14 +360,5 @@ def deck_info(cfg: Any, obs: Any, scale: Any = None) -> dict[str, Any]:
     part = o[..., start:]
     if scale is not None:
         part = part * xp.asarray(np.asarray(scale)[start:], dtype=part.dtype)
-    out: dict[str, Any] = {}
-    k = 0
-    for name, w in deck_layout(s):
-        v = part[..., k:k + w]
-        if name.endswith("_valid"):
-            v = v > 0.5
-        elif name == "depth":
-            v = v.reshape(v.shape[:-1] + s.depth)
-        out[name] = np.array(v) if xp is np else v
-        k += w
-    return out
+    out = _split(s, part)
+    return {k: np.array(v) for k, v in out.items()} if xp is np else out

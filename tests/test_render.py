@@ -14,7 +14,7 @@ import pytest
 
 from quadswarm_mj import QuadSwarmEnv
 from quadswarm_mj.controllers import PositionController
-from quadswarm_mj.render import SwarmRenderer, quad_colors, start_renderer
+from quadswarm_mj.render import SwarmRenderer, TiledRenderer, quad_colors, start_renderer
 
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "scripts" / "render_rollout.py"
@@ -232,3 +232,112 @@ def test_render_rollout_script_rejects_bad_input(tmp_path):
                           "--out", str(tmp_path / "x.mp4")], env=clean_env(), capture_output=True, text=True,
                          timeout=120)
     assert res.returncode == 2 and "unknown scenario" in res.stderr
+
+
+# ------------------------------------------------------------------------ sensor rays, tiles
+
+
+def project(r: SwarmRenderer, x: np.ndarray) -> tuple[float, float]:
+    """(row, col) pixel of the world point ``x`` in the last rendered frame (MuJoCo's GL camera)."""
+    cam = r._renderer.scene.camera[0]
+    pos, fwd, up = np.asarray(cam.pos), np.asarray(cam.forward), np.asarray(cam.up)
+    right = np.cross(fwd, up)
+    v = np.asarray(x) - pos
+    z = v @ fwd
+    u, w = cam.frustum_near * (v @ right) / z, cam.frustum_near * (v @ up) / z
+    # mjr_render: a zero frustum_width means half the height times the aspect ratio
+    half = cam.frustum_width or 0.5 * (cam.frustum_top - cam.frustum_bottom) * r.width / r.height
+    col = (u - (cam.frustum_center - half)) / (2 * half) * r.width
+    row = (cam.frustum_top - w) / (cam.frustum_top - cam.frustum_bottom) * r.height
+    return row, col
+
+
+def test_sensor_rays_are_drawn_where_the_beams_are():
+    from quadswarm_mj import SensorConfig
+
+    s = SensorConfig(multiranger=True, flow=True, depth=(4, 4), noise=False)
+    env = QuadSwarmEnv(num_quads=2, scenario="static_same_goal", sensors=s)
+    state = {"pos": np.array([[0.0, 0.0, 1.5], [0.0, 1.0, 1.5]]), "motors": "hover"}
+    _, info = env.reset(seed=0, options={"state": state})
+    readings = {k: info[k] for k in ("multiranger", "multiranger_valid", "flow", "flow_valid", "depth")}
+    colors = quad_colors(2)
+    cam = close_camera(center=(0.0, 0.5, 1.2), distance=4.0)
+    with SwarmRenderer(env.core, width=320, height=240, shadows=False, camera=cam, sensors=s,
+                       show_goals=False) as r:
+        plain = r.render()
+        rays = r.render(readings=readings)
+        pos = r.data.xpos[r.body_ids]
+        R = r.data.xmat[r.body_ids].reshape(-1, 3, 3)
+        changed = np.abs(rays.astype(int) - plain).sum(-1) > 30
+        assert changed.sum() > 300  # long beams
+        gain = palette_pixels(rays, colors) - palette_pixels(plain, colors)
+        assert (gain > 50).all(), gain  # both quads' beams in their colours
+        # the changed pixels lie on the beams: points 0.4 m along quad 0's front beam (body +x) and along
+        # quad 1's flow-deck beam (down) are drawn, a point off every beam is not
+        for i, d in ((0, [1.0, 0, 0]), (1, [0, 0, -1.0])):
+            row, col = project(r, pos[i] + 0.4 * R[i] @ np.asarray(d))
+            assert 0 <= row < 240 and 0 <= col < 320
+            y, x = int(round(row)), int(round(col))
+            assert changed[max(y - 2, 0):y + 3, max(x - 2, 0):x + 3].any(), (i, row, col)
+        row, col = project(r, pos[0] + np.array([0.0, -0.5, 0.7]))  # above-right of quad 0: no beam
+        y, x = int(round(row)), int(round(col))
+        assert 0 < y < 239 and 0 < x < 319 and not changed[y - 1:y + 2, x - 1:x + 2].any()
+        # without a SensorConfig the readings are ignored
+    with SwarmRenderer(env.core, width=320, height=240, shadows=False, camera=cam, show_goals=False) as r2:
+        assert np.array_equal(r2.render(readings=readings), plain)
+
+
+def test_tiled_frame_has_every_world():
+    from quadswarm_mj.config import EnvConfig
+    from quadswarm_mj.envs.cpu_core import CpuSwarm
+
+    core = CpuSwarm(EnvConfig(num_quads=3, scenario="static_diff_goal"), 6)
+    core.seed(0)
+    core.reset()
+    colors = quad_colors(3)
+    with TiledRenderer(core, 2, 3, width=605, height=300, shadows=False) as t:
+        frame = t.render()
+        assert (t.width, t.height) == (600, 300) and frame.shape == (300, 600, 3)  # even tiles of 200 x 150
+        assert (t.tile_width, t.tile_height) == (200, 150)
+        tiles = [frame[r * 150:(r + 1) * 150, c * 200:(c + 1) * 200] for r in range(2) for c in range(3)]
+        for k, tile in enumerate(tiles):  # every tile shows its world: the quads' colours, real contrast
+            assert tile.std() > 10, k
+            assert palette_pixels(tile, colors).sum() > 10, k
+        # the worlds differ (their own spawns and goals), and world 4 alone looks like tile 4
+        assert min(np.abs(tiles[0].astype(int) - t_).mean() for t_ in tiles[1:]) > 0.5
+        with SwarmRenderer(core, width=200, height=150, shadows=False, world=4) as one:
+            alone = one.render()
+        assert np.abs(alone[2:-2, 2:-2].astype(int) - tiles[4][2:-2, 2:-2]).mean() < 1.0
+    with pytest.raises(ValueError, match="needs 9 worlds"):
+        TiledRenderer(core, 3, 3)
+
+
+def test_render_cli_parses_sensors_and_tiles():
+    from quadswarm_mj.cli.render import parse_args
+
+    a = parse_args(["--sensors", "--tile", "2x3"])
+    assert a.grid == (2, 3) and a.sensor_config.multiranger and a.sensor_config.flow
+    assert a.sensor_config.depth == (8, 8)
+    assert parse_args(["--sensors", "multiranger,depth=4x6"]).sensor_config.depth == (4, 6)
+    assert parse_args([]).sensor_config is None and parse_args([]).grid is None
+    for bad in (["--tile", "2"], ["--tile", "0x2"], ["--sensors", "radar"], ["--sensors", "depth=8"]):
+        with pytest.raises(SystemExit):
+            parse_args(bad)
+
+
+@pytest.mark.slow
+def test_render_cli_tiles_with_sensor_rays(tmp_path):
+    out, still = tmp_path / "t.mp4", tmp_path / "t.png"
+    cmd = [sys.executable, str(SCRIPT), "--scenario", "o_random", "--num-quads", "2", "--seconds", "0.2",
+           "--fps", "10", "--width", "160", "--height", "120", "--tile", "1x2", "--sensors", "multiranger,flow",
+           "--still", str(still), "--out", str(out)]
+    res = subprocess.run(cmd, env=clean_env(), capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    frames = read_mp4(out)
+    assert frames.shape == (2, 120, 160, 3)
+    import mediapy
+
+    img = mediapy.read_image(still)
+    assert img.shape == (120, 160, 3)
+    for half in (img[:, :80], img[:, 80:]):
+        assert palette_pixels(half, quad_colors(2)).sum() > 20  # each world's quads and their beams

@@ -18,6 +18,7 @@ from quadswarm_mj.sensors import (
     deck_draw_spec,
     deck_info,
     deck_obs,
+    deck_part,
     deck_readings,
     depth_directions,
     tof_std,
@@ -232,6 +233,33 @@ def test_numpy_equals_jax_jit():
             assert np.mean(o != v) < 0.01, k
         else:
             np.testing.assert_allclose(o, v, atol=2e-3, err_msg=k)
+
+
+def test_deck_part_numpy_equals_vmapped_jit_and_the_named_readings():
+    jax = pytest.importorskip("jax")
+    jnp = jax.numpy
+    c = cfg(n=5, sensors=SensorConfig(multiranger=True, flow=True, depth=(3, 4)))
+    rng = np.random.default_rng(5)
+    B = 3
+    pos, vel, R, omega = _random_state(rng, 5, (B,))
+    pos[0, 1] = pos[0, 0] + [0.05, 0.0, 0.0]  # quad 0 inside quad 1's hitbox: its ranges are 0
+    omap = (rng.uniform(-2.5, 2.5, (B, 4, 2)), rng.uniform(size=(B, 4)) < 0.7, np.full(B, 0.3))
+    draws = {k: (rng.normal(size=(B,) + d.shape) if k != "range_drop" else rng.uniform(size=(B,) + d.shape))
+             for k, d in deck_draw_spec(c).items()}
+    ref = deck_part(c, pos, vel, R, omega, omap, draws)
+    assert ref.shape == (B, 5, c.sensors.obs_dim)
+    np.testing.assert_array_equal(ref, deck_obs(c, deck_readings(c, pos, vel, R, omega, omap, draws)))
+    quiet = deck_part(c, pos, vel, R, omega, omap)  # noise-free
+    assert np.all(quiet[0, 0, :5] == 0.0) and np.all(quiet[0, 0, 5:10] == 1.0)
+    f = jax.jit(jax.vmap(lambda *a: deck_part(c, *a[:4], tuple(a[4:7]), dict(zip(sorted(draws), a[7:])))))
+    out = f(*(jnp.asarray(x, jnp.float32) for x in (pos, vel, R, omega)), jnp.asarray(omap[0], jnp.float32),
+            jnp.asarray(omap[1]), jnp.asarray(omap[2], jnp.float32),
+            *(jnp.asarray(draws[k], jnp.float32) for k in sorted(draws)))
+    flags = np.zeros(c.sensors.obs_dim, bool)
+    flags[[*range(5, 10), 13, 14]] = True  # a flag may differ only where a range sits at a limit
+    o = np.asarray(out)
+    np.testing.assert_allclose(o[..., ~flags], ref[..., ~flags], atol=2e-3)
+    assert np.mean(o[..., flags] != ref[..., flags]) < 0.01
 
 
 def test_cast_rays_batched_and_never_past_the_room():

@@ -14,12 +14,22 @@ scenarios do it themselves); the controller steers around them.
 
 ``--out`` and ``--still`` are checked to be writable before the flight and each replaces its target only
 once complete; if writing the still fails anyway, the metrics are printed and the exit status is 1.
+
+Deck sensors: ``--sensors`` turns on the multi-ranger, the flow deck and an 8 x 8 depth camera
+(``--sensors multiranger,flow`` or ``--sensors depth=16x16`` for fewer or others) and draws what they
+read (range beams ending in a dot at the hit, the depth camera's frustum and pixel hits). ``--tile RxC``
+flies R x C worlds of the multi-world CPU engine (world w seeded from ``--seed``) side by side in one
+frame of ``--width`` x ``--height`` with one offscreen context::
+
+    python scripts/render_rollout.py --scenario o_random --sensors multiranger,flow --seconds 2 --out s.mp4
+    python scripts/render_rollout.py --scenario swap_goals --tile 2x2 --seconds 3 --out tiles.mp4
 """
 
 from __future__ import annotations
 
 # Headless: with MUJOCO_GL unset, quadswarm_mj.render picks EGL when it first renders (MUJOCO_GL stays unset).
 import argparse
+import copy
 import sys
 import time
 from collections.abc import Callable
@@ -34,7 +44,8 @@ from quadswarm_mj.config import ObstacleConfig
 from quadswarm_mj.controllers import PositionController
 from quadswarm_mj.outfiles import check_writable, replacing
 from quadswarm_mj.policies import baseline_gains
-from quadswarm_mj.render import SwarmRenderer
+from quadswarm_mj.render import SwarmRenderer, TiledRenderer
+from quadswarm_mj.sensor_config import SensorConfig
 
 #: A policy maps (observation, info) of ``QuadSwarmEnv`` to an action of its action space.
 Policy = Callable[[np.ndarray, dict[str, Any]], np.ndarray]
@@ -77,6 +88,86 @@ def make_policy(name: str, env: QuadSwarmEnv, seed: int | None, external: Any = 
                      "policy .npz path")
 
 
+def parse_sensors(text: str) -> SensorConfig:
+    """``SensorConfig`` from a comma-separated list of ``multiranger``, ``flow``, ``depth`` (8 x 8) or
+    ``depth=HxW``."""
+    on: dict[str, Any] = {}
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        name, _, size = item.partition("=")
+        if name in ("multiranger", "flow") and not size:
+            on[name] = True
+        elif name == "depth":
+            try:
+                on["depth"] = parse_grid(size) if size else (8, 8)
+            except ValueError as e:
+                raise ValueError(f"--sensors depth={size}: {e}") from None
+        else:
+            raise ValueError(f"--sensors: unknown item {item!r}; use multiranger, flow, depth or depth=HxW")
+    if not on:
+        raise ValueError("--sensors: name at least one of multiranger, flow, depth")
+    return SensorConfig(**on)
+
+
+def parse_grid(text: str) -> tuple[int, int]:
+    """(R, C) from ``"RxC"`` (two ints >= 1)."""
+    parts = text.lower().replace(" ", "").split("x")
+    if len(parts) != 2 or not all(p.isdigit() and int(p) >= 1 for p in parts):
+        raise ValueError(f"expected RxC with two ints >= 1 (e.g. 2x2), got {text!r}")
+    return int(parts[0]), int(parts[1])
+
+
+READING_KEYS = ("multiranger", "multiranger_valid", "flow", "flow_valid", "depth")
+
+
+class TiledWorlds:
+    """B worlds of the multi-world CPU engine (:class:`~quadswarm_mj.envs.cpu_core.CpuSwarm`, the vector
+    env's) stepped together, with per-world observations and infos as ``QuadSwarmEnv`` gives them
+    (``state``, ``goals``, ``goal_vel``, ``params``, ``obstacles``, the deck readings)."""
+
+    def __init__(self, cfg: Any, num_worlds: int):
+        from quadswarm_mj.envs.cpu_core import CpuSwarm
+
+        self.cfg, self.num_worlds = cfg, num_worlds
+        self.core = CpuSwarm(cfg, num_worlds)
+
+    def reset(self, seed: int) -> tuple[np.ndarray, list[dict[str, Any]]]:
+        self.core.seed(seed)
+        self.core.reset()
+        return self._out(self.core.observe())
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, list[dict[str, Any]], bool]:
+        n = self.cfg.num_quads
+        out = self.core.step(np.asarray(actions, dtype=np.float64).reshape(self.num_worlds, n, 4))
+        obs, infos = self._out(out["obs"])
+        return obs, infos, bool(np.all(out["truncated"]))
+
+    def _out(self, obs: np.ndarray) -> tuple[np.ndarray, list[dict[str, Any]]]:
+        from quadswarm_mj.observations import obs_scale
+        from quadswarm_mj.sensors import deck_info
+
+        c, cfg = self.core, self.cfg
+        st, par = c.state_dict(), c.params_dict()
+        scale = obs_scale(cfg) if cfg.normalize_obs else None
+        deck = deck_info(cfg, obs, scale)
+        infos = []
+        for w in range(self.num_worlds):  # per-world views for the per-world policies (not a quad loop)
+            info = {"state": {k: v[w] for k, v in st.items()}, "goals": c.sstate.goals[w].copy(),
+                    "goal_vel": c.sstate.goal_vel[w].copy(), "params": {k: v[w] for k, v in par.items()},
+                    **{k: v[w] for k, v in deck.items()}}
+            if c.omap is not None:
+                info["obstacles"] = c.obstacle_centres(w)
+            infos.append(info)
+        o = obs.astype(np.float32)
+        return (o[:, 0] if cfg.num_quads == 1 else o), infos
+
+
+class _WorldView:
+    """What :func:`make_policy` needs of an env (``cfg``, ``action_space``) for one tiled world."""
+
+    def __init__(self, cfg: Any, action_space: Any):
+        self.cfg, self.action_space = cfg, action_space
+
+
 def frame_steps(seconds: float, fps: float, control_hz: int) -> np.ndarray:
     """Control-step indices at which frames are taken: frame j shows the state at time j / fps
     (rounded to the control step), for ``round(seconds * fps)`` frames."""
@@ -107,7 +198,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--still", type=Path, default=None, help="also save one frame as a PNG here")
     p.add_argument("--still-at", type=float, default=None, help="time (s) of the --still frame (default: last)")
     p.add_argument("--out", type=Path, default=Path("video.mp4"), help="video file (.mp4 or .gif)")
+    p.add_argument("--sensors", nargs="?", const="multiranger,flow,depth", default=None,
+                   help="turn on deck sensors and draw their rays: a comma list of multiranger, flow, depth, "
+                        "depth=HxW (alone: multiranger,flow,depth)")
+    p.add_argument("--tile", default=None, help="RxC: fly R*C worlds and draw them side by side (e.g. 2x2)")
     args = p.parse_args(argv)
+    try:
+        args.sensor_config = None if args.sensors is None else parse_sensors(args.sensors)
+        args.grid = None if args.tile is None else parse_grid(args.tile)
+    except ValueError as e:
+        p.error(str(e))
     if args.seconds <= 0 or args.fps <= 0:
         p.error("--seconds and --fps must be > 0")
     if args.fps > 100:
@@ -138,11 +238,54 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             print(f"note: {args.policy} was trained with {env_kwargs['num_quads']} quads; using that",
                   file=sys.stderr)
             args.num_quads = env_kwargs["num_quads"]
+    sensor_config = getattr(args, "sensor_config", None)
+    if sensor_config is not None and "sensors" not in env_kwargs:  # a policy's own sensors stay
+        env_kwargs["sensors"] = sensor_config
     env = QuadSwarmEnv(scenario=args.scenario, episode_seconds=args.seconds, **env_kwargs)
-    policy = make_policy(args.policy, env, args.seed, external)
-    renderer = SwarmRenderer(env.core, width=args.width, height=args.height, camera=args.camera,
-                             trail_length=args.trail, shadows=args.shadows, antialias=args.antialias)
     cfg = env.cfg
+    sensors = cfg.sensors if sensor_config is not None and cfg.sensors.any else None
+    draw = {"camera": args.camera, "trail_length": args.trail, "shadows": args.shadows,
+            "antialias": args.antialias, "sensors": sensors}
+    grid = getattr(args, "grid", None)
+    num_worlds = 1 if grid is None else grid[0] * grid[1]
+    if grid is None:
+        policy = make_policy(args.policy, env, args.seed, external)
+        renderer: Any = SwarmRenderer(env.core, width=args.width, height=args.height, **draw)
+
+        def act(obs: np.ndarray, info: Any) -> np.ndarray:
+            return policy(obs, info)
+
+        def advance(action: np.ndarray) -> tuple[np.ndarray, Any, bool, Any]:
+            obs, _, terminated, truncated, info = env.step(action)
+            done = terminated or truncated
+            return obs, info, done, info.get("episode_metrics") if done else None
+
+        def draw_frame(info: Any) -> np.ndarray:
+            return renderer.render(readings={k: info[k] for k in READING_KEYS if k in info} if sensors else None)
+
+        def reset() -> tuple[np.ndarray, Any]:
+            return env.reset(seed=args.seed)
+    else:
+        worlds = TiledWorlds(cfg, num_worlds)
+        policies = [make_policy(args.policy, _WorldView(cfg, copy.deepcopy(env.action_space)), args.seed + w, external)
+                    for w in range(num_worlds)]
+        renderer = TiledRenderer(worlds.core, grid[0], grid[1], width=args.width, height=args.height, **draw)
+
+        def act(obs: np.ndarray, infos: Any) -> np.ndarray:
+            return np.stack([pol(obs[w], infos[w]) for w, pol in enumerate(policies)])  # per world, not per quad
+
+        def advance(action: np.ndarray) -> tuple[np.ndarray, Any, bool, Any]:
+            obs, infos, done = worlds.step(action)
+            return obs, infos, done, None
+
+        def draw_frame(infos: Any) -> np.ndarray:
+            readings = None
+            if sensors:
+                readings = {k: np.stack([i[k] for i in infos]) for k in READING_KEYS if k in infos[0]}
+            return renderer.render(readings=readings)
+
+        def reset() -> tuple[np.ndarray, Any]:
+            return worlds.reset(args.seed)
     n_steps = cfg.episode_steps
     shots = frame_steps(args.seconds, args.fps, cfg.control_hz)
     still_step = None
@@ -153,19 +296,20 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     t_sim = t_policy = t_render = 0.0
     metrics: dict[str, float] | None = None
     wall0 = time.perf_counter()
-    obs, info = env.reset(seed=args.seed)
+    obs, info = reset()
     shot_iter = iter(shots.tolist())
     next_shot = next(shot_iter, None)
     frames = 0
     still_frame = None
     # the video goes to a temporary file that replaces --out only once it is complete
+    shape = (renderer.height, renderer.width)
     with replacing(args.out) as video_tmp, \
-            mediapy.VideoWriter(video_tmp, shape=(args.height, args.width), fps=args.fps, codec=codec) as video, \
+            mediapy.VideoWriter(video_tmp, shape=shape, fps=args.fps, codec=codec) as video, \
             tqdm(total=n_steps, unit="step", desc=f"{args.scenario} x{args.num_quads}", file=sys.stderr) as bar:
         for k in range(n_steps):
             if k == next_shot:  # the state at time k / control_hz
                 t0 = time.perf_counter()
-                frame = renderer.render()
+                frame = draw_frame(info)
                 t_render += time.perf_counter() - t0
                 video.add_image(frame)
                 frames += 1
@@ -173,19 +317,20 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     still_frame = frame
                 next_shot = next(shot_iter, None)
             t0 = time.perf_counter()
-            action = policy(obs, info)
+            action = act(obs, info)
             t1 = time.perf_counter()
-            obs, _, terminated, truncated, info = env.step(action)
+            obs, info, done, last_metrics = advance(action)
             t2 = time.perf_counter()
             t_policy += t1 - t0
             t_sim += t2 - t1
             bar.update(1)
-            if terminated or truncated:
-                metrics = info.get("episode_metrics")
+            if done:
+                metrics = last_metrics
                 break
     wall = time.perf_counter() - wall0
-    if metrics is None:
-        metrics = {k: float(v[0]) for k, v in env.core.episode_metrics().items()}
+    if metrics is None:  # (tiled: the mean over the worlds)
+        core = env.core if grid is None else worlds.core
+        metrics = {k: float(np.mean(v)) for k, v in core.episode_metrics().items()}
     renderer.close()
     env.close()
     write_error = None
@@ -196,7 +341,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         except OSError as e:  # e.g. the disk filled up: the results are still reported
             write_error = f"could not write --still {str(args.still)!r} ({e.strerror or e})"
     steps = k + 1
-    samples = steps * args.num_quads
+    samples = steps * args.num_quads * num_worlds
     return {"metrics": metrics, "steps": steps, "sim_seconds": steps * cfg.control_dt, "frames": frames,
             "samples": samples, "t_sim": t_sim,
             "t_policy": t_policy, "t_render": t_render, "wall": wall, "write_error": write_error}
