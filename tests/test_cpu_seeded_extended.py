@@ -156,7 +156,15 @@ def test_cpu_seeded_extended_unchanged(recorded) -> None:
     ref, got = recorded
     assert sorted(got) == sorted(ref)
     bad = [k for k in ref if not (got[k].shape == ref[k].shape and np.array_equal(got[k], ref[k], equal_nan=True))]
-    assert not bad, f"{len(bad)} arrays differ from {REF.name}, first: {bad[:8]}"
+    if bad:
+        k = bad[0]
+        g, r = got[k], ref[k]
+        if g.shape != r.shape:
+            where = f"shape {g.shape}, recorded {r.shape}"
+        else:
+            same = (g == r) | ((g != g) & (r != r))  # NaN == NaN
+            where = f"first difference at (step, ...) {tuple(int(i) for i in np.argwhere(~same)[0])}"
+        raise AssertionError(f"{len(bad)} arrays differ from {REF.name}: {bad[:8]}; {k}: {where}")
 
 
 def _events(ref: dict[str, np.ndarray], case: str) -> dict[str, int]:

@@ -6,7 +6,8 @@ The engine draws from one generator (``CpuSwarm.rng``) in a fixed order; the see
 call is logged as one line (episode and step, method, arguments, the shape, dtype and a hash of the
 values) and the first line that differs is shown with its neighbours. The episodes have quad-quad
 collisions, floor, wall and ceiling hits, columns, downwash, randomization, motor, sensor and deck
-sensor noise (paper collision model), and the "blend" model with a control mode and aerodynamics.
+sensor noise (paper collision model), the "blend" model with a control mode and aerodynamics, and three
+worlds in one ``CpuSwarm`` (event draws sized by the worlds where the event happens; a partial reset).
 
 Regenerate (only after an intended change of the draws) with
 ``PYTHONPATH=$PWD python tests/test_draw_log.py --regenerate``.
@@ -105,6 +106,34 @@ def _episodes(cfg: EnvConfig, seed: int, steps: tuple[int, int]) -> tuple[list[s
     return rec.log, events
 
 
+def _worlds_episode(cfg: EnvConfig, seed: int, steps: int) -> tuple[list[str], dict[str, float]]:
+    """Three worlds in one ``CpuSwarm`` (the vector env's shard): event draws are made for the worlds
+    where the event happens only. Worlds 0 and 2 start from ``_start()``, world 1 from it with the
+    colliding trio spread apart (no quad-quad pair); world 1 is reset alone half way through."""
+    from quadswarm_mj.envs.cpu_core import CpuSwarm
+
+    B = 3
+    core = CpuSwarm(cfg, num_worlds=B, visual=False)
+    rec = RecordingGenerator(np.random.default_rng(seed))
+    core.rng = rec
+    st = {k: np.repeat(v[None], B, axis=0) for k, v in _start().items()}
+    st["pos"][1, :3] = [[-3.0, -3.0, 0.7], [-1.0, -3.0, 0.7], [-3.0, -1.0, 0.7]]
+    rec.where = "reset"
+    core.reset(state=st)
+    act_rng = np.random.default_rng(seed + 1)
+    events: dict[str, float] = {}
+    for t in range(steps):
+        rec.where = f"step{t}"
+        a = np.clip(cfg.quad.hover_action + 0.3 * act_rng.standard_normal((B, cfg.num_quads, 4)), -1, 1)
+        out = core.step(a)
+        for k in ("quad_collision", "floor_hit", "wall_hit", "ceiling_hit"):
+            events[k] = events.get(k, 0) + int(np.count_nonzero(out["terms"][k]))
+        if t == steps // 2:
+            rec.where = f"step{t} reset world 1"
+            core.reset(mask=np.arange(B) == 1)
+    return rec.log, events
+
+
 def _cases() -> dict[str, tuple[EnvConfig, int, tuple[int, int]]]:
     base = {"num_quads": 6, "grace_period_s": 0.0, "rewards": RewardScales(floor_hit=1.0, wall_hit=1.0,
                                                                            ceiling_hit=1.0)}
@@ -122,6 +151,8 @@ def logs() -> tuple[dict[str, list[str]], dict[str, dict[str, float]]]:
     out, ev = {}, {}
     for name, (cfg, seed, steps) in _cases().items():
         out[name], ev[name] = _episodes(cfg, seed, steps)
+    cfg = _cases()["paper_obstacles_sensors"][0].replace(sensors={}, scenario="static_same_goal", obstacles=None)
+    out["three_worlds"], ev["three_worlds"] = _worlds_episode(cfg, 7, 60)
     return out, ev
 
 
