@@ -15,10 +15,9 @@ import quadswarm_mj
 
 PKG = Path(quadswarm_mj.__file__).resolve().parent
 MAX_LINES = 600
-# module (relative to the package) -> upper bound of its lines while it is being shrunk: the engine core
-# (being redesigned into one control step), and the PPO trainer (being edited by the training work; split
-# it once that lands)
-LINE_ALLOW = {"envs/mjx_env.py": 841, "envs/jax_engine.py": 980, "training/ppo.py": 886}
+# module (relative to the package) -> upper bound of its lines while it is being shrunk: the JAX engine's
+# front end (being split), and the PPO trainer (being edited by the training work; split it once that lands)
+LINE_ALLOW = {"envs/jax_engine.py": 980, "training/ppo.py": 886}
 # import cycles (sorted tuples of module names) allowed while the core is reworked (none left)
 CYCLE_ALLOW: set[tuple[str, ...]] = set()
 
