@@ -10,7 +10,7 @@
   (:func:`quadswarm_mj.collisions.expand_per_quad`; beyond the budget events reuse slots, new
   quad-quad pairs wait a step: ``collisions.quad_collisions_budgeted``).
 
-Both offer ``room`` (room_low, room_high), ``gate(mask_fn)``, ``put(arr, w, value)``,
+Both offer ``room`` (room_low, room_high), ``gate(mask_fn)``, ``wall_gate``, ``put(arr, w, value)``,
 ``zeros_like``, ``draws(kind, mask_fn, w)`` (kind: "wall", "yaw", "down"), ``quad_quad`` and
 ``obstacles``; ``mask_fn`` is called only where the engine needs the mask.
 """
@@ -53,9 +53,13 @@ class NumpyOps:
         self.s = swarm
         self.room = (swarm.room_low, swarm.room_high)
 
-    def near_walls(self, pos: np.ndarray) -> np.ndarray:
-        """(B, N) quads at or beyond a wall or the ceiling (one compare of all three axes)."""
-        return ((pos <= self.s._out_lo) | (pos >= self.s._out_hi)).any(-1)
+    def wall_gate(self, pos: np.ndarray, at_wall: np.ndarray, at_ceiling: np.ndarray) -> Any:
+        """The worlds with a quad at or beyond a wall or the ceiling (one compare of all three axes) or
+        flagged there at the last step (None: none)."""
+        out = (pos <= self.s._out_lo) | (pos >= self.s._out_hi)
+        if not (out.any() or at_wall.any() or at_ceiling.any()):
+            return None
+        return self.s._worlds(out.any(-1) | at_wall | at_ceiling)
 
     def gate(self, mask_fn: Any) -> Any:
         mask = mask_fn()
@@ -109,6 +113,10 @@ class JaxOps:
 
     @staticmethod
     def gate(mask_fn: Any) -> Any:
+        return ALL
+
+    @staticmethod
+    def wall_gate(pos: Any, at_wall: Any, at_ceiling: Any) -> Any:
         return ALL
 
     def zeros_like(self, a: Any) -> Any:

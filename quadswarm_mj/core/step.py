@@ -40,7 +40,7 @@ def velocity_stages(cfg: Any, k: dict[str, Any], prev: dict[str, Any], ops: Any)
     changed = False
     if cfg.collision_model == "paper":  # the paper's walls and ceiling (the floor is in the sub-steps)
         at_wall, at_ceiling = prev["at_wall"], prev["at_ceiling"]
-        w = ops.gate(lambda: ops.near_walls(k["pos"]) | at_wall | at_ceiling)
+        w = ops.wall_gate(k["pos"], at_wall, at_ceiling)  # worlds whose wall/ceiling state may change
         hit_wall = hit_ceiling = ops.zeros_like(at_wall)
         if w is not None:
             draws = ops.draws("wall", lambda: wall_bounces(k["pos"], at_wall, at_ceiling, lo, hi), w)

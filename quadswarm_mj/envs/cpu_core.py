@@ -389,10 +389,10 @@ class CpuSwarm:
         if not self.paper_floor and k["u"] is not self.u:  # the room guard ran
             self.qpos[..., 3:7] = k["quat"]
             self.u, self._R = k["u"], k["R"]
-        if not self.paper_floor:
+        if not self.paper_floor:  # (with the paper's floor, on_floor and its mirror change in the sub-steps)
             self.on_floor = k["on_floor"]
+            self._sync_flags()
         self.at_wall, self.at_ceiling, self.contact = k["at_wall"], k["at_ceiling"], k["contact"]
-        self._sync_flags()
         if k["changed"] or not self._offsets_zero:  # otherwise qpos/qvel hold these values already
             self.qpos[..., :3] = k["pos"] + self.offsets
             self.qvel[..., :3] = k["vel"]
