@@ -1,8 +1,8 @@
 """The stages of one control step, and the extension points between them.
 
 Order of a control step (:meth:`quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv._physics` and ``step``;
-``CpuSwarm._physics``/``step`` run the same order with event gating; stage 4 and the reset math
-(:func:`initial_state`) are one function called by both engines):
+``CpuSwarm._physics``/``step`` run the same order with event gating; stages 3 and 4 and the reset
+math (:func:`initial_state`, :func:`initial_flags`) are one function each, called by both engines):
 
 1. draws: one fused draw of everything the step can use (motor and sensor noise per quad, the
    event models' budgeted slots: :mod:`quadswarm_mj.collisions`, :mod:`quadswarm_mj.downwash`).
@@ -12,7 +12,9 @@ Order of a control step (:meth:`quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv._physi
    configuration) -> floor normal and friction ->
    rigid-body integrator (passed in: ``freebody_step`` or ``mjx.step``) -> omega clip -> floor
    landing.
-3. once per control step: walls and ceiling -> quad-quad -> :func:`obstacle_stage` (with
+3. once per control step (:func:`quadswarm_mj.core.step.velocity_stages`, one function for both
+   engines, their differences in :mod:`quadswarm_mj.core.ops`): walls and ceiling (or the room guard
+   and the surface flags with MuJoCo contacts) -> quad-quad -> :func:`obstacle_stage` (with
    ``cfg.obstacles``) -> downwash.
 4. :func:`task_stage` (both engines, one function): scenario (goals) -> goal jumps -> reward terms
    (obstacle penalty) -> episode metrics (obstacle metrics); then observations.
@@ -159,6 +161,18 @@ def initial_state(cfg: Any, scenario: Any, rand_draws: dict[str, Any], scenario_
     else:
         u0 = xp.sqrt(xp.clip(xp.asarray(motors, dtype=dtype).reshape(shape[:-1] + (4,)), 0.0, 1.0))
     return {"params": params, "scenario": sstate, "pos": pos, "vel": vel, "rot": R, "omega": omega, "u0": u0}
+
+
+def initial_flags(cfg: Any, pos: Any, xp: Any) -> tuple[Any, Any, Any]:
+    """(on_floor, at_wall, at_ceiling) (..., N) bool of quads starting at ``pos`` (m, world-local): the
+    flags the collision functions keep for a quad resting there (``floor_impact`` keeps a grounded
+    quad grounded while z <= arm + ``FLOOR_TOL``; ``wall_collisions`` reports a quad at or beyond a
+    wall or the ceiling). Reset math of both engines."""
+    from quadswarm_mj.constants import FLOOR_TOL
+
+    lo, hi = xp.asarray(cfg.room_low, dtype=pos.dtype), xp.asarray(cfg.room_high, dtype=pos.dtype)
+    at_wall = xp.any((pos[..., :2] <= lo[:2]) | (pos[..., :2] >= hi[:2]), axis=-1)
+    return pos[..., 2] <= cfg.quad.arm + FLOOR_TOL, at_wall, pos[..., 2] >= hi[2]
 
 
 def task_stage(cfg: Any, scenario: Any, sstate: Any, t: Any, kin: dict[str, Any], effort: Any, f_norm: Any,

@@ -17,11 +17,12 @@ from quadswarm_mj.bench.envs import bench_vector
 
 PROFILE_GROUPS = [  # (label, [(file suffix, function name)]); builtins have file "~" and match by substring
     ("MuJoCo physics step (C)", [("~", "mj_step"), ("~", "_batch.step")]),
-    ("actuation: command, motor noise, lag, thrusts, wrench", [("actuation.py", "substep_wrench"),
+    # the CPU engine calls the sub-step functions through quadswarm_mj.perf.numpy_small
+    ("actuation: command, motor noise, lag, thrusts, wrench", [("numpy_small.py", "substep_wrench"),
                                                                ("actuation.py", "motor_noise_step"),
                                                                ("actuation.py", "action_to_command")]),
-    ("rotation matrices from quaternions", [("spatial.py", "quat_to_rotmat")]),
-    ("floor model (friction wrench + impact)", [("collisions.py", "floor_wrench"), ("cpu_core.py", "_floor_impact")]),
+    ("rotation matrices from quaternions", [("numpy_small.py", "quat_to_rotmat")]),
+    ("floor model (friction wrench + impact)", [("numpy_small.py", "floor_wrench"), ("cpu_core.py", "_floor_impact")]),
     ("walls, ceiling, quad-quad response", [("collisions.py", "wall_collisions"),
                                             ("collisions.py", "quad_collisions")]),
     ("pairwise distances and contacts", [("collisions.py", "pairwise_contacts")]),

@@ -39,16 +39,14 @@ from quadswarm_mj.actuation import (
 )
 from quadswarm_mj.aerodynamics import aero_draw_spec
 from quadswarm_mj.collisions import (
-    FLOOR_TOL,
     collision_draw_specs,
-    outside_room,
-    pairwise_contacts,
-    quad_collisions,
-    room_guard,
-    wall_collisions,
 )
 from quadswarm_mj.config import EnvConfig
-from quadswarm_mj.downwash import apply_downwash, downwash_draw_spec
+from quadswarm_mj.core.ops import ALL as _ALL
+from quadswarm_mj.core.ops import NumpyOps
+from quadswarm_mj.core.ops import put as _put
+from quadswarm_mj.core.step import velocity_stages
+from quadswarm_mj.downwash import downwash_draw_spec
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.perf.numpy_small import floor_impact, floor_wrench, quat_to_rotmat, substep_wrench
 from quadswarm_mj.physics.mujoco_c import (  # noqa: F401  re-exported
@@ -63,21 +61,6 @@ from quadswarm_mj.rewards import anneal_factor, total_reward, zero_terms
 from quadswarm_mj.scenarios import ScenarioState, get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
 from quadswarm_mj.spatial import rotmat_to_quat
-
-_ALL = slice(None)
-
-
-def _put(arr: np.ndarray, idx: Any, value: Any) -> np.ndarray:
-    """``arr`` with rows ``idx`` replaced (a fresh array; ``value`` itself when idx is every row)."""
-    if isinstance(idx, slice):
-        if type(value) is np.ndarray and value.shape == arr.shape and value.dtype == arr.dtype:
-            return value  # a fresh result of a model function: take it as it is
-        out = np.empty_like(arr)
-        out[...] = value
-        return out
-    out = arr.copy()
-    out[idx] = value
-    return out
 
 
 class CpuSwarm:
@@ -120,7 +103,6 @@ class CpuSwarm:
         # one compare finds quads outside the walls or above the ceiling (the floor is separate)
         self._out_lo = np.array([cfg.room_low[0], cfg.room_low[1], -np.inf])
         self._out_hi = np.asarray(cfg.room_high, dtype=np.float64)
-        self._room_low_z0 = np.asarray(cfg.room_low, dtype=np.float64)  # floor at z = 0 (the room guard)
         self.rng = np.random.default_rng()
         self.total_steps = 0  # across episodes, for reward annealing
         # draw specs, built once
@@ -148,14 +130,14 @@ class CpuSwarm:
         self.on_floor = np.zeros((B, N), bool)
         self.at_wall = np.zeros((B, N), bool)
         self.at_ceiling = np.zeros((B, N), bool)
-        self._any_on_floor = False  # Python mirrors of on_floor.any(), (at_wall | at_ceiling).any()
-        self._any_at_wall = False
+        self._any_on_floor = False  # a Python mirror of on_floor.any()
         self.contact = np.zeros((B, N, N), bool)
         self.steps = np.zeros(B, np.int64)
         self.sstate: ScenarioState | None = None
         self.metrics = metrics_lib.init(zeros, (B,), N)
         self._R: np.ndarray | None = None  # rotations of the current qpos (None: recompute)
         self._obst_init()
+        self._ops = NumpyOps(self)
 
     # ------------------------------------------------------------------ copy / pickle
     def __getstate__(self) -> dict[str, Any]:
@@ -267,7 +249,6 @@ class CpuSwarm:
 
     def _sync_flags(self) -> None:
         self._any_on_floor = bool(self.on_floor.any())
-        self._any_at_wall = bool(self.at_wall.any() or self.at_ceiling.any())
 
     # ------------------------------------------------------------------ reset
     def reset(self, mask: np.ndarray | None = None, state: dict[str, Any] | None = None) -> None:
@@ -338,10 +319,10 @@ class CpuSwarm:
         self.f_norm = _put(self.f_norm, idx, u0**2)
         self.prev_f_norm = self.f_norm.copy()
         cur_pos = self.qpos[idx, :, :3] - offsets
-        self.on_floor = _put(self.on_floor, idx, cur_pos[..., 2] <= self.floor_z + FLOOR_TOL)
-        self.at_wall = _put(self.at_wall, idx, np.any((cur_pos[..., :2] <= self.room_low[:2]) |
-                                                      (cur_pos[..., :2] >= self.room_high[:2]), -1))
-        self.at_ceiling = _put(self.at_ceiling, idx, cur_pos[..., 2] >= self.room_high[2])
+        on_floor, at_wall, at_ceiling = pipeline.initial_flags(cfg, cur_pos, np)
+        self.on_floor = _put(self.on_floor, idx, on_floor)
+        self.at_wall = _put(self.at_wall, idx, at_wall)
+        self.at_ceiling = _put(self.at_ceiling, idx, at_ceiling)
         self._sync_flags()
         # no pair is 'already colliding' at the start: one overlapping at reset is a new contact at the
         # first step (the paper's response separates it), as in the original
@@ -398,65 +379,28 @@ class CpuSwarm:
                     self._floor_impact(self._worlds(grounded), hit_floor)
         self._R = None
         R = self._rotations()
-        # once per control step: walls, ceiling, quad-quad, downwash (velocity-level models)
+        # once per control step: walls, ceiling (or the room guard), quad-quad, obstacles, downwash
         pos = self.qpos[..., :3] - self.offsets if not self._offsets_zero else self.qpos[..., :3].copy()
-        vel, omega = self.qvel[..., :3].copy(), self.qvel[..., 3:].copy()
-        changed = False
-        if self.paper_floor:
-            out = (pos <= self._out_lo) | (pos >= self._out_hi)
-            if self._any_at_wall or out.any():
-                w = self._worlds(out.any(-1) | self.at_wall | self.at_ceiling)
-                draws = self._sampler(cfg.noise.stochastic_collisions).draw(self._spec_wall, (self._count(w),))
-                r = wall_collisions(pos[w], vel[w], omega[w], self.at_wall[w], self.at_ceiling[w], self.room_low,
-                                    self.room_high, draws, cfg.collision.wall_speed_limits)
-                hit_wall, hit_ceiling = np.zeros((B, N), bool), np.zeros((B, N), bool)
-                for name, arr in (("pos", pos), ("vel", vel), ("omega", omega), ("hit_wall", hit_wall),
-                                  ("hit_ceiling", hit_ceiling)):
-                    arr[w] = r[name]
-                self.at_wall = _put(self.at_wall, w, r["at_wall"])
-                self.at_ceiling = _put(self.at_ceiling, w, r["at_ceiling"])
-                self._sync_flags()
-                changed = True
-            else:
-                hit_wall = hit_ceiling = np.zeros((B, N), bool)
-        else:  # MuJoCo resolves floor/walls/ceiling; flags from proximity to the surfaces
-            if ((pos < self._room_low_z0) | (pos > self._out_hi)).any():  # the room guard's backstop
-                R = self._room_guard(pos, vel, omega, R)
-                changed = True
-            margin = cfg.quad.arm + 0.005
-            on_floor = pos[..., 2] <= margin
-            at_wall = ((pos[..., :2] <= self.room_low[:2] + margin)
-                       | (pos[..., :2] >= self.room_high[:2] - margin)).any(-1)
-            at_ceiling = pos[..., 2] >= self.room_high[2] - margin
-            hit_floor = on_floor & ~self.on_floor
-            hit_wall, hit_ceiling = at_wall & ~self.at_wall, at_ceiling & ~self.at_ceiling
-            self.on_floor, self.at_wall, self.at_ceiling = on_floor, at_wall, at_ceiling
+        kin = {"pos": pos, "vel": self.qvel[..., :3].copy(), "omega": self.qvel[..., 3:].copy(), "R": R,
+               "quat": self.qpos[..., 3:7], "u": self.u, "hit_floor": hit_floor}
+        prev = {"on_floor": self.on_floor, "at_wall": self.at_wall, "at_ceiling": self.at_ceiling,
+                "contact": self.contact}
+        k = velocity_stages(cfg, kin, prev, self._ops)
+        if not self.paper_floor and k["u"] is not self.u:  # the room guard ran
+            self.qpos[..., 3:7] = k["quat"]
+            self.u, self._R = k["u"], k["R"]
+        if not self.paper_floor:  # (with the paper's floor, on_floor and its mirror change in the sub-steps)
+            self.on_floor = k["on_floor"]
             self._sync_flags()
-        contact, dist = pairwise_contacts(pos, cfg.hitbox)
-        new_contact = contact & ~self.contact
-        if self.paper_quads and new_contact.any():
-            w = self._worlds(new_contact.any(-1))
-            draws = self._sampler(cfg.noise.stochastic_collisions).draw(self._spec_quad, (self._count(w),))
-            q = quad_collisions(pos[w], vel[w], omega[w], self.contact[w], cfg.hitbox, draws)
-            vel[w], omega[w] = q["vel"], q["omega"]
-            changed = True
-        self.contact = contact
-        obst_new = None
-        if self.omap is not None:
-            obst_new, ch = self._obstacle_stage(pos, vel, omega)
-            changed = changed or ch
-        if cfg.downwash:
-            draws = self._sampler(cfg.noise.stochastic_downwash).draw(self._spec_down, (B,))
-            vel, omega = apply_downwash(pos, vel, omega, R, cfg.control_dt, draws)
-            changed = True
-        if changed or not self._offsets_zero:  # otherwise qpos/qvel hold these values already
-            self.qpos[..., :3] = pos + self.offsets
-            self.qvel[..., :3] = vel
-            self.qvel[..., 3:] = omega
+        self.at_wall, self.at_ceiling, self.contact = k["at_wall"], k["at_ceiling"], k["contact"]
+        if k["changed"] or not self._offsets_zero:  # otherwise qpos/qvel hold these values already
+            self.qpos[..., :3] = k["pos"] + self.offsets
+            self.qvel[..., :3] = k["vel"]
+            self.qvel[..., 3:] = k["omega"]
             self.phys.touch()
-        return {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": new_contact,
-                "hit_floor": hit_floor, "hit_wall": hit_wall, "hit_ceiling": hit_ceiling, "obst_new": obst_new,
-                "obst_feats": self._obst_feats if obst_new is not None else None}
+        k.setdefault("obst_new", None)
+        k.setdefault("obst_feats", None)
+        return k
 
     def _actuate(self, action: np.ndarray, cmd: np.ndarray | None, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One sub-step of :func:`pipeline.make_substep_actuation` (control mode, thrust map,
@@ -466,28 +410,6 @@ class CpuSwarm:
             self.u, action, cmd, self.motor_eps, self.params, pos, self.qvel[..., :3].copy(),
             R, self.qvel[..., 3:].copy(), self.ctrl_state, self.rotor_pos, self._mix, self._torque_spin)
         return force, torque
-
-    def _room_guard(self, pos: np.ndarray, vel: np.ndarray, omega: np.ndarray, R: np.ndarray) -> np.ndarray:
-        """MuJoCo-contact models: :func:`~quadswarm_mj.collisions.room_guard` on the worlds with a quad
-        centre outside the room (the paper's wall bounce or floor landing, drawn for those worlds only).
-        Writes ``pos``/``vel``/``omega`` (world-local copies) in place, the quaternions into ``qpos`` and
-        ``u``; returns the rotations (B, N, 3, 3) after the guard."""
-        cfg = self.cfg
-        beyond, below = outside_room(pos, self.room_low, self.room_high)
-        w = self._worlds(beyond | below)
-        M, stoch = self._count(w), cfg.noise.stochastic_collisions
-        draws = self._sampler(stoch).draw(self._spec_wall, (M,))
-        d = self._spec_floor["yaw"]
-        yaw = self.rng.uniform(d.low, d.high, size=(M, self.N)) if stoch else np.full((M, self.N), d.mean)
-        r = room_guard(pos[w], vel[w], omega[w], self.qpos[w, :, 3:7], R[w], self.u[w], self.room_low,
-                       self.room_high, cfg.quad.arm, draws, cfg.collision.wall_speed_limits, yaw)
-        pos[w], vel[w], omega[w] = r["pos"], r["vel"], r["omega"]
-        self.qpos[w, :, 3:7] = r["quat"]
-        self.u = _put(self.u, w, r["u"])
-        R = R.copy()
-        R[w] = r["R"]
-        self._R = R
-        return R
 
     def _worlds(self, flags: np.ndarray) -> Any:
         """Index of the worlds with any flag set: a slice when that is every world (views, no copy)."""

@@ -15,88 +15,20 @@ batch with ``jax.vmap`` and compile with ``jax.jit``::
     action = jnp.full((64, 8, 4), env.cfg.quad.hover_action)   # (worlds, N, 4) in [-1, 1]
     state = step(state, action)                                  # state.obs (64, 8, obs_dim)
 
-The model is the package's single definition: actuation, the paper's floor/wall/ceiling and
-quad-quad collisions, downwash, scenarios, observations, rewards and episode metrics are the very
-functions :mod:`quadswarm_mj.envs.cpu_core` calls, here on ``jax.numpy`` with random draws from
-:class:`FusedJaxSampler` (a :class:`~quadswarm_mj.random_draws.JaxSampler` that makes all draws of
-one reset or one step from one threefry hash; a step's numbers are made at the end of the previous
-step, or by reset, into ``info["step_numbers"]``, see :func:`step_words`) or a ``MeanSampler`` where a
-``cfg.noise.stochastic_*`` flag is off. The stage order and its extension points (control modes,
-aerodynamics, obstacles) are described in :mod:`quadswarm_mj.pipeline`; the reset math is
-:func:`quadswarm_mj.pipeline.initial_state`, shared with the CPU engine. Rigid-body integration is
-``physics``: :func:`quadswarm_mj.freebody.freebody_step` (default with the paper's collision
-model) or ``mjx.step``, in a loop over the ``cfg.substeps`` physics sub-steps of one control step
-whose carry holds the quads' qpos (N, 7) / qvel (N, 6); ``mjx.Data`` is written once per control
-step. In the default configuration (rotor control, the paper's floor, "freebody") the loop carries
-every vector as a tuple of (N,) components instead (:mod:`quadswarm_mj.components`, the same
-formulas; (W, N) arrays under ``vmap``, which XLA:CPU vectorizes: ~1.45x the step at 512 worlds).
-Without noise, MJX (float32) and the CPU env (float64) agree to well under
-2 mm over 150 control steps with either physics (``tests/test_mjx_env.py``).
-
-Draw budget: the event models draw for a bounded number of events per step and world (new
-quad-quad pairs: ``collisions.QUAD_PAIR_BUDGET``; wall/ceiling bounces: ``WALL_BUDGET``; floor
-landings per sub-step: ``FLOOR_BUDGET``; downwash pairs: ``downwash.DOWNWASH_BUDGET``). Events
-are ranked in index order (pairs i < j row-major); event r takes slot r mod budget, so every
-event's draws have SPEC §5's distribution exactly, and only beyond the budget (more simultaneous
-events in one world and step) do events repeat the draws of an earlier event of that step; new
-quad-quad pairs beyond ``QUAD_PAIR_BUDGET`` are instead deferred to the next control step (their
-response is computed only for the budgeted pairs: ``collisions.quad_collisions_budgeted``). The
-CPU engine draws per event. ``tests/test_draw_budget.py`` compares post-collision speeds and spins
-of both engines with a KS test.
-
-The CPU engine skips a model function when nothing can happen (no quad near the floor, no new
-contact); here every function is always evaluated, which gives the same values because each one
-leaves unaffected quads unchanged (no Python ``if`` on array values under ``jit``). Random streams
-differ from the CPU env's (``jax.random`` vs NumPy), so only noise-free runs are comparable.
-
-Per-world domain randomization: at every ``reset`` (``cfg.randomize=True``) the dynamics parameters
-are drawn under ``jit`` into ``state.info["params"]``; ``step`` writes mass and inertia into the
-quad rows of the MJX model with ``model.replace`` (so a batched state carries a batched model) and
-passes thrust, torque and motor constants to the actuation functions.
-
-``State`` fields (one world; a vmapped state has a leading worlds axis on every leaf):
-
-* ``data``: ``mjx.Data``. Quad ``i``'s free joint is ``qpos[7 i: 7 i + 7]`` (position m, world;
-  quaternion w, x, y, z body->world) and ``qvel[6 i: 6 i + 6]`` (linear m/s world, angular rad/s
-  body). Derived fields (``xpos``...) are those of the last physics sub-step; after ``reset`` and
-  the once-per-control-step velocity models they lag ``qpos``/``qvel`` until the next ``mjx.step``
-  (with ``physics="freebody"`` they keep the values of the initial data: call ``mjx.forward`` or
-  ``mj_forward`` after ``mjx.get_data`` to render). ``info["state"]["rot"]`` must match the
-  quaternion in ``qpos``: ``step`` uses it as the first sub-step's rotation (code that edits
-  ``qpos`` writes ``rot`` too).
-* ``obs`` (N, obs_dim), ``reward`` (N,) per quad, ``done`` () bool (time limit; there is no
-  termination), ``metrics`` {"reward/<term>": (N,)} for every term of
-  :func:`quadswarm_mj.rewards.env_terms` (``TERMS``, plus ``obstacle_collision`` with obstacles on;
-  they sum to ``reward``).
-* ``info``: ``state`` {pos (N, 3) m world, vel (N, 3) m/s world, rot (N, 3, 3) body->world,
-  omega (N, 3) rad/s body, thrust (N, 4) normalized rotor thrusts} as the CPU env's
-  ``info["state"]``; ``params`` (per-quad dynamics parameters, see
-  :mod:`quadswarm_mj.randomization`; gravity excluded); ``goals``, ``goal_vel`` (N, 3); ``motor_u``
-  (N, 4) normalized rotor speed; ``motor_eps`` (N, 4) OU motor noise; ``on_floor``, ``at_wall``,
-  ``at_ceiling`` (N,) bool; ``contact`` (N, N) bool (pairs inside the hitbox at the last control
-  step; none after reset: a pair overlapping at the start is a new contact at the first step);
-  ``scenario`` (:class:`~quadswarm_mj.scenarios.ScenarioState`); ``metrics_acc`` (accumulators of
-  :mod:`quadswarm_mj.metrics`); ``episode_metrics`` (episode metrics so far, per world);
-  ``step`` () int control steps in this episode; ``time`` () s;
-  ``total_steps`` () int across episodes (reward annealing; kept by :class:`AutoResetWrapper`);
-  ``truncation`` () float (1.0 at the time limit); ``rng`` (the key for the next step's draws).
-  With obstacles (``cfg.obstacles``): ``obstacles`` (M_max, 2) column centres (x, y m; fixed
-  slots), ``obstacles_valid`` (M_max,) bool (the columns in force), ``obstacle_radius`` () m,
-  ``obstacle_contact`` (N,) bool (quads touching a column), ``obstacle_metrics`` (accumulators of
-  :func:`quadswarm_mj.obstacles.metrics_update`); ``episode_metrics`` then adds
-  ``obstacle_collisions`` and ``collision_rate``. The map is drawn at every reset (or given as
-  ``init_state["obstacles"]``) and the column geoms are moved there through ``data.mocap_pos``
-  (MuJoCo contacts with ``physics="mjx"`` and "mujoco"/"blend"; under size randomization the
-  contact geoms get each world's drawn radius through the model, ``geom_size``). The obstacle
-  response draws for at most ``obstacles.OBSTACLE_BUDGET`` new column contacts per step.
-
-``collision_model`` "mujoco" and "blend" run with ``physics="mjx"`` (MJX's contact solver: the quads'
-hitbox spheres against each other and the room's floor plane and wall/ceiling boxes; "blend" keeps
-the paper's quad-quad response), gated as in ``CpuSwarm``: MuJoCo resolves the surfaces and the
-flags come from the proximity to them; the room guard (:func:`quadswarm_mj.collisions.room_guard`,
-once per control step) gives a quad whose centre left the room the paper's wall bounce or floor
-landing, so the room holds at any speed (MuJoCo's soft contacts alone let a quad through a wall or
-into the floor from about 10 m/s on).
+The model is the package's single definition (the functions the CPU engine calls, on ``jax.numpy``);
+the stages after the sub-steps are :func:`quadswarm_mj.core.step.velocity_stages` with
+:class:`~quadswarm_mj.core.ops.JaxOps` (always-on stages, budgeted draws: every event's draws have the
+model's distribution, beyond the budget events reuse an earlier event's slot and new quad-quad pairs
+wait one step; ``tests/test_draw_budget.py``); the reset math is :func:`quadswarm_mj.pipeline.
+initial_state` and the task stage :func:`quadswarm_mj.pipeline.task_stage`, both shared with the CPU
+engine. Rigid-body integration is ``physics``: the exact free-body step (default with the paper's
+collision model) or ``mjx.step`` (MJX's contacts for ``collision_model`` "mujoco"/"blend", with the
+room guard as backstop). Random numbers: :mod:`quadswarm_mj.perf.fused_draws` (one threefry hash per
+reset and step); per-world domain randomization is redrawn at every ``reset`` into
+``info["params"]`` and reaches ``mjx.step`` through ``model.replace``. The fields of ``State`` are
+documented in :class:`quadswarm_mj.core.state.State`; docs/engines.md explains the design. Without
+noise, this engine (float32) and the CPU engine (float64) agree to well under 2 mm over 150 control
+steps with either physics (``tests/test_mjx_env.py``).
 """
 
 from __future__ import annotations
@@ -111,8 +43,8 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
-from quadswarm_mj import components, pipeline
 from quadswarm_mj import metrics as metrics_lib
+from quadswarm_mj import pipeline
 from quadswarm_mj.actuation import (
     SPIN,
     action_to_command,
@@ -133,27 +65,19 @@ from quadswarm_mj.collisions import (
     floor_draw_spec,
     floor_impact,
     floor_wrench,
-    outside_room,
     pairwise_contacts,
     quad_collision_slot_spec,
-    quad_collisions_budgeted,
-    room_guard,
-    wall_bounces,
-    wall_collisions,
     wall_draw_spec,
 )
 from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.core.ops import JaxOps
+from quadswarm_mj.core.ops import sub as _sub
+from quadswarm_mj.core.state import State
+from quadswarm_mj.core.step import velocity_stages
 from quadswarm_mj.devices import check_mjx_batch
-from quadswarm_mj.downwash import (
-    DOWNWASH_BUDGET,
-    apply_downwash,
-    downwash_mask,
-    downwash_slot_spec,
-    expand_downwash_draws,
-)
+from quadswarm_mj.downwash import DOWNWASH_BUDGET, downwash_slot_spec
 from quadswarm_mj.envs.autoreset import AutoResetWrapper, _run_if, _select  # noqa: F401  re-exported
 from quadswarm_mj.envs.validation import check_obstacles, check_state
-from quadswarm_mj.freebody import freebody_step_components
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.perf.fused_draws import (  # noqa: F401  re-exported (their home is perf/)
     FusedJaxSampler,
@@ -162,16 +86,18 @@ from quadswarm_mj.perf.fused_draws import (  # noqa: F401  re-exported (their ho
     step_words,
     threefry_2x32_unrolled,
 )
-from quadswarm_mj.perf.xla_cpu import kernel_boundary
-from quadswarm_mj.random_draws import DrawSpec, MeanSampler, Uniform
+from quadswarm_mj.perf.jax_substeps import component_substeps
+from quadswarm_mj.physics.mjx import MjxPhysics
+from quadswarm_mj.random_draws import DrawSpec, JaxSampler, MeanSampler, Uniform
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
 from quadswarm_mj.rewards import anneal_factor, env_terms, total_reward
 from quadswarm_mj.scenarios import get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
-from quadswarm_mj.spatial import quat_to_rotmat, quat_to_rotmat_components, rotmat_to_quat
+from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
 
 INIT_STATE_KEYS = ("pos", "vel", "rot", "omega", "motors", "goals")
 PHYSICS = ("freebody", "mjx")
+DRAWS = ("fused", "jax")
 
 
 def _obst_lib() -> Any:
@@ -179,29 +105,6 @@ def _obst_lib() -> Any:
     from quadswarm_mj import obstacles
 
     return obstacles
-
-
-def _have_freebody() -> bool:
-    """True when :mod:`quadswarm_mj.freebody` (the exact free-body step) is importable."""
-    import importlib.util
-
-    return importlib.util.find_spec("quadswarm_mj.freebody") is not None
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class State:
-    """Environment state of one world (a pytree; see the module docstring for the fields)."""
-
-    data: mjx.Data
-    obs: jax.Array
-    reward: jax.Array
-    done: jax.Array
-    metrics: dict[str, jax.Array]
-    info: dict[str, Any]
-
-    def replace(self, **changes: Any) -> State:
-        return dataclasses.replace(self, **changes)
 
 
 def _float() -> Any:
@@ -221,12 +124,6 @@ def _deck_spec(cfg: EnvConfig) -> DrawSpec:
     return deck_draw_spec(cfg)
 
 
-def _sub(draws: dict[str, Any], prefix: str) -> dict[str, Any]:
-    """The draws named ``prefix/...`` with the prefix removed."""
-    p = prefix + "/"
-    return {k[len(p):]: v for k, v in draws.items() if k.startswith(p)}
-
-
 class MjxQuadSwarmEnv:
     """One world of ``cfg.num_quads`` Crazyflies on MJX; pure ``reset``/``step`` (jit, vmap).
 
@@ -240,22 +137,24 @@ class MjxQuadSwarmEnv:
     where it is available: :func:`quadswarm_mj.freebody.freebody_step`, MuJoCo's Euler step of
     contact-free free bodies, exact) or ``"mjx"`` (``mjx.step``, generic: builds and factors the
     dense mass matrix). Both keep ``mjx.Data`` as the state; with "freebody" the derived fields
-    (``xpos``...) are not recomputed (``mjx.get_data`` + ``mj_forward`` for rendering).
+    (``xpos``...) are not recomputed (``mjx.get_data`` + ``mj_forward`` for rendering). ``draws``:
+    ``"fused"`` (:mod:`quadswarm_mj.perf.fused_draws`) or ``"jax"`` (plain ``jax.random``, one key per entry).
     """
 
-    def __init__(self, cfg: EnvConfig | None = None, physics: str | None = None):
+    def __init__(self, cfg: EnvConfig | None = None, physics: str | None = None, draws: str = "fused"):
         cfg = EnvConfig() if cfg is None else cfg
         if not isinstance(cfg, EnvConfig):
             raise ValueError(f"cfg must be an EnvConfig, got {type(cfg).__name__}")
+        if draws not in DRAWS:
+            raise ValueError(f"draws must be one of {DRAWS}, got {draws!r}")
+        self.draws = draws
         if physics is None:
-            physics = "freebody" if cfg.collision_model == "paper" and _have_freebody() else "mjx"
+            physics = "freebody" if cfg.collision_model == "paper" else "mjx"
         if physics not in PHYSICS:
             raise ValueError(f"physics must be one of {PHYSICS}, got {physics!r}")
         if physics == "freebody" and cfg.collision_model != "paper":
             raise ValueError(f"physics='freebody' has no contacts: collision_model must be 'paper' with it, got "
                              f"{cfg.collision_model!r}; use physics='mjx' for 'mujoco'/'blend'")
-        if physics == "freebody" and not _have_freebody():
-            raise ValueError("physics='freebody' needs quadswarm_mj.freebody (not available); use physics='mjx'")
         # which events the paper's model handles (the others are MuJoCo contacts, as in CpuSwarm)
         self._paper_floor = cfg.collision_model == "paper"
         self._paper_quads = cfg.collision_model in ("paper", "blend")
@@ -266,10 +165,7 @@ class MjxQuadSwarmEnv:
         self.mj_model = self.arena.model
         self.mjx_model = mjx.put_model(self.mj_model, device=(dev := jax.local_devices()[0]))  # this process's:
         self._data0 = mjx.make_data(self.mjx_model, device=dev)  # mjx's default, jax.devices()[0], is process 0's
-        self._qs, self._vs = self.arena.qpos_start, self.arena.qvel_start
-        self._fb = self.arena.first_body
-        # the quads' free joints are the whole qpos/qvel: read and write them with reshapes, no scatter
-        self._whole = self._qs == 0 and self._vs == 0 and self.mj_model.nq == 7 * n and self.mj_model.nv == 6 * n
+        self._mjx_physics = MjxPhysics(self.arena, self.mjx_model, n, cfg.collision_model == "paper")
         self.scenario = get_scenario(cfg.scenario)
         self._n_scn = scenario_num_uniforms(self.scenario, cfg)
         self._terms = env_terms(cfg)
@@ -327,7 +223,8 @@ class MjxQuadSwarmEnv:
         # The next step's random numbers are made at the end of a step (and by reset) and carried in
         # info["step_numbers"]: computed once into the state instead of inside the step, where XLA fuses
         # the normals' erf_inv into every consumer (or needs a loop to materialize them).
-        self._carry_numbers = bool(self._step_spec) and FusedJaxSampler.fused(jax.random.key(0), _float())
+        self._carry_numbers = (draws == "fused" and bool(self._step_spec)
+                               and FusedJaxSampler.fused(jax.random.key(0), _float()))
 
     # ------------------------------------------------------------------ properties
     @property
@@ -363,7 +260,8 @@ class MjxQuadSwarmEnv:
     def _draw(self, spec: DrawSpec, key: jax.Array, mean_spec: DrawSpec | None = None) -> dict[str, jax.Array]:
         """Random draws of ``spec`` (one fused threefry call per distribution type) and the means
         of ``mean_spec``, in one flat dict."""
-        out = FusedJaxSampler(key, _float()).draw(spec) if spec else {}
+        sampler = FusedJaxSampler if self.draws == "fused" else JaxSampler
+        out = sampler(key, _float()).draw(spec) if spec else {}
         if mean_spec:
             out.update(MeanSampler(dtype=_float(), xp=jnp).draw(mean_spec))
         return out
@@ -377,64 +275,17 @@ class MjxQuadSwarmEnv:
         return {"rng": k_next, "step_numbers": numbers}
 
     def _read(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
-        """The quads' free joints: qpos (N, 7) (pos m world, quat wxyz body->world), qvel (N, 6)
-        (linear m/s world, angular rad/s body)."""
-        n = self.N
-        if self._whole:
-            return data.qpos.reshape(n, 7), data.qvel.reshape(n, 6)
-        return (data.qpos[self._qs:self._qs + 7 * n].reshape(n, 7), data.qvel[self._vs:self._vs + 6 * n].reshape(n, 6))
+        return self._mjx_physics.read(data)
 
     def _write(self, data: mjx.Data, q: jax.Array, v: jax.Array) -> mjx.Data:
-        """``data`` with the quads' qpos (N, 7) and qvel (N, 6) replaced."""
-        n = self.N
-        q, v = q.astype(data.qpos.dtype), v.astype(data.qvel.dtype)
-        if self._whole:
-            return data.replace(qpos=q.reshape(-1), qvel=v.reshape(-1))
-        return data.replace(qpos=data.qpos.at[self._qs:self._qs + 7 * n].set(q.ravel()),
-                            qvel=data.qvel.at[self._vs:self._vs + 6 * n].set(v.ravel()))
+        return self._mjx_physics.write(data, q, v)
 
     def _params(self, info: dict[str, Any]) -> dict[str, Any]:
         return {**info["params"], "gravity": self.cfg.quad.gravity}
 
-    def _model(self, params: dict[str, Any], obstacle_radius: Any = None) -> mjx.Model:
-        """The MJX model with this world's drawn mass and inertia in the quad rows and, with MuJoCo
-        contacts on the columns, this world's column radius (m; drawn per reset with ``size_random``)
-        in the column geoms (the pool is built with the largest radius)."""
-        m, sl = self.mjx_model, slice(self._fb, self._fb + self.N)
-        m = m.replace(body_mass=m.body_mass.at[sl].set(params["mass"].astype(m.body_mass.dtype)),
-                      body_inertia=m.body_inertia.at[sl].set(params["inertia"].astype(m.body_inertia.dtype)))
-        if obstacle_radius is not None and not self._obst_respond:
-            ids = jnp.asarray(self.arena.obstacle_geom_ids[0])
-            m = m.replace(geom_size=m.geom_size.at[ids, 0].set(jnp.asarray(obstacle_radius, m.geom_size.dtype)))
-        return m
-
     def _integrator(self, params: dict[str, Any], obstacle_radius: Any = None) -> Any:
-        """The rigid-body stage: ``integrate(q (N, 7), v (N, 6), wrench (N, 6) world force N and torque
-        N m at the CoM, aux) -> (q, v, aux)``, one physics sub-step of ``cfg.sim_dt`` (``aux``: the
-        ``mjx.Data`` carried through the sub-steps by "mjx", None for "freebody")."""
-        n, fb = self.N, self._fb
-        if self.physics == "freebody":
-            from quadswarm_mj.freebody import freebody_constants, freebody_step
-
-            c = freebody_constants(self.mj_model, self.arena)  # checks the model's assumptions
-            dt = c.dt
-
-            def integrate_fb(q: Any, v: Any, wrench: Any, aux: Any) -> tuple[Any, Any, Any]:
-                q2, v2 = freebody_step(q, v, wrench, params["mass"], params["inertia"], c.ipos, c.iquat,
-                                       c.gravity, dt)
-                return q2, v2, aux
-
-            return integrate_fb
-        model = self._model(params, obstacle_radius)
-
-        def integrate_mjx(q: Any, v: Any, wrench: Any, data: Any) -> tuple[Any, Any, Any]:
-            data = self._write(data, q, v)
-            xfrc = data.xfrc_applied.at[fb:fb + n].set(wrench.astype(data.xfrc_applied.dtype))
-            data = mjx.step(model, data.replace(xfrc_applied=xfrc))
-            q2, v2 = self._read(data)
-            return q2.astype(q.dtype), v2.astype(v.dtype), data
-
-        return integrate_mjx
+        """The rigid-body stage of this env's ``physics`` (:meth:`quadswarm_mj.physics.mjx.MjxPhysics.integrator`)."""
+        return self._mjx_physics.integrator(self.physics, params, obstacle_radius)
 
     def _observe(self, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, draws: dict[str, Any],
                  dist: Any = None, omap: Any = None) -> jax.Array:
@@ -464,21 +315,6 @@ class MjxQuadSwarmEnv:
         out = metrics_lib.finalize(acc, t)
         out.update(_obst_lib().metrics_finalize(om, acc["collisions"]))
         return out
-
-    def _surface_flags(self, pos: Any, vel: Any, omega: Any) -> tuple[Any, Any, Any]:
-        """(on_floor, at_wall, at_ceiling) of quads at ``pos``, from the collision functions
-        themselves: ``floor_impact`` of a grounded quad keeps it grounded exactly while it is at the
-        floor height, ``wall_collisions`` reports contact with walls and ceiling."""
-        cfg, n, f = self.cfg, self.N, pos.dtype
-        yes = jnp.ones((n,), bool)
-        zero_u = jnp.zeros((n, 4), f)
-        eye = jnp.broadcast_to(jnp.eye(3, dtype=f), (n, 3, 3))
-        quat = jnp.broadcast_to(jnp.asarray([1.0, 0.0, 0.0, 0.0], f), (n, 4))
-        fl = floor_impact(pos, vel, omega, quat, eye, zero_u, yes, cfg.quad.arm, None,
-                          yaw_draw_cs=(jnp.ones((n,), f), jnp.zeros((n,), f)))
-        w = wall_collisions(pos, vel, omega, yes, yes, jnp.asarray(cfg.room_low, f), jnp.asarray(cfg.room_high, f),
-                            MeanSampler(dtype=f, xp=jnp).draw(self._spec_wall), cfg.collision.wall_speed_limits)
-        return fl["on_floor"], w["at_wall"], w["at_ceiling"]
 
     # ------------------------------------------------------------------ reset
     def reset(self, key: jax.Array, init_state: dict[str, Any] | None = None) -> State:
@@ -529,7 +365,7 @@ class MjxQuadSwarmEnv:
         q, v = self._read(data)  # as stored (quaternion round trip), like the CPU env
         pos, vel, omega = q[:, :3].astype(f), v[:, :3].astype(f), v[:, 3:].astype(f)
         R = quat_to_rotmat(q[:, 3:7]).astype(f)
-        on_floor, at_wall, at_ceiling = self._surface_flags(pos, vel, omega)
+        on_floor, at_wall, at_ceiling = pipeline.initial_flags(cfg, pos, jnp)
         _, dist = pairwise_contacts(pos, cfg.hitbox)
         contact = jnp.zeros((n, n), bool)  # none 'already colliding' at the start (as CpuSwarm.reset)
         acc = metrics_lib.init(jnp.zeros((n,), f), (), n)
@@ -607,8 +443,9 @@ class MjxQuadSwarmEnv:
 
         q0, v0 = self._read(data)
         if self._component_substeps:
-            q, v, R, u, f_norm, on_floor, hit_floor = self._substeps_components(
-                q0.astype(f), v0.astype(f), info, params, cmd, eps, torque_spin, rnd["floor/yaw"])
+            q, v, R, u, f_norm, on_floor, hit_floor = component_substeps(
+                cfg, self._fb_constants, self._mix, q0.astype(f), v0.astype(f), info, params, cmd, eps, torque_spin,
+                rnd["floor/yaw"])
             aux, ctrl = None, None
         else:
             yaw_cs = (jnp.cos(rnd["floor/yaw"]), jnp.sin(rnd["floor/yaw"]))  # (substeps, slots) each
@@ -617,112 +454,30 @@ class MjxQuadSwarmEnv:
                       info["on_floor"], jnp.zeros((n,), bool), aux0, self._ctrl0(info, eps))
             (q, v, R, u, f_norm, on_floor, hit_floor, aux, ctrl), _ = jax.lax.scan(substep, carry0, yaw_cs)
         data = data if aux is None else aux
-        # once per control step: walls, ceiling, quad-quad, (obstacles), downwash (velocity-level models)
-        pos, vel, omega = q[:, :3], v[:, :3], v[:, 3:]
-        room_low, room_high = jnp.asarray(cfg.room_low, f), jnp.asarray(cfg.room_high, f)
-        if paper_floor:
-            bounce = wall_bounces(pos, info["at_wall"], info["at_ceiling"], room_low, room_high)
-            w = wall_collisions(pos, vel, omega, info["at_wall"], info["at_ceiling"], room_low, room_high,
-                                expand_per_quad(bounce, _sub(rnd, "wall")), cfg.collision.wall_speed_limits)
-            pos, vel, omega = w["pos"], w["vel"], w["omega"]
-        else:  # MuJoCo resolves floor/walls/ceiling; flags from proximity to the surfaces (as CpuSwarm)
-            # the room guard: a quad centre outside the room gets the paper's wall bounce or floor landing
-            beyond, below = outside_room(pos, room_low, room_high)
-            yaw = rnd["floor/yaw"][-1]  # the last sub-step's landing slots (unused without the paper's floor)
-            g = room_guard(pos, vel, omega, q[:, 3:7], R, u, room_low, room_high, cfg.quad.arm,
-                           expand_per_quad(beyond, _sub(rnd, "wall")), cfg.collision.wall_speed_limits,
-                           yaw_draw_cs=tuple(expand_per_quad(below, {"c": jnp.cos(yaw), "s": jnp.sin(yaw)}).values()))
-            pos, vel, omega, R, u = g["pos"], g["vel"], g["omega"], g["R"], g["u"]
-            q = jnp.concatenate([pos, g["quat"]], -1)
-            margin = cfg.quad.arm + 0.005
-            on_floor_now = pos[:, 2] <= margin
-            at_wall = jnp.any((pos[:, :2] <= room_low[:2] + margin) | (pos[:, :2] >= room_high[:2] - margin), -1)
-            at_ceiling = pos[:, 2] >= room_high[2] - margin
-            hit_floor = on_floor_now & ~info["on_floor"]
-            on_floor = on_floor_now
-            w = {"hit_wall": at_wall & ~info["at_wall"], "hit_ceiling": at_ceiling & ~info["at_ceiling"],
-                 "at_wall": at_wall, "at_ceiling": at_ceiling}
-        if self._paper_quads:
-            qc = quad_collisions_budgeted(pos, vel, omega, info["contact"], cfg.hitbox, _sub(rnd, "quad"))
-            vel, omega = qc["vel"], qc["omega"]
-        else:
-            contact, _ = pairwise_contacts(pos, cfg.hitbox)
-            qc = {"contact": contact, "new_contact": contact & ~info["contact"]}
-        obst: dict[str, Any] = {}
-        if self._obst is not None:  # SPEC_obstacles A.3, after quad-quad
-            omap, draws = self._omap(info), None
-            if self._obst_respond:  # the budgeted slots, spread over this step's new contacts
-                new = _obst_lib().detect(pos, *omap, cfg.quad.arm)[0] & ~info["obstacle_contact"]
-                draws = expand_per_quad(new, _sub(rnd, "obst"))
-            r = pipeline.obstacle_stage(pos, vel, omega, info["obstacle_contact"], omap, cfg.quad.arm, draws,
-                                        self._obst_respond)
-            vel, omega = r["vel"], r["omega"]
-            obst = {"obst_new": r["new_contact"], "obst_contact": r["contact"]}
-        _, dist = pairwise_contacts(pos, cfg.hitbox)
-        if cfg.downwash:
-            dmask, _ = downwash_mask(pos, R)
-            vel, omega = apply_downwash(pos, vel, omega, R, cfg.control_dt,
-                                        expand_downwash_draws(dmask, _sub(rnd, "down")))
-        data = self._write(data, jnp.concatenate([pos, q[:, 3:7]], -1), jnp.concatenate([vel, omega], -1))
+        # once per control step: walls, ceiling (or the room guard), quad-quad, obstacles, downwash
+        kin = {"pos": q[:, :3], "vel": v[:, :3], "omega": v[:, 3:], "R": R, "quat": q[:, 3:7], "u": u,
+               "on_floor": on_floor, "hit_floor": hit_floor}
+        prev = {k2: info[k2] for k2 in ("on_floor", "at_wall", "at_ceiling", "contact")}
+        obst = None if self._obst is None else functools.partial(self._obstacles, info, rnd)
+        k = velocity_stages(cfg, kin, prev, JaxOps(cfg, rnd, f, obst))
+        pos, vel, omega = k["pos"], k["vel"], k["omega"]
+        data = self._write(data, jnp.concatenate([pos, k["quat"]], -1), jnp.concatenate([vel, omega], -1))
         if aux is None:
             data = data.replace(time=data.time + cfg.control_dt)
-        k = {"pos": pos, "vel": vel, "R": R, "omega": omega, "dist": dist, "new_contact": qc["new_contact"],
-             "contact": qc["contact"], "hit_floor": hit_floor, "hit_wall": w["hit_wall"],
-             "hit_ceiling": w["hit_ceiling"], "at_wall": w["at_wall"], "at_ceiling": w["at_ceiling"],
-             "on_floor": on_floor, "u": u, "f_norm": f_norm, "eps": eps, "ctrl": ctrl, **obst}
+        k.update(f_norm=f_norm, eps=eps, ctrl=ctrl)
         return data, k
 
-    def _substeps_components(self, q: Any, v: Any, info: dict[str, Any], params: dict[str, Any], cmd: Any, eps: Any,
-                             torque_spin: Any, yaw: Any) -> tuple[Any, ...]:
-        """The sub-step loop of the default configuration (rotor control, the paper's floor, free-body
-        physics) with the vectors carried as tuples of components (:mod:`quadswarm_mj.components`):
-        the same formulas as the general loop of :meth:`_physics`, in contiguous (W, N) arrays under
-        vmap. Takes q (N, 7), v (N, 6) and ``yaw`` (substeps, slots), the floor landings' yaw draws (rad);
-        returns (q, v, R (N, 3, 3), u, f_norm (N, 4), on_floor, hit_floor (N,)) after ``cfg.substeps``
-        sub-steps."""
-        cfg, n, f = self.cfg, self.N, q.dtype
-        k = self._fb_constants
-        split = components.split
-        alpha, mass = params["alpha"], params["mass"]
-        gravity = split(jnp.asarray(k.gravity, f))
-        max_w, floor_z, mix = cfg.quad.max_omega, cfg.quad.arm, self._mix
-
-        def substep(i: jax.Array, carry: tuple) -> tuple:
-            pos, quat, vel, omega, R, u, _, on_floor, hit_floor = carry
-            # this sub-step's floor-landing yaw draws (slots,), indexed in the body: scanning over them
-            # would transpose the (W, substeps, slots) draws into (substeps, W, slots) first
-            yaw_i = jax.lax.dynamic_index_in_dim(yaw, i, 0, keepdims=False)
-            # the loop-invariant inputs are split inside the body, where XLA fuses the slices into
-            # their consumers (split outside, each component would be a loop operand: a copy kernel)
-            cmd4, eps4, thrust_max, spin = split(cmd), split(eps), split(params["thrust_max"]), split(torque_spin)
-            inertia = split(params["inertia"])
-            u, f_norm, force, torque = components.rotor_wrench(u, cmd4, eps4, alpha, thrust_max, spin, mix, R)
-            force, torque = components.floor_wrench(on_floor, force, torque, vel, mass, params["gravity"],
-                                                    cfg.collision.floor_friction, cfg.sim_dt)
-            pos, quat, vel, omega = freebody_step_components(pos, quat, vel, omega, force, torque, mass, inertia,
-                                                             k.ipos, k.iquat, gravity, k.dt, xp=jnp)
-            omega = tuple(jnp.clip(w, -max_w, max_w) for w in omega)
-            R = quat_to_rotmat_components(*quat)
-            landing = (pos[2] <= floor_z) & ~on_floor
-            d = expand_per_quad(landing, {"c": jnp.cos(yaw_i), "s": jnp.sin(yaw_i)})  # trig-free yaw draws
-            # the landing yaw's (cos, sin) computed once, in their own kernels, instead of inside each
-            # select of the floor impact that reads them (~25 % fewer operations in the loop body)
-            one = 1.0 + 0.0 * i.astype(f)  # 1.0 that XLA cannot fold: see perf.xla_cpu.kernel_boundary
-            mat = functools.partial(kernel_boundary, one=one)
-            r = components.floor_impact(pos, vel, omega, quat, R, u, on_floor, floor_z, (d["c"], d["s"]), mat)
-            return (r["pos"], r["quat"], r["vel"], r["omega"], r["R"], r["u"], f_norm, r["on_floor"],
-                    hit_floor | r["hit_floor"])
-
-        qc, vc = split(q), split(v)
-        # every sub-step sets f_norm before reading it: zeros, not the slices of the previous step's
-        zeros = jnp.zeros((n,), f)
-        f_norm0 = (zeros,) * 4 if cfg.substeps >= 1 else split(info["state"]["thrust"])
-        carry0 = (qc[:3], qc[3:], vc[:3], vc[3:], split(info["state"]["rot"].reshape(n, 9)), split(info["motor_u"]),
-                  f_norm0, info["on_floor"], jnp.zeros((n,), bool))
-        pos, quat, vel, omega, R, u, f_norm, on_floor, hit_floor = jax.lax.fori_loop(0, cfg.substeps, substep, carry0)
-        stack = components.stack
-        return (stack(pos + quat), stack(vel + omega), stack(R).reshape(n, 3, 3), stack(u), stack(f_norm),
-                on_floor, hit_floor)
+    def _obstacles(self, info: dict[str, Any], rnd: dict[str, Any], pos: Any, vel: Any, omega: Any) -> dict[str, Any]:
+        """The obstacle stage (after quad-quad): the budgeted response slots spread over this step's new
+        column contacts (paper model), or detection only (MuJoCo contacts)."""
+        omap, draws = self._omap(info), None
+        if self._obst_respond:
+            new = _obst_lib().detect(pos, *omap, self.cfg.quad.arm)[0] & ~info["obstacle_contact"]
+            draws = expand_per_quad(new, _sub(rnd, "obst"))
+        r = pipeline.obstacle_stage(pos, vel, omega, info["obstacle_contact"], omap, self.cfg.quad.arm, draws,
+                                    self._obst_respond)
+        return {"vel": r["vel"], "omega": r["omega"], "obst_new": r["new_contact"], "obst_contact": r["contact"],
+                "changed": True}
 
     def _ctrl0(self, info: dict[str, Any], eps: Any) -> Any:
         """The sub-step carry of :func:`pipeline.make_substep_actuation`: (last rotor command (N, 4),
@@ -794,7 +549,7 @@ class MjxQuadSwarmEnv:
 
 
 def benchmark_mjx(cfg: EnvConfig, num_worlds: int, num_steps: int, seed: int = 0,
-                  physics: str | None = None, devices: int | None = None) -> dict[str, float]:
+                  physics: str | None = None, devices: int | None = None, draws: str = "fused") -> dict[str, float]:
     """Time ``num_steps`` control steps of ``num_worlds`` worlds (auto-reset, hover actions).
 
     Worlds are sharded over all JAX devices when their number divides ``num_worlds``. The rollout
@@ -804,6 +559,7 @@ def benchmark_mjx(cfg: EnvConfig, num_worlds: int, num_steps: int, seed: int = 0
     ``num_worlds``, ``num_quads``, ``num_steps``, ``devices``. ``physics``: see
     :class:`MjxQuadSwarmEnv` (None: its default). ``devices``: use at most that many of
     ``jax.devices()`` (None: all; :func:`quadswarm_mj.use_cpu_cores` gives one CPU device per core).
+    ``draws``: see :class:`MjxQuadSwarmEnv`.
     """
     from quadswarm_mj.envs.sharding import WorldSharding, world_devices
 
@@ -811,7 +567,7 @@ def benchmark_mjx(cfg: EnvConfig, num_worlds: int, num_steps: int, seed: int = 0
         raise ValueError(f"num_worlds and num_steps must be >= 1, got {num_worlds}, {num_steps}")
     if devices is not None and (not isinstance(devices, int) or devices < 1):
         raise ValueError(f"devices must be an int >= 1 or None, got {devices!r}")
-    env = AutoResetWrapper(MjxQuadSwarmEnv(cfg, physics=physics))
+    env = AutoResetWrapper(MjxQuadSwarmEnv(cfg, physics=physics, draws=draws))
     check_mjx_batch(env.env.physics, num_worlds)  # a clear error where jax >= 0.10 would hang (devices.py)
     shard = WorldSharding(num_worlds, world_devices(num_worlds, jax.devices()[:devices]))
     hover = jnp.full((num_worlds, cfg.num_quads, 4), cfg.quad.hover_action, _float())
