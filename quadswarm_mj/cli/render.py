@@ -1,30 +1,18 @@
 """Fly a swarm headless and write a video, then print the episode metrics and the speed reached.
 
-Example (8 quads, the baseline position controller, 3 s, 640x480 at 30 fps)::
-
-    python scripts/render_rollout.py --scenario swap_goals --num-quads 8 --seconds 3 --out swarm.mp4
-    quadswarm-render --scenario o_random --num-quads 8 --seconds 6 --out o.mp4   # among columns
+    quadswarm-render --scenario swap_goals --num-quads 8 --seconds 3 --out swarm.mp4
+    quadswarm-render --scenario o_random --sensors multiranger,flow --seconds 2 --out s.mp4   # deck rays
+    quadswarm-render --scenario swap_goals --tile 2x2 --seconds 3 --out tiles.mp4            # 4 worlds
 
 Runs one world of the CPU env (``QuadSwarmEnv``, 100 Hz control) and renders every k-th control step
-offscreen (EGL by default, no display needed) so the video plays in real time at ``--fps``. Policies:
-``controller`` (``quadswarm_mj.controllers.PositionController``, default), ``hover``, ``random``,
-``pretrained:<name>`` or a policy ``.npz`` (``quadswarm_mj.policies.load_policy``; the env then takes the
-policy's observation settings). ``--obstacles`` turns the columns on for any scenario (the ``o_*``
-scenarios do it themselves); the controller steers around them.
-
-``--out`` and ``--still`` are checked to be writable before the flight and each replaces its target only
-once complete; if writing the still fails anyway, the metrics are printed and the exit status is 1.
-
-Deck sensors: ``--sensors`` turns on the multi-ranger, the flow deck and an 8 x 8 depth camera
-(``--sensors multiranger,flow`` or ``--sensors depth=16x16`` for fewer or others) and draws what they
-read (range beams ending in a dot at the hit, the depth camera's frustum and pixel hits). ``--tile RxC``
-flies R x C worlds of the multi-world CPU engine (world w seeded from ``--seed``) side by side in one
-frame of ``--width`` x ``--height`` with one offscreen context::
-
-    python scripts/render_rollout.py --scenario o_random --sensors multiranger,flow --seconds 2 --out s.mp4
-    python scripts/render_rollout.py --scenario swap_goals --tile 2x2 --seconds 3 --out tiles.mp4
+offscreen (EGL by default) so the video plays in real time at ``--fps``. Policies: ``controller``
+(default), ``hover``, ``random``, ``pretrained:<name>`` or a policy ``.npz``. ``--obstacles`` turns the
+columns on for any scenario. ``--sensors`` draws the deck sensors' readings (range beams ending in a dot
+at the hit, the depth camera's frustum and pixel hits); ``--tile RxC`` flies R x C worlds of the
+multi-world CPU engine side by side in one frame with one offscreen context. ``--out`` and ``--still``
+are checked to be writable before the flight and each replaces its target only once complete; if
+writing the still fails anyway, the metrics are printed and the exit status is 1.
 """
-
 from __future__ import annotations
 
 # Headless: with MUJOCO_GL unset, quadswarm_mj.render picks EGL when it first renders (MUJOCO_GL stays unset).
