@@ -2,15 +2,15 @@
 without :func:`quadswarm_mj.tune_jax_cpu`'s process-wide settings.
 
 ``jax.jit(f, compiler_options=...)`` sets XLA ``DebugOptions`` fields for that program only (no
-``XLA_FLAGS``, no JAX config). The option that measured to pay for the one-world step is
-``xla_cpu_use_fusion_emitters=False`` (XLA:CPU's older fused-loop emitter). Measured on the 2-core
-machine under heavy, varying load (``python /tmp/opt_rate.py`` style loops: one
-``QuadSwarmEnv(engine="jax")``, random actions, best of 3 x 1.5 s, fresh process per row): 1.1-4.9x
-the steps/s of JAX's defaults and 0.6-0.8x the time from construction to the first step's return;
-``tune_jax_cpu()`` stays faster in some rounds. The small-loop threshold of ``tune_jax_cpu`` cannot be set
-this way (``xla_backend_extra_options`` is a map field, which compile options do not take), nor can
-synchronous dispatch (a client setting). Results are the same bit for bit
-(``tests/test_perf_xla_options.py``). Applied on the CPU backend only, and only where this jax
+``XLA_FLAGS``, no JAX config). ``xla_cpu_use_fusion_emitters=False`` (XLA:CPU's older fused-loop
+emitter) compiles the one-world programs faster: measured on the 2-core machine under varying load
+(``python scripts/bench_xla_options.py --variant default|options|tune|tune+options --quads 1|8``,
+two alternating rounds), the time from construction to the first step's return was 0.67-0.9x that
+of JAX's defaults; steady-state steps/s stayed within the run-to-run noise (0.7-1.3x). It does NOT
+reach :func:`quadswarm_mj.tune_jax_cpu` (~3x the steps/s of the defaults in the same rounds): its
+small-loop threshold cannot be set per program (``xla_backend_extra_options`` is a map field, which
+compile options do not take) and synchronous dispatch is a client setting. Results are the same bit
+for bit (``tests/test_perf_xla_options.py``). Applied on the CPU backend only, where this jax
 accepts the option (:func:`one_world_options` probes it once); ``ENABLED = False`` turns it off.
 """
 
