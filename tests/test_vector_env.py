@@ -33,6 +33,7 @@ def test_spaces_metadata_and_layout():
     try:
         assert isinstance(env, gym.vector.VectorEnv)
         assert env.metadata["autoreset_mode"] == gym.vector.AutoresetMode.SAME_STEP
+        assert env.autoreset_mode == env.metadata["autoreset_mode"]  # also as an attribute (TorchRL reads it there)
         assert env.single_observation_space.shape == (4, cfg.obs_dim)
         assert env.observation_space.shape == (3, 4, cfg.obs_dim)
         assert env.single_action_space.shape == (4, 4) and env.action_space.shape == (3, 4, 4)

@@ -187,6 +187,8 @@ class QuadSwarmVectorEnv(VectorEnv):
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+    #: the same as ``metadata["autoreset_mode"]``, as an attribute too (TorchRL's ``GymWrapper`` reads it there)
+    autoreset_mode = AutoresetMode.SAME_STEP
 
     def __init__(self, cfg: EnvConfig | None = None, num_envs: int = 64, *, num_shards: int | None = None,
                  info_keys: tuple[str, ...] | None = None, copy: bool = True, backend: str = "auto",
