@@ -110,3 +110,20 @@ def quat_to_rotmat(q: Any) -> Any:
     P = (q[..., :, None] * q[..., None, :]).reshape(lead + (16,))
     t = (np.take(P, _Q_IAB, axis=-1) * _Q_SCALE).reshape(lead + (2, 9)).sum(axis=-2)
     return (_Q_BASE + t).reshape(lead + (3, 3))
+
+
+# The entries (R10, R00, R22) of quat_to_rotmat (the floor impact's heading and upside-down test), with
+# quat_to_rotmat's rounding: base + (coef * q_a q_b + coef * sign * q_c q_d), signs of zero included.
+_YAW_I1 = np.array([1, 2, 1, 0, 3, 2])  # x y x | w z y
+_YAW_I2 = np.array([2, 2, 1, 3, 3, 2])  # y y x | z z y  (products xy yy xx | wz zz yy)
+_YAW_SCALE = np.array([2.0, -2.0, -2.0, 2.0, -2.0, -2.0])
+_YAW_BASE = np.array([0.0, 1.0, 1.0])
+
+
+def yaw_entries(q: Any) -> Any:
+    """(..., 4) unit quaternions (w, x, y, z) -> (..., 3): the entries R10, R00, R22 of
+    :func:`quat_to_rotmat` (bit-identical, signs of zero included): ``arctan2(R10, R00)`` is the
+    heading (:func:`quadswarm_mj.spatial.yaw_of`), R22 < 0 an upside-down body."""
+    p = np.take(q, _YAW_I1, axis=-1) * np.take(q, _YAW_I2, axis=-1)
+    p *= _YAW_SCALE
+    return _YAW_BASE + (p[..., :3] + p[..., 3:])
