@@ -108,8 +108,10 @@ def quat_to_rotmat(q: Any) -> Any:
         return spatial.quat_to_rotmat(q)
     lead = q.shape[:-1]
     P = (q[..., :, None] * q[..., None, :]).reshape(lead + (16,))
-    t = (np.take(P, _Q_IAB, axis=-1) * _Q_SCALE).reshape(lead + (2, 9)).sum(axis=-2)
-    return (_Q_BASE + t).reshape(lead + (3, 3))
+    t = np.take(P, _Q_IAB, axis=-1) * _Q_SCALE
+    # a + b (where a sum over the pair would give 0 + a + b): only the sign of an exact-zero t differs,
+    # which the base's + 0.0 / + 1.0 erases (the same bits)
+    return (_Q_BASE + (t[..., :9] + t[..., 9:])).reshape(lead + (3, 3))
 
 
 # The entries (R10, R00, R22) of quat_to_rotmat (the floor impact's heading and upside-down test), with
