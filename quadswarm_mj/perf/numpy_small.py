@@ -45,7 +45,8 @@ def substep_wrench(u: Any, cmd: Any, noise: Any, params: dict[str, Any], R: Any,
 
 def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any, gravity: float,
                  friction: float, dt: float) -> tuple[Any, Any]:
-    """:func:`quadswarm_mj.collisions.floor_wrench` (same arguments, same bits)."""
+    """:func:`quadswarm_mj.collisions.floor_wrench` (same arguments, same bits; the two results may be
+    views of one (..., 6) array)."""
     if force_w.size >= BIG:
         return collisions.floor_wrench(on_floor, force_w, torque_w, vel, mass, gravity, friction, dt)
     normal = np.maximum(0.0, mass * gravity - force_w[..., 2])
@@ -55,14 +56,17 @@ def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any
     v_h = vel[..., :2]
     speed = norm_last(v_h)
     moving = speed > 1e-9
-    static_h = f_h * (np.maximum(0.0, f_mag - cap) / np.where(f_mag > 0, f_mag, 1.0))[..., None]
+    new = np.empty(force_w.shape[:-1] + (6,))  # the grounded quads' force and torque (world)
+    h = new[..., :2]  # horizontal force: static friction, then kinetic where moving
+    np.multiply(f_h, (np.maximum(0.0, f_mag - cap) / np.where(f_mag > 0, f_mag, 1.0))[..., None], out=h)
     kinetic_mag = np.minimum(cap, mass * speed / dt)
-    kinetic_h = f_h - (kinetic_mag / np.where(moving, speed, 1.0))[..., None] * v_h
-    new_h = np.where(moving[..., None], kinetic_h, static_h)
-    new_force = np.concatenate([new_h, (force_w[..., 2] + normal)[..., None]], axis=-1)
-    new_torque = np.concatenate([np.zeros_like(torque_w[..., :2]), torque_w[..., 2:]], axis=-1)
-    g = on_floor[..., None]
-    return np.where(g, new_force, force_w), np.where(g, new_torque, torque_w)
+    np.subtract(f_h, (kinetic_mag / np.where(moving, speed, 1.0))[..., None] * v_h, out=h, where=moving[..., None])
+    np.add(force_w[..., 2], normal, out=new[..., 2])
+    new[..., 3:5] = 0.0
+    new[..., 5] = torque_w[..., 2]
+    if np.count_nonzero(on_floor) < on_floor.size:
+        new = np.where(on_floor[..., None], new, np.concatenate([force_w, torque_w], axis=-1))
+    return new[..., :3], new[..., 3:]
 
 
 def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_floor: Any, floor_z: float,
