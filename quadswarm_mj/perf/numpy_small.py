@@ -36,11 +36,13 @@ def substep_wrench(u: Any, cmd: Any, noise: Any, params: dict[str, Any], R: Any,
     f_eff = f_norm if thrust_quadratic == 0.0 else thrust_map(f_norm, thrust_quadratic)
     if rotor_gain is not None:
         f_eff = f_eff * rotor_gain
-    thrust = params["thrust_max"] * f_eff  # N per rotor
-    s = sum_last(thrust[..., None, :] * mix)  # F_z, tau_x, tau_y
-    tz = sum_last(torque_spin * f_eff)  # yaw reaction torque
-    torque_b = np.concatenate([s[..., 1:], tz[..., None]], axis=-1)
-    return u, f_norm, s[..., :1] * R[..., :, 2], sum_last(R * torque_b[..., None, :])
+    # rows: thrust (N per rotor) times the mix rows (F_z, tau_x, tau_y), and the yaw reaction torque per
+    # rotor; one sum over the rotors (each row as sum_last sums it: the same bits)
+    rows = np.empty(f_eff.shape[:-1] + (4, 4))
+    np.multiply((params["thrust_max"] * f_eff)[..., None, :], mix, out=rows[..., :3, :])
+    np.multiply(torque_spin, f_eff, out=rows[..., 3, :])
+    s = rows.sum(axis=-1)  # F_z, tau_x, tau_y, tau_z (body)
+    return u, f_norm, s[..., :1] * R[..., :, 2], sum_last(R * s[..., None, 1:])
 
 
 def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any, gravity: float,
