@@ -114,7 +114,7 @@ def quat_to_rotmat(q: Any) -> Any:
         return spatial.quat_to_rotmat(q)
     lead = q.shape[:-1]
     P = (q[..., :, None] * q[..., None, :]).reshape(lead + (16,))
-    t = np.take(P, _Q_IAB, axis=-1) * _Q_SCALE
+    t = P.take(_Q_IAB, axis=-1) * _Q_SCALE
     # a + b (where a sum over the pair would give 0 + a + b): only the sign of an exact-zero t differs,
     # which the base's + 0.0 / + 1.0 erases (the same bits)
     return (_Q_BASE + (t[..., :9] + t[..., 9:])).reshape(lead + (3, 3))
@@ -132,6 +132,6 @@ def yaw_entries(q: Any) -> Any:
     """(..., 4) unit quaternions (w, x, y, z) -> (..., 3): the entries R10, R00, R22 of
     :func:`quat_to_rotmat` (bit-identical, signs of zero included): ``arctan2(R10, R00)`` is the
     heading (:func:`quadswarm_mj.spatial.yaw_of`), R22 < 0 an upside-down body."""
-    p = np.take(q, _YAW_I1, axis=-1) * np.take(q, _YAW_I2, axis=-1)
+    p = q.take(_YAW_I1, axis=-1) * q.take(_YAW_I2, axis=-1)
     p *= _YAW_SCALE
     return _YAW_BASE + (p[..., :3] + p[..., 3:])
