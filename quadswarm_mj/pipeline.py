@@ -28,6 +28,23 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
+from quadswarm_mj import metrics as metrics_lib
+from quadswarm_mj.rewards import reward_terms
+from quadswarm_mj.spatial import norm_last
+
+_NO_JUMPS: dict[tuple[int, ...], np.ndarray] = {}
+
+
+def _no_jump(shape: tuple[int, ...]) -> np.ndarray:
+    """A read-only all-False (shape) bool array, made once per shape (task_stage's 'no goal jumped')."""
+    a = _NO_JUMPS.get(shape)
+    if a is None:
+        a = _NO_JUMPS[shape] = np.zeros(shape, bool)
+        a.flags.writeable = False
+    return a
+
 
 def make_substep_actuation(cfg: Any, wrench: Any = None) -> Any:
     """The sub-step actuation chain beyond the paper for ``cfg``, or None when there is nothing beyond
@@ -194,10 +211,6 @@ def task_stage(cfg: Any, scenario: Any, sstate: Any, t: Any, kin: dict[str, Any]
 
     Returns ``sstate``, ``goals``, ``goal_vel``, ``dist_goal`` (..., N) m, ``terms`` (reward terms,
     per quad), ``metrics_acc`` and ``obst_metrics`` (None without obstacles)."""
-    from quadswarm_mj import metrics as metrics_lib
-    from quadswarm_mj.rewards import reward_terms
-    from quadswarm_mj.spatial import norm_last
-
     prev_goals = sstate.goals
     if omap is None:
         sstate = scenario.step(cfg, sstate, t, kin["pos"], scenario_u)
@@ -207,9 +220,7 @@ def task_stage(cfg: Any, scenario: Any, sstate: Any, t: Any, kin: dict[str, Any]
         sstate = scenario_step(scenario, cfg, sstate, t, kin["pos"], scenario_u, omap)
     goals, goal_vel = sstate.goals, sstate.goal_vel
     if goals is prev_goals:  # the scenario kept its goals (NumPy): no jump, as goal_jump would say
-        import numpy as np
-
-        jump = np.zeros(goals.shape[:-1], bool)
+        jump = _no_jump(goals.shape[:-1])
     else:
         jump = metrics_lib.goal_jump(prev_goals, goals, goal_vel, cfg.control_dt)
     dist_goal = norm_last(goals - kin["pos"])

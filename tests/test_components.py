@@ -127,6 +127,57 @@ def test_floor_impact_angle_path_matches_bitwise(lead):
     assert "R" not in small.floor_impact(*args, with_rotmat=False)
 
 
+def test_yaw_entries_are_quat_to_rotmats_bitwise():
+    rng = np.random.default_rng(13)
+    q, _ = _random_rotations(rng, (6, 8))
+    q[0, :4] = np.eye(4)  # exact zeros, of both signs
+    q[1, :4] = -np.eye(4)
+    R = small.quat_to_rotmat(q)
+    _same(small.yaw_entries(q), np.stack([R[..., 1, 0], R[..., 0, 0], R[..., 2, 2]], axis=-1))
+
+
+@pytest.mark.parametrize("worlds", ["all", "some"])
+def test_engine_floor_impact_is_the_small_form_bitwise(worlds):
+    """The CPU engine's in-place floor impact (masked writes into qpos/qvel) = perf's small form."""
+    import copy
+
+    from quadswarm_mj.envs.cpu_core import CpuSwarm
+
+    B, N = 3, 8
+    core = CpuSwarm(EnvConfig(num_quads=N), num_worlds=B, visual=False)
+    core.seed(5)
+    core.reset()
+    rng = np.random.default_rng(14)
+    arm = core.floor_z
+    z = rng.choice([arm - 0.01, arm, arm + 5e-7, arm + 0.01, 1.0], size=(B, N))
+    core.qpos[..., 2] = z + core.offsets[..., 2]
+    quat, _ = _random_rotations(rng, (B, N))
+    core.qpos[..., 3:7] = quat
+    core.qvel[...] = rng.normal(size=(B, N, 6))
+    core.qvel[0, 0] = -0.0
+    core.on_floor = rng.uniform(size=(B, N)) < 0.5
+    core.u = rng.uniform(size=(B, N, 4))
+    core.state_changed()
+    w = slice(None) if worlds == "all" else np.array([0, 2])
+    q, v, u, on, off = (core.qpos[w].copy(), core.qvel[w].copy(), core.u[w].copy(), core.on_floor[w].copy(),
+                        core.offsets[w] if core.offsets.shape[0] > 1 else core.offsets)
+    d = core._spec_floor["yaw"]
+    yaw = copy.deepcopy(core.rng).uniform(d.low, d.high, size=q.shape[:2])
+    ref = small.floor_impact(q[..., :3] - off, v[..., :3], v[..., 3:], q[..., 3:7], small.quat_to_rotmat(q[..., 3:7]),
+                             u, on, arm, yaw)
+    assert (ref["hit_floor"] & (small.quat_to_rotmat(q[..., 3:7])[..., 2, 2] < 0)).any()
+    hit_floor = np.zeros((B, N), bool)
+    core._floor_impact(w, hit_floor)
+    _same(core.qpos[w][..., :3], ref["pos"] + off)
+    _same(core.qpos[w][..., 3:7], ref["quat"])
+    _same(core.qvel[w][..., :3], ref["vel"])
+    _same(core.qvel[w][..., 3:], ref["omega"])
+    _same(core.u[w], ref["u"])
+    np.testing.assert_array_equal(core.on_floor[w], ref["on_floor"])
+    np.testing.assert_array_equal(hit_floor[w], ref["hit_floor"])
+    assert core._any_on_floor == bool(core.on_floor.any())
+
+
 @pytest.mark.parametrize("lead", SHAPES)
 def test_floor_impact_trig_free_matches_the_angle_path(lead):
     """The trig-free floor impact (defined once, in component form; ``collisions.floor_impact`` with

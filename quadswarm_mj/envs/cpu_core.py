@@ -42,13 +42,14 @@ from quadswarm_mj.collisions import (
     collision_draw_specs,
 )
 from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.constants import FLOOR_TOL
 from quadswarm_mj.core.ops import ALL as _ALL
 from quadswarm_mj.core.ops import NumpyOps
 from quadswarm_mj.core.ops import put as _put
 from quadswarm_mj.core.step import velocity_stages
 from quadswarm_mj.downwash import downwash_draw_spec
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
-from quadswarm_mj.perf.numpy_small import floor_impact, floor_wrench, quat_to_rotmat, substep_wrench
+from quadswarm_mj.perf.numpy_small import floor_wrench, quat_to_rotmat, substep_wrench, yaw_entries
 from quadswarm_mj.physics.mujoco_c import (  # noqa: F401  re-exported
     BACKENDS,
     BatchPhysics,
@@ -208,7 +209,7 @@ class CpuSwarm:
         contact = hit.any(-1)
         new = contact & ~self.obst_contact
         self.obst_contact = contact
-        if not (self._obst_respond and new.any()):
+        if not (self._obst_respond and np.count_nonzero(new)):
             return new, False
         centre = first_hit(hit, om.centres)[1]
         w = self._worlds(new)
@@ -248,7 +249,7 @@ class CpuSwarm:
         return pos, self.qvel[..., :3].copy(), self._rotations().copy(), self.qvel[..., 3:].copy()
 
     def _sync_flags(self) -> None:
-        self._any_on_floor = bool(self.on_floor.any())
+        self._any_on_floor = np.count_nonzero(self.on_floor) > 0
 
     # ------------------------------------------------------------------ reset
     def reset(self, mask: np.ndarray | None = None, state: dict[str, Any] | None = None) -> None:
@@ -375,7 +376,7 @@ class CpuSwarm:
                 grounded = self.qpos[..., 2] <= self.floor_z
                 if self._any_on_floor:
                     grounded |= self.on_floor
-                if grounded.any():
+                if np.count_nonzero(grounded):  # (faster than .any() on tiny masks)
                     self._floor_impact(self._worlds(grounded), hit_floor)
         self._R = None
         R = self._rotations()
@@ -423,26 +424,39 @@ class CpuSwarm:
 
     def _floor_impact(self, w: Any, hit_floor: np.ndarray) -> None:
         """The paper's floor model after a sub-step, on worlds ``w`` (those with a quad at or below
-        the floor height or grounded; elsewhere it changes nothing)."""
-        cfg = self.cfg
+        the floor height or grounded; elsewhere it changes nothing): ``perf.numpy_small.floor_impact``
+        (same bits, signs of zero included) as masked writes into qpos/qvel."""
+        cfg, fz = self.cfg, self.floor_z
+        rows = isinstance(w, slice)  # views: write in place; else copies written back
         q, v = self.qpos[w], self.qvel[w]
-        R = quat_to_rotmat(q[..., 3:7])
-        M, d = self._count(w), self._spec_floor["yaw"]  # = self._sampler(...).draw(self._spec_floor, (M,))["yaw"]
-        yaw = (self.rng.uniform(d.low, d.high, size=(M, self.N)) if cfg.noise.stochastic_collisions
-               else np.full((M, self.N), d.mean))
-        r = floor_impact(q[..., :3] - (self.offsets if self.offsets.shape[0] == 1 else self.offsets[w]),
-                         v[..., :3], v[..., 3:], q[..., 3:7], R, self.u[w], self.on_floor[w], self.floor_z, yaw,
-                         with_rotmat=False)
         offsets = self.offsets if self.offsets.shape[0] == 1 else self.offsets[w]
-        self.qpos[w, :, :3] = r["pos"] + offsets
-        self.qpos[w, :, 3:7] = r["quat"]
-        self.qvel[w, :, :3] = r["vel"]
-        self.qvel[w, :, 3:] = r["omega"]
+        M, d = self._count(w), self._spec_floor["yaw"]  # = self._sampler(...).draw(self._spec_floor, (M,))["yaw"]
+        yaw_draw = (self.rng.uniform(d.low, d.high, size=(M, self.N)) if cfg.noise.stochastic_collisions
+                    else np.full((M, self.N), d.mean))
+        pos = q[..., :3] - offsets
+        z, on = pos[..., 2], self.on_floor[w]
+        hit = (z <= fz) & ~on
+        staying = on & (z <= fz + FLOOR_TOL)
+        grounded = hit | staying
+        any_hit = np.count_nonzero(hit) > 0
+        e = yaw_entries(q[..., 3:7])  # R10, R00, R22 of the old rotation
+        yaw = np.arctan2(e[..., 0], e[..., 1]) + (np.where(hit & (e[..., 2] < 0), yaw_draw, 0.0) if any_hit else 0.0)
+        half = 0.5 * yaw  # the yaw-only quaternion (cos h, 0, 0, sin h) where grounded
+        np.cos(half, out=q[..., 3], where=grounded)
+        np.copyto(q[..., 4:6], 0.0, where=grounded[..., None])
+        np.sin(half, out=q[..., 6], where=grounded)
+        np.copyto(pos[..., 2], fz, where=grounded)
+        np.add(pos, offsets, out=q[..., :3])
+        if any_hit:  # a hit zeroes vel, omega and the motors (0.0 * x: signs kept)
+            np.multiply(v, 0.0, out=v, where=hit[..., None])
+            self.u = _put(self.u, w, np.where(hit[..., None], 0.0 * self.u[w], self.u[w]))
+            hit_floor[w] |= hit
+        np.copyto(v[..., 2:5], 0.0, where=staying[..., None])  # staying: no vertical speed, no roll/pitch rate
+        if not rows:
+            self.qpos[w], self.qvel[w] = q, v
         self.phys.touch()
-        self.u = _put(self.u, w, r["u"])
-        self.on_floor = _put(self.on_floor, w, r["on_floor"])
-        self._any_on_floor = bool(self.on_floor.any())
-        hit_floor[w] |= r["hit_floor"]
+        self.on_floor = _put(self.on_floor, w, grounded)
+        self._any_on_floor = np.count_nonzero(self.on_floor) > 0
 
     # ------------------------------------------------------------------ step
     def step(self, action: np.ndarray) -> dict[str, Any]:

@@ -36,16 +36,19 @@ def substep_wrench(u: Any, cmd: Any, noise: Any, params: dict[str, Any], R: Any,
     f_eff = f_norm if thrust_quadratic == 0.0 else thrust_map(f_norm, thrust_quadratic)
     if rotor_gain is not None:
         f_eff = f_eff * rotor_gain
-    thrust = params["thrust_max"] * f_eff  # N per rotor
-    s = sum_last(thrust[..., None, :] * mix)  # F_z, tau_x, tau_y
-    tz = sum_last(torque_spin * f_eff)  # yaw reaction torque
-    torque_b = np.concatenate([s[..., 1:], tz[..., None]], axis=-1)
-    return u, f_norm, s[..., :1] * R[..., :, 2], sum_last(R * torque_b[..., None, :])
+    # rows: thrust (N per rotor) times the mix rows (F_z, tau_x, tau_y), and the yaw reaction torque per
+    # rotor; one sum over the rotors (each row as sum_last sums it: the same bits)
+    rows = np.empty(f_eff.shape[:-1] + (4, 4))
+    np.multiply((params["thrust_max"] * f_eff)[..., None, :], mix, out=rows[..., :3, :])
+    np.multiply(torque_spin, f_eff, out=rows[..., 3, :])
+    s = rows.sum(axis=-1)  # F_z, tau_x, tau_y, tau_z (body)
+    return u, f_norm, s[..., :1] * R[..., :, 2], sum_last(R * s[..., None, 1:])
 
 
 def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any, gravity: float,
                  friction: float, dt: float) -> tuple[Any, Any]:
-    """:func:`quadswarm_mj.collisions.floor_wrench` (same arguments, same bits)."""
+    """:func:`quadswarm_mj.collisions.floor_wrench` (same arguments, same bits; the two results may be
+    views of one (..., 6) array)."""
     if force_w.size >= BIG:
         return collisions.floor_wrench(on_floor, force_w, torque_w, vel, mass, gravity, friction, dt)
     normal = np.maximum(0.0, mass * gravity - force_w[..., 2])
@@ -55,14 +58,17 @@ def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any
     v_h = vel[..., :2]
     speed = norm_last(v_h)
     moving = speed > 1e-9
-    static_h = f_h * (np.maximum(0.0, f_mag - cap) / np.where(f_mag > 0, f_mag, 1.0))[..., None]
+    new = np.empty(force_w.shape[:-1] + (6,))  # the grounded quads' force and torque (world)
+    h = new[..., :2]  # horizontal force: static friction, then kinetic where moving
+    np.multiply(f_h, (np.maximum(0.0, f_mag - cap) / np.where(f_mag > 0, f_mag, 1.0))[..., None], out=h)
     kinetic_mag = np.minimum(cap, mass * speed / dt)
-    kinetic_h = f_h - (kinetic_mag / np.where(moving, speed, 1.0))[..., None] * v_h
-    new_h = np.where(moving[..., None], kinetic_h, static_h)
-    new_force = np.concatenate([new_h, (force_w[..., 2] + normal)[..., None]], axis=-1)
-    new_torque = np.concatenate([np.zeros_like(torque_w[..., :2]), torque_w[..., 2:]], axis=-1)
-    g = on_floor[..., None]
-    return np.where(g, new_force, force_w), np.where(g, new_torque, torque_w)
+    np.subtract(f_h, (kinetic_mag / np.where(moving, speed, 1.0))[..., None] * v_h, out=h, where=moving[..., None])
+    np.add(force_w[..., 2], normal, out=new[..., 2])
+    new[..., 3:5] = 0.0
+    new[..., 5] = torque_w[..., 2]
+    if np.count_nonzero(on_floor) < on_floor.size:
+        new = np.where(on_floor[..., None], new, np.concatenate([force_w, torque_w], axis=-1))
+    return new[..., :3], new[..., 3:]
 
 
 def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_floor: Any, floor_z: float,
@@ -108,5 +114,24 @@ def quat_to_rotmat(q: Any) -> Any:
         return spatial.quat_to_rotmat(q)
     lead = q.shape[:-1]
     P = (q[..., :, None] * q[..., None, :]).reshape(lead + (16,))
-    t = (np.take(P, _Q_IAB, axis=-1) * _Q_SCALE).reshape(lead + (2, 9)).sum(axis=-2)
-    return (_Q_BASE + t).reshape(lead + (3, 3))
+    t = P.take(_Q_IAB, axis=-1) * _Q_SCALE
+    # a + b (where a sum over the pair would give 0 + a + b): only the sign of an exact-zero t differs,
+    # which the base's + 0.0 / + 1.0 erases (the same bits)
+    return (_Q_BASE + (t[..., :9] + t[..., 9:])).reshape(lead + (3, 3))
+
+
+# The entries (R10, R00, R22) of quat_to_rotmat (the floor impact's heading and upside-down test), with
+# quat_to_rotmat's rounding: base + (coef * q_a q_b + coef * sign * q_c q_d), signs of zero included.
+_YAW_I1 = np.array([1, 2, 1, 0, 3, 2])  # x y x | w z y
+_YAW_I2 = np.array([2, 2, 1, 3, 3, 2])  # y y x | z z y  (products xy yy xx | wz zz yy)
+_YAW_SCALE = np.array([2.0, -2.0, -2.0, 2.0, -2.0, -2.0])
+_YAW_BASE = np.array([0.0, 1.0, 1.0])
+
+
+def yaw_entries(q: Any) -> Any:
+    """(..., 4) unit quaternions (w, x, y, z) -> (..., 3): the entries R10, R00, R22 of
+    :func:`quat_to_rotmat` (bit-identical, signs of zero included): ``arctan2(R10, R00)`` is the
+    heading (:func:`quadswarm_mj.spatial.yaw_of`), R22 < 0 an upside-down body."""
+    p = q.take(_YAW_I1, axis=-1) * q.take(_YAW_I2, axis=-1)
+    p *= _YAW_SCALE
+    return _YAW_BASE + (p[..., :3] + p[..., 3:])
