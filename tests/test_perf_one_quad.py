@@ -137,7 +137,8 @@ def _episode(seed: int, enabled: bool, **kw) -> list[np.ndarray]:
             a = env.action_space.sample() if t % 100 < 70 else np.ones(4, np.float32)
             obs, r, term, trunc, info = env.step(a)
             out += [obs, np.float64(r), info["state"]["pos"], info["state"]["vel"], info["state"]["rot"],
-                    info["state"]["omega"], info["state"]["thrust"], info["on_floor"]]
+                    info["state"]["omega"], info["state"]["thrust"], info["on_floor"], info["rewards"],
+                    *info["reward_terms"].values()]
             if trunc:
                 out += list(info["episode_metrics"].values())
                 obs, info = env.reset()
@@ -153,5 +154,51 @@ def test_single_env_episodes_are_the_array_forms_bitwise(kw):
     assert len(got) == len(ref)
     on_floor = [bool(x) for x in got if np.shape(x) == (1,) and np.asarray(x).dtype == bool]
     assert any(on_floor) and not all(on_floor)  # on the floor and in the air
+    for a, b in zip(got, ref):
+        _same(a, b)
+
+
+def _rewards_and_metrics(enabled: bool, scales, seed: int) -> list:
+    """reward_terms, total_reward and metrics.update on random one-quad inputs (events, goal jumps)."""
+    from quadswarm_mj import metrics as metrics_lib
+    from quadswarm_mj import rewards
+
+    cfg = EnvConfig(num_quads=1, rewards=scales)
+    rng = np.random.default_rng(seed)
+    _, Rs = _rotations(rng, 100)
+    m = metrics_lib.init(np.zeros((1, 1)), (1,), 1)
+    out = []
+    one_quad.ENABLED = enabled
+    try:
+        for i in range(100):
+            pos, vel, omega, goals = (rng.normal(size=(1, 1, 3)) for _ in range(4))
+            action = rng.normal(0, 1.5, (1, 1, 4))
+            f, pf = rng.uniform(size=(1, 1, 4)), rng.uniform(size=(1, 1, 4))
+            flags = [rng.uniform(size=(1, 1)) < 0.3 for _ in range(4)]
+            contact = rng.uniform(size=(1, 1, 1)) < 0.3
+            dist = np.zeros((1, 1, 1))
+            gd = None if i % 2 else np.sqrt(((goals - pos) ** 2).sum(-1))
+            anneal = min(1.0, i / 50) if i % 3 else np.minimum(1.0, i / 70)
+            terms = rewards.reward_terms(cfg, pos, vel, Rs[i], omega, goals, action, f, pf, flags[0], *flags[1:],
+                                         contact, dist, anneal, goal_dist=gd)
+            out += [*terms.values(), rewards.total_reward(terms, rewards.zero_terms(cfg))]
+            t = np.full((1, 1), 0.01 * i + (3.0 if i > 50 else 0.0))
+            d = np.abs(rng.normal(0, 0.4, (1, 1)))
+            m = metrics_lib.update(m, t, d, contact, *flags[1:], rng.uniform(size=(1, 1)) < 0.2, 0.3)
+            out += list(m.values())
+        out += list(metrics_lib.finalize(m, np.array([[2.0]])).values())
+    finally:
+        one_quad.ENABLED = True
+    return out
+
+
+@pytest.mark.parametrize("which", ["default", "all"])
+def test_reward_terms_and_metrics_are_the_array_forms_bitwise(which):
+    from quadswarm_mj.config import RewardScales
+
+    scales = RewardScales() if which == "default" else RewardScales(
+        **{k: 0.5 + i for i, k in enumerate(RewardScales.TERMS)})
+    got, ref = _rewards_and_metrics(True, scales, 7), _rewards_and_metrics(False, scales, 7)
+    assert len(got) == len(ref)
     for a, b in zip(got, ref):
         _same(a, b)

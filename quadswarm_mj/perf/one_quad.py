@@ -123,3 +123,108 @@ def floor_impact_inplace(q: Any, v: Any, u: Any, on_floor: bool, floor_z: float,
     else:  # staying: no vertical speed, no roll/pitch rate
         v[2], v[3], v[4] = 0.0, 0.0, 0.0
     return True, hit, u
+
+
+# ---------------------------------------------------------------- the task stage (reward terms, metrics)
+def _norm(v: list[float]) -> float:
+    """sqrt(((v0 v0 + v1 v1) + v2 v2) + ...): ``spatial.norm_last``'s rounding."""
+    s = v[0] * v[0] + v[1] * v[1]
+    for x in v[2:]:
+        s = s + x * x
+    return math.sqrt(s)
+
+
+def reward_terms(factors: tuple, annealed: tuple[str, ...], pos: Any, vel: Any, R: Any, omega: Any, goals: Any,
+                 action: Any, f_norm: Any, prev_f_norm: Any, on_floor: Any, hit_floor: Any, hit_wall: Any,
+                 hit_ceiling: Any, new_contact: Any, anneal: Any, goal_dist: Any | None) -> dict[str, Any]:
+    """:func:`quadswarm_mj.rewards.reward_terms` for one quad in one world ((1, 1, ...) arrays; ``factors``
+    its ``_term_factors``, ``annealed`` its ``ANNEALED``): the same (1, 1) values, as rows of one fresh
+    array (the terms that are exactly -0.0 share one row, as there). With one quad ``proximity`` has no
+    other quad (cost 0) and ``quad_collision`` counts the pairs of the (1, 1, 1) contact matrix."""
+    on = bool(on_floor.item())
+    r = None  # R's entries, read once when a term needs them
+
+    def rot() -> list[float]:
+        nonlocal r
+        if r is None:
+            r = R.ravel().tolist()
+        return r
+
+    def cost(k: str) -> float:
+        if k == "pos":
+            if goal_dist is not None:
+                return goal_dist.item()
+            p, g = pos.ravel().tolist(), goals.ravel().tolist()
+            return _norm([g[0] - p[0], g[1] - p[1], g[2] - p[2]])
+        if k == "effort":
+            return _norm([_min(_max(a, -1.0), 1.0) for a in action.ravel().tolist()])
+        if k == "spin":
+            return _norm(omega.ravel().tolist())
+        if k == "crash":
+            return 1.0 if on else 0.0
+        if k == "orient":
+            return 1.0 if on else -rot()[8]
+        if k == "vel":
+            return _norm(vel.ravel().tolist())
+        if k == "action_change":
+            return _norm([a - b for a, b in zip(f_norm.ravel().tolist(), prev_f_norm.ravel().tolist())])
+        if k == "yaw":
+            return -rot()[0]
+        if k == "rot":
+            e = rot()
+            return -(e[0] + e[4] + e[8] - 1.0) / 2.0
+        if k == "quad_collision":
+            return float(np.count_nonzero(new_contact))
+        if k == "proximity":
+            return 0.0
+        flag = {"floor_hit": hit_floor, "wall_hit": hit_wall, "ceiling_hit": hit_ceiling}[k]
+        return 1.0 if flag.item() else 0.0
+
+    keys, vals, zero_keys = [], [], []
+    for k, neg_dt, base in factors:
+        if base is None:
+            zero_keys.append(k)
+        elif k in annealed:
+            keys.append(k)
+            vals.append(float(neg_dt * (base * anneal) * cost(k)))
+        else:
+            keys.append(k)
+            vals.append(neg_dt * base * cost(k))
+    rows = np.array(vals + ([-0.0] if zero_keys else [])).reshape(-1, 1, 1)
+    out = dict(zip(keys, rows))
+    for k in zero_keys:
+        out[k] = rows[-1]
+    return {k: out[k] for k, _, _ in factors}
+
+
+def total_reward(terms: dict[str, Any], keys: list[str]) -> Any:
+    """:func:`quadswarm_mj.rewards.total_reward` of (1, 1) terms: the sum in the order of ``keys``, as a
+    fresh (1, 1) array."""
+    total = terms[keys[0]].item()
+    for k in keys[1:]:
+        total = total + terms[k].item()
+    return np.array([[total]])
+
+
+def metrics_update(m: dict[str, Any], t: Any, dist_to_goal: Any, new_contact: Any, hit_floor: Any, hit_wall: Any,
+                   hit_ceiling: Any, goal_jump: Any, grace_s: float, min_segment_s: float,
+                   reach_distance: float) -> dict[str, Any]:
+    """:func:`quadswarm_mj.metrics.update` for one quad in one world (float64 accumulators (1, 1), ``steps``
+    (1,), ``last_dist`` (1, LAST_STEPS, 1)): the same values, fresh arrays."""
+    tq, d = t.item(), dist_to_goal.item()
+    coll = float(np.count_nonzero(new_contact)) * (1.0 if tq >= grace_s else 0.0)
+    start, reached, jump = m["seg_start"].item(), bool(m["seg_reached"].item()), bool(goal_jump.item())
+    close = jump and (tq - start >= min_segment_s - 1e-9)
+    last = np.empty_like(m["last_dist"])
+    last[:, :-1] = m["last_dist"][:, 1:]
+    last[:, -1] = d
+    f = np.array([m["collisions"].item() + coll, m["floor_hits"].item() + (1.0 if hit_floor.item() else 0.0),
+                  m["wall_hits"].item() + (1.0 if hit_wall.item() else 0.0),
+                  m["ceiling_hits"].item() + (1.0 if hit_ceiling.item() else 0.0), m["dist_sum"].item() + d,
+                  m["seg_count"].item() + (1.0 if close else 0.0),
+                  m["seg_success"].item() + (1.0 if close and reached else 0.0), tq if jump else start])
+    rows = f.reshape(8, 1, 1)
+    return {"collisions": rows[0], "floor_hits": rows[1], "wall_hits": rows[2], "ceiling_hits": rows[3],
+            "dist_sum": rows[4], "steps": np.array([m["steps"].item() + 1.0]), "last_dist": last,
+            "seg_count": rows[5], "seg_success": rows[6], "seg_start": rows[7],
+            "seg_reached": np.array([[d < reach_distance or (reached and not jump)]])}
