@@ -141,44 +141,33 @@ def reward_terms(factors: tuple, annealed: tuple[str, ...], pos: Any, vel: Any, 
     its ``_term_factors``, ``annealed`` its ``ANNEALED``): the same (1, 1) values, as rows of one fresh
     array (the terms that are exactly -0.0 share one row, as there). With one quad ``proximity`` has no
     other quad (cost 0) and ``quad_collision`` counts the pairs of the (1, 1, 1) contact matrix."""
+    need = {k for k, _, base in factors if base is not None}
     on = bool(on_floor.item())
-    r = None  # R's entries, read once when a term needs them
-
-    def rot() -> list[float]:
-        nonlocal r
-        if r is None:
-            r = R.ravel().tolist()
-        return r
-
-    def cost(k: str) -> float:
-        if k == "pos":
-            if goal_dist is not None:
-                return goal_dist.item()
+    c: dict[str, float] = {"crash": 1.0 if on else 0.0, "proximity": 0.0}
+    if "pos" in need:
+        if goal_dist is not None:
+            c["pos"] = goal_dist.item()
+        else:
             p, g = pos.ravel().tolist(), goals.ravel().tolist()
-            return _norm([g[0] - p[0], g[1] - p[1], g[2] - p[2]])
-        if k == "effort":
-            return _norm([_min(_max(a, -1.0), 1.0) for a in action.ravel().tolist()])
-        if k == "spin":
-            return _norm(omega.ravel().tolist())
-        if k == "crash":
-            return 1.0 if on else 0.0
-        if k == "orient":
-            return 1.0 if on else -rot()[8]
-        if k == "vel":
-            return _norm(vel.ravel().tolist())
-        if k == "action_change":
-            return _norm([a - b for a, b in zip(f_norm.ravel().tolist(), prev_f_norm.ravel().tolist())])
-        if k == "yaw":
-            return -rot()[0]
-        if k == "rot":
-            e = rot()
-            return -(e[0] + e[4] + e[8] - 1.0) / 2.0
-        if k == "quad_collision":
-            return float(np.count_nonzero(new_contact))
-        if k == "proximity":
-            return 0.0
-        flag = {"floor_hit": hit_floor, "wall_hit": hit_wall, "ceiling_hit": hit_ceiling}[k]
-        return 1.0 if flag.item() else 0.0
+            c["pos"] = _norm([g[0] - p[0], g[1] - p[1], g[2] - p[2]])
+    if "effort" in need:
+        c["effort"] = _norm([_min(_max(a, -1.0), 1.0) for a in action.ravel().tolist()])
+    if "spin" in need:
+        c["spin"] = _norm(omega.ravel().tolist())
+    if "vel" in need:
+        c["vel"] = _norm(vel.ravel().tolist())
+    if "action_change" in need:
+        c["action_change"] = _norm([a - b for a, b in zip(f_norm.ravel().tolist(), prev_f_norm.ravel().tolist())])
+    if need & {"orient", "yaw", "rot"}:
+        e = R.ravel().tolist()
+        c["orient"] = 1.0 if on else -e[8]
+        c["yaw"] = -e[0]
+        c["rot"] = -(e[0] + e[4] + e[8] - 1.0) / 2.0
+    if "quad_collision" in need:
+        c["quad_collision"] = float(np.count_nonzero(new_contact))
+    for k, flag in (("floor_hit", hit_floor), ("wall_hit", hit_wall), ("ceiling_hit", hit_ceiling)):
+        if k in need:
+            c[k] = 1.0 if flag.item() else 0.0
 
     keys, vals, zero_keys = [], [], []
     for k, neg_dt, base in factors:
@@ -186,10 +175,10 @@ def reward_terms(factors: tuple, annealed: tuple[str, ...], pos: Any, vel: Any, 
             zero_keys.append(k)
         elif k in annealed:
             keys.append(k)
-            vals.append(float(neg_dt * (base * anneal) * cost(k)))
+            vals.append(float(neg_dt * (base * anneal) * c[k]))
         else:
             keys.append(k)
-            vals.append(neg_dt * base * cost(k))
+            vals.append(neg_dt * base * c[k])
     rows = np.array(vals + ([-0.0] if zero_keys else [])).reshape(-1, 1, 1)
     out = dict(zip(keys, rows))
     for k in zero_keys:
