@@ -30,6 +30,21 @@ def _rotations(rng, n):
     return q, small.quat_to_rotmat(q)
 
 
+def test_quat_to_rotmat_is_the_array_form_bitwise():
+    rng = np.random.default_rng(4)
+    q, _ = _rotations(rng, 500)
+    q[2, 0, 0] = [-0.0, 0.0, -1.0, 0.0]
+    for i in range(500):
+        got = one_quad.quat_to_rotmat(q[i])
+        one_quad.ENABLED = False
+        try:
+            ref = small.quat_to_rotmat(q[i])
+        finally:
+            one_quad.ENABLED = True
+        _same(got, ref)
+        _same(small.quat_to_rotmat(q[i, 0, 0]), ref[0, 0])
+
+
 def test_substep_wrench_is_the_array_forms_bitwise():
     rng = np.random.default_rng(0)
     cfg = EnvConfig(num_quads=1)

@@ -116,6 +116,8 @@ _Q_BASE = np.array([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
 
 def quat_to_rotmat(q: Any) -> Any:
     """:func:`quadswarm_mj.spatial.quat_to_rotmat` (the same values; the sign of an exact zero may differ)."""
+    if q.size == 4 and one_quad.ENABLED:
+        return one_quad.quat_to_rotmat(q)
     if q.size >= BIG:
         return spatial.quat_to_rotmat(q)
     lead = q.shape[:-1]

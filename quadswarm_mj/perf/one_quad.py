@@ -67,6 +67,17 @@ def substep_wrench(u: Any, cmd: Any, noise: Any, alpha: Any, thrust_max: Any, to
     return np.array([[[u0, u1, u2, u3]]]), np.array([[[f0, f1, f2, f3]]]), force, torque
 
 
+def quat_to_rotmat(q: Any) -> Any:
+    """``perf.numpy_small.quat_to_rotmat`` of one quaternion (w, x, y, z) (shape (..., 4) with one row):
+    a fresh (..., 3, 3) array, entry by entry ``base + (coef q_a q_b + coef' q_c q_d)`` (the same bits)."""
+    w, x, y, z = q.ravel().tolist()
+    xx, yy, zz, xy, xz, yz, wx, wy, wz = x * x, y * y, z * z, x * y, x * z, y * z, w * x, w * y, w * z
+    return np.array([1.0 + (yy * -2.0 + zz * -2.0), 0.0 + (xy * 2.0 + wz * -2.0), 0.0 + (xz * 2.0 + wy * 2.0),
+                     0.0 + (xy * 2.0 + wz * 2.0), 1.0 + (xx * -2.0 + zz * -2.0), 0.0 + (yz * 2.0 + wx * -2.0),
+                     0.0 + (xz * 2.0 + wy * -2.0), 0.0 + (yz * 2.0 + wx * 2.0), 1.0 + (xx * -2.0 + yy * -2.0)]
+                    ).reshape(q.shape[:-1] + (3, 3))
+
+
 def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any, gravity: float,
                  friction: float, dt: float) -> tuple[Any, Any]:
     """:func:`quadswarm_mj.collisions.floor_wrench` for one quad: ``on_floor`` (1, 1) bool, ``force_w``,
