@@ -217,3 +217,27 @@ def test_reward_terms_and_metrics_are_the_array_forms_bitwise(which):
     assert len(got) == len(ref)
     for a, b in zip(got, ref):
         _same(a, b)
+
+
+@pytest.mark.parametrize("obs_self", ["base", "floor"])
+@pytest.mark.parametrize("normalize", [False, True])
+def test_build_obs_is_the_array_form_bitwise(obs_self, normalize):
+    from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale
+
+    cfg = EnvConfig(num_quads=1, obs_self=obs_self, normalize_obs=normalize)
+    low, high = obs_bounds(cfg)
+    low, high = low.astype(np.float64), high.astype(np.float64)
+    scale = obs_scale(cfg) if normalize else None
+    rng = np.random.default_rng(5)
+    _, Rs = _rotations(rng, 200)
+    for i in range(200):
+        pos, vel, omega, goals = (rng.normal(0, 20, (1, 1, 3)) for _ in range(4))  # beyond the bounds too
+        noise = None if i % 3 == 0 else {k: rng.normal(0, 0.1, (1, 1, 3)) for k in ("pos", "vel", "omega")}
+        args = (cfg, pos, vel, Rs[i], omega, goals, noise, low, high, scale)
+        got = build_obs(*args)
+        one_quad.ENABLED = False
+        try:
+            ref = build_obs(*args)
+        finally:
+            one_quad.ENABLED = True
+        _same(got, ref)

@@ -228,3 +228,25 @@ def metrics_update(m: dict[str, Any], t: Any, dist_to_goal: Any, new_contact: An
             "dist_sum": rows[4], "steps": np.array([m["steps"].item() + 1.0]), "last_dist": last,
             "seg_count": rows[5], "seg_success": rows[6], "seg_start": rows[7],
             "seg_reached": np.array([[d < reach_distance or (reached and not jump)]])}
+
+
+# ---------------------------------------------------------------- the observation
+def build_obs(pos: Any, vel: Any, R: Any, omega: Any, goals: Any, noise: dict[str, Any] | None, low: Any,
+              high: Any, scale: Any | None, floor: bool) -> Any:
+    """:func:`quadswarm_mj.observations.build_obs` of one quad in one world without neighbours, obstacles
+    or deck sensors (``obs_self`` "base", or "floor" with ``floor``): (1, 1, 3) ``pos``, ``vel``, ``omega``,
+    ``goals``, (1, 1, 3, 3) ``R``, ``noise`` (the sensor noise of pos, vel, omega, or None), bounds
+    ``low``/``high`` and ``scale`` (obs_dim,). A fresh (1, 1, obs_dim) array with the same values."""
+    p, v, w = pos.ravel().tolist(), vel.ravel().tolist(), omega.ravel().tolist()
+    if noise is not None:
+        p = [a + b for a, b in zip(p, noise["pos"].ravel().tolist())]
+        v = [a + b for a, b in zip(v, noise["vel"].ravel().tolist())]
+        w = [a + b for a, b in zip(w, noise["omega"].ravel().tolist())]
+    g = goals.ravel().tolist()
+    vals = [p[0] - g[0], p[1] - g[1], p[2] - g[2], *v, *R.ravel().tolist(), *w]
+    if floor:
+        vals.append(p[2])
+    vals = [_min(_max(x, lo), hi) for x, lo, hi in zip(vals, low.tolist(), high.tolist())]  # clip, as there
+    if scale is not None:
+        vals = [x / s for x, s in zip(vals, scale.tolist())]
+    return np.array(vals).reshape(1, 1, len(vals))
