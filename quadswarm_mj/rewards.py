@@ -83,7 +83,8 @@ def reward_terms(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: 
     whose cost cannot be negative is -0.0 (= -dt * 0 * cost) without computing the cost: all such
     terms are one shared (..., N) array of -0.0 (read-only by convention, as every term)."""
     s = cfg.rewards
-    if type(pos) is np.ndarray and pos.shape == (1, 1, 3) and pos.dtype == np.float64 and one_quad.ENABLED:
+    if (type(pos) is np.ndarray and pos.shape == (1, 1, 3) and pos.dtype == np.float64
+            and getattr(action, "dtype", None) == np.float64 and one_quad.ENABLED):
         return one_quad.reward_terms(_term_factors(s, cfg.sim_dt, cfg.control_dt), ANNEALED, pos, vel, R, omega,
                                      goals, action, f_norm, prev_f_norm, on_floor, hit_floor, hit_wall, hit_ceiling,
                                      new_contact, anneal, goal_dist)  # one quad: the same values on floats
