@@ -146,6 +146,8 @@ def world_rays(R: Any, body_dirs: np.ndarray) -> Any:
 
 def _room_gaps(xp: Any, pos: Any, room_low: Any, room_high: Any) -> tuple[Any, Any]:
     """(gap_hi, gap_lo) (..., N, 3): the room's high and low planes minus ``pos``, kept > 0 and < 0."""
+    if xp is np:
+        return np.maximum(np.subtract(room_high, pos), 1e-30), np.minimum(np.subtract(room_low, pos), -1e-30)
     hi = xp.asarray(np.asarray(room_high, float), dtype=pos.dtype)
     lo = xp.asarray(np.asarray(room_low, float), dtype=pos.dtype)
     return xp.maximum(hi - pos, 1e-30), xp.minimum(lo - pos, -1e-30)
@@ -170,6 +172,35 @@ def _offsets(xp: Any, pos: Any, R: Any, radius: float) -> tuple[list[Any], Any, 
     return ob, c, xp.any(c < 0.0, axis=-1)
 
 
+def _axis_hits_numpy(pos: np.ndarray, R: np.ndarray, gap_hi: np.ndarray, gap_lo: np.ndarray,
+                     radius: float | None) -> np.ndarray:
+    """:func:`axis_hits` in NumPy with few calls (the CPU engine's arrays are small: call overhead
+    dominates): (..., N, 3, 3) quotients for the room, (..., N, N, 3) for the hitboxes, and the sphere
+    part skipped when no ray of any quad meets another's hitbox (the same values)."""
+    inv = 1.0 / R  # (..., N, a, c)
+    q_hi, q_lo = gap_hi[..., :, None] * inv, gap_lo[..., :, None] * inv
+    t = np.empty(R.shape[:-2] + (3, 2))  # (..., N, c, +-)
+    np.min(np.maximum(q_hi, q_lo), axis=-2, out=t[..., 0])
+    np.max(np.minimum(q_hi, q_lo), axis=-2, out=t[..., 1])
+    t[..., 1] *= -1.0
+    if radius is not None:
+        n = pos.shape[-2]
+        o = pos[..., None, :, :] - pos[..., :, None, :]  # (..., N (i), N (j), 3) world: quad j - quad i
+        ob = o @ R  # body frame of quad i: ob[i, j, c] = sum_a o[i, j, a] R[i, a, c]
+        c = (o * o).sum(axis=-1) - radius * radius
+        c.reshape(c.shape[:-2] + (n * n,))[..., ::n + 1] = np.inf  # the own sphere never counts
+        disc = ob * ob - c[..., None]  # >= 0: the line of ray +-c meets the sphere
+        hit = disc >= 0.0
+        if hit.any():  # along +c (-c) the dot product with the offset is ob_c (-ob_c), a hit needs it >= 0
+            sq = np.sqrt(np.maximum(disc, 0.0))
+            np.minimum(t[..., 0], np.where(hit & (ob >= 0.0), ob - sq, np.inf).min(axis=-2), out=t[..., 0])
+            np.minimum(t[..., 1], np.where(hit & (ob <= 0.0), -ob - sq, np.inf).min(axis=-2), out=t[..., 1])
+        inside = (c < 0.0).any(axis=-1)
+        if inside.any():
+            t[inside] = 0.0
+    return t.reshape(t.shape[:-2] + (6,))
+
+
 def axis_hits(pos: Any, R: Any, room_low: Any, room_high: Any, columns: Any = None,
               quad_radius: float | None = None) -> Any:
     """(..., N, 6) range (m) along the body axes +x, -x, +y, -y, +z, -z (:data:`AXIS_DIRS`) from the
@@ -183,21 +214,11 @@ def axis_hits(pos: Any, R: Any, room_low: Any, room_high: Any, columns: Any = No
     spheres = quad_radius is not None and pos.shape[-2] > 1
     with np.errstate(divide="ignore", invalid="ignore"):
         gap_hi, gap_lo = _room_gaps(xp, pos, room_low, room_high)
-        if spheres:
+        if spheres and xp is not np:
             ob, c, inside = _offsets(xp, pos, R, quad_radius)
             sc = xp.sqrt(xp.maximum(c, 0.0))
         if xp is np:
-            inv = 1.0 / R  # (..., N, a, c)
-            q_hi, q_lo = gap_hi[..., :, None] * inv, gap_lo[..., :, None] * inv
-            t = np.stack([np.min(np.maximum(q_hi, q_lo), axis=-2), -np.max(np.minimum(q_hi, q_lo), axis=-2)],
-                         axis=-1)  # (..., N, 3, 2): along +c, -c
-            if spheres:
-                b = np.stack(ob, axis=-1)[..., None]  # (..., N, N, 3, 1)
-                b = np.concatenate([b, -b], axis=-1)  # the dot products along +c, -c
-                sq = np.sqrt(np.maximum(b * b - c[..., None, None], 0.0))
-                ts = np.where(b >= sc[..., None, None], b - sq, np.inf).min(axis=-3)  # over the others j
-                t = np.where(inside[..., None, None], 0.0, np.minimum(t, ts))
-            t = t.reshape(t.shape[:-2] + (6,))
+            t = _axis_hits_numpy(pos, R, gap_hi, gap_lo, quad_radius if spheres else None)
         else:
             outs = []
             for k in range(3):  # body axis k: rays +k, -k

@@ -145,6 +145,20 @@ def ray_limits(s: SensorConfig) -> np.ndarray:
     return out
 
 
+def _body_velocity(xp: Any, R: Any, vel: Any) -> Any:
+    """(..., N, 3) R^T v: the body-frame velocity (m/s)."""
+    if xp is np:
+        return (vel[..., None, :] @ R)[..., 0, :]
+    return sum(R[..., c, :] * vel[..., c, None] for c in range(3))
+
+
+def flow_pixels2(v_body: Any, omega: Any, d: Any) -> tuple[Any, Any]:
+    """:func:`flow_pixels` as ``(flow (..., 2), rate_ok (...))`` (the same values, fewer array calls)."""
+    xp = array_namespace(v_body, d)
+    w = v_body[..., :2] / xp.maximum(d, 1e-3)[..., None] + omega[..., 1::-1] * xp.asarray([-1.0, 1.0], v_body.dtype)
+    return FLOW_GAIN * w, xp.all(xp.abs(w) <= FLOW_MAX_RATE, axis=-1)
+
+
 def flow_pixels(v_body: Any, omega: Any, d: Any) -> tuple[Any, Any, Any]:
     """PMW3901 flow (pixels per frame) ``(flow_x, flow_y, rate_ok)`` from the body velocity (..., 3)
     m/s, body rates omega (..., 3) rad/s and the range ``d`` (...,) m along the view axis (body -z):
@@ -234,12 +248,10 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
         k = 5
     if s.flow:
         d = t[..., k]  # the true range along body -z
-        v_body = sum(R[..., c, :] * vel[..., c, None] for c in range(3))  # R^T v
-        fx, fy, rate_ok = flow_pixels(v_body, omega, d)
+        f, rate_ok = flow_pixels2(_body_velocity(xp, R, vel), omega, d)
         fvalid = rate_ok & (d >= FLOW_MIN_RANGE)
         if s.light_lux < FLOW_MIN_LUX:  # too dark: never valid
             fvalid = xp.zeros_like(fvalid)
-        f = xp.stack([fx, fy], axis=-1)
         if draws is not None:
             f = f + FLOW_STD_PX * draws["flow_noise"]
         f = xp.where(fvalid[..., None], xp.minimum(xp.maximum(f, -FLOW_LIMIT_PX), FLOW_LIMIT_PX), 0.0)

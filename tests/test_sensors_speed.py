@@ -98,3 +98,35 @@ def test_sensor_config_rays_match_the_speed_forms():
     s = SensorConfig(multiranger=True, flow=True, depth=(2, 3))
     np.testing.assert_array_equal(ray_directions(s)[:6], np.asarray(AXIS_DIRS))
     np.testing.assert_allclose(ray_directions(s)[6:], depth_directions((2, 3), s.depth_fov).reshape(-1, 3))
+
+
+def test_flow_pixels2_equals_flow_pixels():
+    from quadswarm_mj.sensors import flow_pixels, flow_pixels2
+
+    rng = np.random.default_rng(7)
+    v, w, d = rng.normal(0, 2, (3, 8, 3)), rng.normal(0, 4, (3, 8, 3)), rng.uniform(0, 3, (3, 8))
+    d[0, 0] = 0.0  # the range floor 1 mm
+    fx, fy, ok = flow_pixels(v, w, d)
+    f, ok2 = flow_pixels2(v, w, d)
+    np.testing.assert_allclose(f, np.stack([fx, fy], axis=-1), rtol=1e-14)
+    np.testing.assert_array_equal(ok2, ok)
+    assert not ok.all() and ok.any()
+
+
+def test_one_uniform_gives_the_dropout_and_a_standard_normal_noise():
+    from scipy import stats
+
+    from quadswarm_mj.sensors import tof_normal
+
+    p = 0.2
+    u = np.random.default_rng(8).uniform(size=200_000)
+    kept = u >= p
+    z = tof_normal(u[kept], p)
+    assert abs(kept.mean() - (1 - p)) < 0.005
+    assert stats.kstest(z, "norm").pvalue > 1e-3
+    assert np.all(np.isfinite(tof_normal(np.array([p, 0.0, 1.0 - 1e-12]), p)))
+    # JAX float32 (the engine's erfinv) == NumPy (scipy's ndtri) to float32 round-off
+    jax = pytest.importorskip("jax")
+    w = np.linspace(p, 1.0, 1001, endpoint=False)
+    got = np.asarray(jax.jit(lambda x: tof_normal(x, p))(jax.numpy.asarray(w, jax.numpy.float32)))
+    np.testing.assert_allclose(got, tof_normal(w.astype(np.float32).astype(np.float64), p), atol=2e-4, rtol=1e-4)
