@@ -5,8 +5,8 @@ samples/s = quad-steps per second (one quad advanced one 100 Hz control step = 2
 (``--rows``): ``single`` and ``vector`` (the MuJoCo engine's envs), ``jax`` (``benchmark_mjx``'s jitted
 rollout; ``--ablations`` switches stages on or off), ``jaxsingle`` and ``jaxvector`` (the envs with
 ``engine="jax"``), ``peers`` (crazyflow's ``Sim``), ``obstacles`` (the cost of 12 columns), ``gym``
-(``gym.make("QuadSwarm-v0")`` against Hopper-v5) and ``sensors`` (the deck sensors' cost, both engines). Every row has the bare-MuJoCo ceiling for
-the same bodies (free bodies, contacts off, ``mj_step`` on one core or ``mujoco.rollout`` on both).
+(``gym.make("QuadSwarm-v0")`` against Hopper-v5) and ``sensors`` (the deck sensors' cost, both engines).
+Env rows have the bare-MuJoCo ceiling (free bodies, no contacts, ``mj_step`` or ``mujoco.rollout``).
 Each figure is the best of ``--repeat`` runs of ``--seconds``; every ratio is of figures of the same run,
 and ``--alternate R`` measures the peer and floor ratios in R alternating rounds (medians).
 
