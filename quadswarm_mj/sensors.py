@@ -112,6 +112,14 @@ def deck_draw_spec(cfg: Any) -> DrawSpec:
     return spec
 
 
+@functools.lru_cache(maxsize=1)
+def _ndtri() -> Any:
+    """``scipy.special.ndtri`` (imported once, on first use)."""
+    from scipy.special import ndtri
+
+    return ndtri
+
+
 def tof_normal(u: Any, dropout: float) -> Any:
     """The standard normal noise of the kept readings from the uniforms ``u`` on [0, 1) of
     :func:`deck_draw_spec`: ``Phi^-1(w)``, w = (u - dropout) / (1 - dropout) (uniform on [0, 1) given
@@ -123,9 +131,7 @@ def tof_normal(u: Any, dropout: float) -> Any:
     scale = 1.0 / (1.0 - dropout) if dropout < 1.0 else 0.0
     w = xp.maximum((u - dropout) * scale, 2.0 ** -24)
     if xp is np:
-        from scipy.special import ndtri
-
-        return ndtri(w)
+        return _ndtri()(w)
     if w.dtype == xp.float32:
         from quadswarm_mj.perf.fused_draws import erf_inv_f32
 
@@ -348,10 +354,13 @@ def deck_info(cfg: Any, obs: Any, scale: Any = None) -> dict[str, Any]:
     if not s.any:
         return {}
     xp = array_namespace(obs)
-    o = np.asarray(obs, dtype=np.float32) if xp is np else obs
     start = cfg.obs_dim - s.obs_dim
-    part = o[..., start:]
+    if xp is np:  # one fresh float32 array of the deck part; the entries are views of it (no alias of obs)
+        part = np.array(obs[..., start:], dtype=np.float32)
+        if scale is not None:
+            part *= np.asarray(scale, dtype=np.float32)[start:]
+        return _split(s, part)
+    part = obs[..., start:]
     if scale is not None:
         part = part * xp.asarray(np.asarray(scale)[start:], dtype=part.dtype)
-    out = _split(s, part)
-    return {k: np.array(v) for k, v in out.items()} if xp is np else out
+    return _split(s, part)
