@@ -21,6 +21,7 @@ another quad's hitbox has length 0. R is body -> world (columns: the body axes i
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -162,7 +163,7 @@ def _offsets(xp: Any, pos: Any, R: Any, radius: float) -> tuple[list[Any], Any, 
         o = pos[..., None, :, :] - pos[..., :, None, :]  # (..., N (i), N (j), 3) world: quad j - quad i
         obm = o @ R
         ob = [obm[..., c] for c in range(3)]
-        d2 = np.einsum("...k,...k->...", o, o)
+        d2 = np.add.reduce(o * o, axis=-1)
     else:  # XLA:CPU: one (..., N, N) array per component (no minor axis of 3), elementwise sums
         o = [pos[..., None, :, a] - pos[..., :, None, a] for a in range(3)]
         ob = [o[0] * R[..., :, None, 0, c] + o[1] * R[..., :, None, 1, c] + o[2] * R[..., :, None, 2, c]
@@ -249,6 +250,45 @@ def axis_hits(pos: Any, R: Any, room_low: Any, room_high: Any, columns: Any = No
     return t
 
 
+@functools.lru_cache(maxsize=32)
+def _pixel_constants(shape: tuple[int, int], fov_deg: tuple[float, float]) -> tuple[np.ndarray, ...]:
+    """(u (W,), v (H,), -u per pixel (H W,), v per pixel (H W,), |e| per pixel (H W,)) of
+    :func:`depth_tangents` (row-major pixels). Read-only."""
+    h, w = shape
+    u, v = depth_tangents(shape, fov_deg)
+    u_k, v_k = np.tile(-u, h), np.repeat(v, w)
+    out = (u, v, u_k, v_k, np.sqrt(1.0 + u_k * u_k + v_k * v_k))
+    for x in out:
+        x.setflags(write=False)
+    return out
+
+
+def _depth_spheres_numpy(pos: np.ndarray, R: np.ndarray, t: np.ndarray, u: np.ndarray, v: np.ndarray,
+                         uk: np.ndarray, vk: np.ndarray, norm: np.ndarray, radius: float) -> np.ndarray:
+    """``t`` (..., N, H W) with the other quads' hitboxes of :func:`depth_hits` (NumPy; the same values).
+
+    Only the pairs whose sphere can meet the camera's pyramid of pixel-centre rays are cast: sphere
+    centre (X, Y, Z) in the body frame with X >= -r, |Y| - u_max X <= r sqrt(1 + u_max^2) and
+    |Z| - v_max X <= r sqrt(1 + v_max^2) (the sphere reaches into each of the pyramid's half-spaces; a
+    necessary condition). Usually few pairs pass: the arrays shrink from N N H W numbers."""
+    ob, c, inside = _offsets(np, pos, R, radius)
+    u_max, v_max = float(np.abs(u).max()), float(np.abs(v).max())
+    x, y, z = ob
+    cand = ((x >= -radius) & (np.abs(y) - u_max * x <= radius * math.sqrt(1.0 + u_max * u_max))
+            & (np.abs(z) - v_max * x <= radius * math.sqrt(1.0 + v_max * v_max)) & (c < np.inf))
+    idx = np.nonzero(cand)  # (..., i, j) of the pairs cast
+    if idx[0].size:
+        beta = x[idx][:, None] + uk * y[idx][:, None] + vk * z[idx][:, None]  # (P, H W)
+        disc = beta * beta - (norm * norm) * c[idx][:, None]
+        ts = np.where((beta > 0.0) & (disc >= 0.0), beta - np.sqrt(np.maximum(disc, 0.0)), np.inf)
+        nearest = np.full(t.shape, np.inf)
+        np.minimum.at(nearest, idx[:-1], ts)  # the nearest per quad i
+        t = np.minimum(t, nearest * (1.0 / norm))
+    if inside.any():
+        t = np.where(inside[..., None], 0.0, t)
+    return t
+
+
 def depth_hits(pos: Any, R: Any, shape: tuple[int, int], fov_deg: tuple[float, float], room_low: Any,
                room_high: Any, columns: Any = None, quad_radius: float | None = None) -> Any:
     """(..., N, H W) range (m) along the depth camera's pixel rays (:func:`depth_directions`, row-major)
@@ -260,10 +300,7 @@ def depth_hits(pos: Any, R: Any, shape: tuple[int, int], fov_deg: tuple[float, f
     of the unit rays' 3 x 3 rotation), and so is its dot product with a neighbour's body-frame offset.
     The pixels stay on one flat axis (..., H W): XLA:CPU's loops over a split (H, W) pair are far slower."""
     xp = array_namespace(pos, R)
-    h, w = shape
-    u, v = depth_tangents(shape, fov_deg)
-    u_k, v_k = np.tile(-u, h), np.repeat(v, w)  # (H W,) per pixel, row-major
-    norm = np.sqrt(1.0 + u_k * u_k + v_k * v_k)  # |e|
+    u, v, u_k, v_k, norm = _pixel_constants(tuple(shape), tuple(fov_deg))
     f = pos.dtype
     uk, vk = xp.asarray(u_k, dtype=f), xp.asarray(v_k, dtype=f)
 
@@ -280,7 +317,9 @@ def depth_hits(pos: Any, R: Any, shape: tuple[int, int], fov_deg: tuple[float, f
             ta = xp.maximum(gap_hi[..., a, None] * inv, gap_lo[..., a, None] * inv)
             t = ta if t is None else xp.minimum(t, ta)
         t = t * xp.asarray(norm, dtype=f)  # parameter along e -> range (m)
-        if quad_radius is not None and pos.shape[-2] > 1:
+        if quad_radius is not None and pos.shape[-2] > 1 and xp is np:
+            t = _depth_spheres_numpy(pos, R, t, u, v, uk, vk, norm, quad_radius)
+        elif quad_radius is not None and pos.shape[-2] > 1:
             ob, c, inside = _offsets(xp, pos, R, quad_radius)
             beta = along(*ob)  # (..., N, N, H W): |e| (d . offset)
             disc = beta * beta - xp.asarray(norm * norm, dtype=f) * c[..., None]
