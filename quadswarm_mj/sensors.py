@@ -189,7 +189,8 @@ def _own_buffer(t: Any, parts: tuple[Any, ...]) -> tuple[Any, ...]:
     jnp = jax.numpy
     stacked = jnp.stack(parts)
     zero = (t.reshape(-1)[0] < 0.0).astype(jnp.int32)  # 0 (ranges are >= 0), unknown to the compiler
-    out = jax.lax.dynamic_update_slice(jnp.zeros_like(stacked), stacked, (zero,) + (0,) * (stacked.ndim - 1))
+    out = jax.lax.dynamic_update_slice(jnp.zeros_like(stacked), stacked,
+                                       (zero,) + (jnp.zeros((), jnp.int32),) * (stacked.ndim - 1))
     return tuple(out[i] for i in range(len(parts)))
 
 

@@ -130,3 +130,22 @@ def test_one_uniform_gives_the_dropout_and_a_standard_normal_noise():
     w = np.linspace(p, 1.0, 1001, endpoint=False)
     got = np.asarray(jax.jit(lambda x: tof_normal(x, p))(jax.numpy.asarray(w, jax.numpy.float32)))
     np.testing.assert_allclose(got, tof_normal(w.astype(np.float32).astype(np.float64), p), atol=2e-4, rtol=1e-4)
+
+
+def test_deck_part_under_jit_with_x64_equals_numpy():
+    jax = pytest.importorskip("jax")
+    jnp = jax.numpy
+    from quadswarm_mj.sensors import deck_part
+
+    jax.config.update("jax_enable_x64", True)  # restored by tests/conftest.py
+    for s in (SensorConfig(multiranger=True, flow=True, depth=(2, 3)), SensorConfig(multiranger=True, flow=True)):
+        c = EnvConfig(num_quads=4, sensors=s)
+        rng = np.random.default_rng(9)
+        pos, R = _state(rng, 4, (2,))
+        vel, omega = rng.normal(size=(2, 4, 3)), rng.normal(size=(2, 4, 3))
+        d = {"range_u": rng.uniform(size=(2, 4, s.num_rays)), "flow_noise": rng.normal(size=(2, 4, 2))}
+        ref = deck_part(c, pos, vel, R, omega, None, d)
+        out = jax.jit(lambda *a, c=c: deck_part(c, *a[:4], None, a[4]))(
+            *(jnp.asarray(x) for x in (pos, vel, R, omega)), {k: jnp.asarray(v) for k, v in d.items()})
+        assert out.dtype == jnp.float64
+        np.testing.assert_allclose(np.asarray(out), ref, rtol=1e-9, atol=1e-9)
