@@ -145,10 +145,20 @@ def world_rays(R: Any, body_dirs: np.ndarray) -> Any:
 # ------------------------------------------------------------------------------ body-frame speed forms
 
 
+@functools.lru_cache(maxsize=64)
+def _room_arrays(room_low: tuple, room_high: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """The room's corners as read-only float64 arrays (made once per room)."""
+    out = (np.asarray(room_low, float), np.asarray(room_high, float))
+    for x in out:
+        x.setflags(write=False)
+    return out
+
+
 def _room_gaps(xp: Any, pos: Any, room_low: Any, room_high: Any) -> tuple[Any, Any]:
     """(gap_hi, gap_lo) (..., N, 3): the room's high and low planes minus ``pos``, kept > 0 and < 0."""
     if xp is np:
-        return np.maximum(np.subtract(room_high, pos), 1e-30), np.minimum(np.subtract(room_low, pos), -1e-30)
+        lo, hi = _room_arrays(tuple(room_low), tuple(room_high))
+        return np.maximum(hi - pos, 1e-30), np.minimum(lo - pos, -1e-30)
     hi = xp.asarray(np.asarray(room_high, float), dtype=pos.dtype)
     lo = xp.asarray(np.asarray(room_low, float), dtype=pos.dtype)
     return xp.maximum(hi - pos, 1e-30), xp.minimum(lo - pos, -1e-30)

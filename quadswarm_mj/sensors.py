@@ -68,6 +68,7 @@ DOWN_DIR = (0.0, 0.0, -1.0)
 #: the info entries of the deck readings (:func:`deck_info`)
 DECK_INFO_KEYS = ("multiranger", "multiranger_valid", "flow", "flow_valid", "depth")
 _EPS = 1e-9
+_FLOW_SIGNS = np.array([-1.0, 1.0])  # (-omega_y, +omega_x) in flow_pixels2
 
 
 @functools.lru_cache(maxsize=32)
@@ -161,6 +162,9 @@ def _body_velocity(xp: Any, R: Any, vel: Any) -> Any:
 def flow_pixels2(v_body: Any, omega: Any, d: Any) -> tuple[Any, Any]:
     """:func:`flow_pixels` as ``(flow (..., 2), rate_ok (...))`` (the same values, fewer array calls)."""
     xp = array_namespace(v_body, d)
+    if xp is np:  # ufuncs only (np.all's Python wrapper costs more than the work on these small arrays)
+        w = v_body[..., :2] / np.maximum(d, 1e-3)[..., None] + omega[..., 1::-1] * _FLOW_SIGNS
+        return FLOW_GAIN * w, np.logical_and.reduce(np.abs(w) <= FLOW_MAX_RATE, axis=-1)
     w = v_body[..., :2] / xp.maximum(d, 1e-3)[..., None] + omega[..., 1::-1] * xp.asarray([-1.0, 1.0], v_body.dtype)
     return FLOW_GAIN * w, xp.all(xp.abs(w) <= FLOW_MAX_RATE, axis=-1)
 
