@@ -5,6 +5,7 @@ without the decks on both engines, alternating rounds, median ratios). For BENCH
 
     python scripts/sensor_benchmark.py --worlds 512 --steps 50 --seconds 2 --rounds 5
     python scripts/sensor_benchmark.py --skip-cpu --noise-off
+    python scripts/sensor_benchmark.py --parts          # the deck part and the casters alone
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ def main() -> None:
     p.add_argument("--skip-cpu", action="store_true")
     p.add_argument("--noise-off", action="store_true",
                    help="also the multi-ranger + flow and depth sets with the sensors' noise off")
+    p.add_argument("--parts", action="store_true",
+                   help="time the deck part and the casters alone instead (bench.sensor_rows.part_timings)")
     args = p.parse_args()
     engines = tuple(e for e, skip in (("jax", args.skip_jax), ("cpu", args.skip_cpu)) if not skip)
     if "jax" in engines:
@@ -34,7 +37,13 @@ def main() -> None:
 
         tune_jax_cpu()
         use_cpu_cores(strict=False)
-    from quadswarm_mj.bench.sensor_rows import sensor_rows, sensor_table
+    from quadswarm_mj.bench.sensor_rows import part_timings, sensor_rows, sensor_table
+
+    if args.parts:
+        print("| part | us per call |\n|---|---:|")
+        for label, us in part_timings(args.worlds):
+            print(f"| {label} | {us:,.1f} |")
+        return
 
     print(sensor_table(sensor_rows(args.worlds, args.steps, args.seconds, args.rounds, engines, args.noise_off)))
 

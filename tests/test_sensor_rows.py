@@ -30,3 +30,12 @@ def test_measure_alternates_and_takes_median_ratios_of_the_same_round():
 def test_sets_cover_the_issue_targets():
     names = [name for name, _ in SENSOR_SETS]
     assert names[0] == "off" and set(TARGETS) <= set(names)
+
+
+def test_part_timings_numpy_rows():
+    from quadswarm_mj.bench.sensor_rows import part_timings
+
+    rows = part_timings(reps=2, jax_rows=False)
+    labels = [label for label, _ in rows]
+    assert "NumPy, 1 x 8, deck part, multiranger + flow" in labels and "NumPy, 1 x 8, axis_hits" in labels
+    assert len(rows) == 6 and all(us > 0 for _, us in rows)

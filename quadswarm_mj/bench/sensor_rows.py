@@ -152,3 +152,82 @@ def sensor_table(rows: list[dict[str, Any]]) -> str:
                      f"({r['cpu_range'][0]:.2f} to {r['cpu_range'][1]:.2f}) | "
                      f"{target_s} |")
     return "\n".join(lines)
+
+
+def _scene(worlds: int, n: int = 8, seed: int = 0) -> tuple[np.ndarray, ...]:
+    """Random quads in the default room: pos, vel, R (body -> world), omega of ``worlds`` x ``n``."""
+    rng = np.random.default_rng(seed)
+    pos = rng.uniform([-2.5, -2.5, 0.3], [2.5, 2.5, 2.7], (worlds, n, 3))
+    q = rng.normal(size=(worlds, n, 4))
+    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
+    R = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                  np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                  np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
+    return pos, rng.normal(size=(worlds, n, 3)), R, rng.normal(size=(worlds, n, 3))
+
+
+def part_timings(worlds: int = 512, reps: int = 30, jax_rows: bool = True) -> list[tuple[str, float]]:
+    """(label, microseconds) of the deck part alone: NumPy (one world of 8 quads, best of 5 x ``reps``
+    calls, wall time) and ``jax.jit(jax.vmap(...))`` over ``worlds`` worlds (CPU time of this process per
+    call, best of 5 x ``reps``), for the deck part with noise and for the casters against the reference
+    caster (``cast_rays`` of ``world_rays``)."""
+    import timeit
+
+    from quadswarm_mj.random_draws import NumpySampler
+    from quadswarm_mj.sensor_rays import AXIS_DIRS, axis_hits, cast_rays, depth_directions, depth_hits, world_rays
+    from quadswarm_mj.sensors import deck_draw_spec, deck_part
+
+    out = []
+    sets = (("multiranger + flow", {"multiranger": True, "flow": True}), ("depth 8 x 8", {"depth": (8, 8)}))
+    axis_dirs, pix_dirs = np.asarray(AXIS_DIRS), depth_directions((8, 8), (45.0, 45.0)).reshape(-1, 3)
+
+    def casters(cfg: Any) -> dict[str, Callable[..., Any]]:
+        lo, hi, hb = cfg.room_low, cfg.room_high, cfg.hitbox
+        def ref(dirs: np.ndarray) -> Callable[..., Any]:
+            return lambda p, r: cast_rays(p, world_rays(r, dirs), lo, hi, None, hb)
+
+        return {"reference caster, 6 body-axis rays": ref(axis_dirs),
+                "axis_hits": lambda p, r: axis_hits(p, r, lo, hi, None, hb),
+                "reference caster, 8 x 8 pixel rays": ref(pix_dirs),
+                "depth_hits 8 x 8": lambda p, r: depth_hits(p, r, (8, 8), (45.0, 45.0), lo, hi, None, hb)}
+
+    pos, vel, R, om = _scene(1)
+    for name, s in sets:
+        cfg = _cfg(s, 8)
+        draws = NumpySampler(np.random.default_rng(1)).draw(deck_draw_spec(cfg), (1,))
+        f = lambda: deck_part(cfg, pos, vel, R, om, None, draws)  # noqa: B023,E731
+        out.append((f"NumPy, 1 x 8, deck part, {name}", min(timeit.repeat(f, number=reps, repeat=5)) / reps * 1e6))
+    for label, g in casters(_cfg({}, 8)).items():
+        f = lambda: g(pos, R)  # noqa: B023,E731
+        out.append((f"NumPy, 1 x 8, {label}", min(timeit.repeat(f, number=reps, repeat=5)) / reps * 1e6))
+    if not jax_rows:
+        return out
+    import jax
+    import jax.numpy as jnp
+
+    pos, vel, R, om = (jnp.asarray(x, jnp.float32) for x in _scene(worlds))
+
+    def cpu_time(fn: Callable[..., Any], *args: Any) -> float:
+        g = jax.jit(jax.vmap(fn))
+        jax.block_until_ready(g(*args))
+        best = float("inf")
+        for _ in range(5):
+            c0 = time.process_time()
+            for _ in range(reps):
+                r = g(*args)
+            jax.block_until_ready(r)
+            best = min(best, (time.process_time() - c0) / reps * 1e6)
+        return best
+
+    for name, s in sets:
+        cfg = _cfg(s, 8)
+        k = cfg.sensors.num_rays
+        rng = np.random.default_rng(1)
+        draws = {"range_u": jnp.asarray(rng.uniform(size=(worlds, 8, k)), jnp.float32)}
+        if cfg.sensors.flow:
+            draws["flow_noise"] = jnp.asarray(rng.normal(size=(worlds, 8, 2)), jnp.float32)
+        t = cpu_time(lambda p, v, r, o, d: deck_part(cfg, p, v, r, o, None, d), pos, vel, R, om, draws)  # noqa: B023
+        out.append((f"JAX jit(vmap), {worlds} x 8, deck part, {name} (CPU time)", t))
+    for label, g in casters(_cfg({}, 8)).items():
+        out.append((f"JAX jit(vmap), {worlds} x 8, {label} (CPU time)", cpu_time(g, pos, R)))
+    return out
