@@ -170,7 +170,7 @@ def part_timings(worlds: int = 512, reps: int = 30, jax_rows: bool = True) -> li
     """(label, microseconds) of the deck part alone: NumPy (one world of 8 quads, best of 5 x ``reps``
     calls, wall time) and ``jax.jit(jax.vmap(...))`` over ``worlds`` worlds (CPU time of this process per
     call, best of 5 x ``reps``), for the deck part with noise and for the casters against the reference
-    caster (``cast_rays`` of ``world_rays``)."""
+    caster (``cast_rays`` of ``world_rays``). ``jax_rows=False``: the NumPy rows only."""
     import timeit
 
     from quadswarm_mj.random_draws import NumpySampler
