@@ -6,15 +6,9 @@ draws come in as arrays (:func:`deck_draw_spec`), ``None`` means noise-free read
 readings are appended after the rest of each quad's observation (:func:`deck_layout`) and reported
 as ``info["multiranger"]`` etc. (:func:`deck_info`). Models, constants and sources: ``docs/sensors.md``.
 
-Geometry (world frame, SI): every sensor sits at the quad's centre; a ray from ``p`` along the unit
-vector ``d`` ends at the first of
-
-* the room's planes: floor z = 0, ceiling z = H, walls x = +-L/2, y = +-W/2 (from inside the room);
-* the obstacle columns: vertical cylinders (centre (x, y), radius r) from floor to ceiling;
-* the other quads' hitbox spheres (radius ``cfg.hitbox``; the quad's own is skipped).
-
-A ray that starts inside a column or another quad's hitbox has length 0. Body-frame directions
-(x forward, y left, z up) are turned into the world frame by R (body -> world).
+Geometry: the rays are cast analytically against the room's planes, the obstacle columns and the
+other quads' hitbox spheres (:mod:`quadswarm_mj.sensor_rays`); every sensor sits at the quad's centre.
+Body-frame directions (x forward, y left, z up) are turned into the world frame by R (body -> world).
 
 * Multi-ranger deck (5 VL53L1x): front +x, back -x, left +y, right -y, up +z.
 * Flow deck v2: the VL53L1x range along body -z and the PMW3901 flow of the surface seen along that
@@ -39,6 +33,16 @@ import numpy as np
 from quadswarm_mj._xp import array_namespace
 from quadswarm_mj.random_draws import DrawSpec, Normal, Uniform
 from quadswarm_mj.sensor_config import SensorConfig
+from quadswarm_mj.sensor_rays import (  # noqa: F401  (re-exported: the casters' home is sensor_rays)
+    axis_hits,
+    cast_rays,
+    column_hits,
+    depth_directions,
+    depth_hits,
+    room_hits,
+    sphere_hits,
+    world_rays,
+)
 
 # ---- VL53L1x (multi-ranger, flow deck range, and the depth camera's pixels): noise model of the
 # crazyflie-firmware's zranger2.c: std(d) = A (1 + exp(k (d - dA))), std A = 2.5 mm at dA = 2.5 m,
@@ -64,16 +68,7 @@ DOWN_DIR = (0.0, 0.0, -1.0)
 #: the info entries of the deck readings (:func:`deck_info`)
 DECK_INFO_KEYS = ("multiranger", "multiranger_valid", "flow", "flow_valid", "depth")
 _EPS = 1e-9
-
-
-def depth_directions(shape: tuple[int, int], fov_deg: tuple[float, float]) -> np.ndarray:
-    """(H, W, 3) unit body-frame rays of the depth camera's pixel centres (pinhole around +x)."""
-    h, w = shape
-    tu, tv = (math.tan(math.radians(f) / 2.0) for f in fov_deg)
-    u = tu * (2.0 * (np.arange(w) + 0.5) / w - 1.0)  # to the right (body -y)
-    v = tv * (1.0 - 2.0 * (np.arange(h) + 0.5) / h)  # up (body +z)
-    d = np.stack(np.broadcast_arrays(np.ones((h, w)), -u[None, :], v[:, None]), axis=-1)
-    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+_FLOW_SIGNS = np.array([-1.0, 1.0])  # (-omega_y, +omega_x) in flow_pixels2
 
 
 @functools.lru_cache(maxsize=32)
@@ -92,89 +87,6 @@ def ray_directions(s: SensorConfig) -> np.ndarray:
     return out
 
 
-# ------------------------------------------------------------------------------ ray casting
-
-
-# The casters work axis by axis (x, y, z arrays of shape (..., N, K)), and the ray-versus-object arrays
-# are laid out (..., N, objects, K) with the minimum over the objects' axis: both keep XLA:CPU's vector
-# loops along the rays instead of along the 3 components or the 8 quads (scripts/sensor_benchmark.py).
-
-
-def room_hits(pos: Any, dirs: Any, room_low: Any, room_high: Any) -> Any:
-    """(..., N, K) distance (m) from ``pos`` (..., N, 3) along the unit rays ``dirs`` (..., N, K, 3) to
-    the room's planes (the box [room_low, room_high], seen from inside; >= 0)."""
-    xp = array_namespace(pos, dirs)
-    t = None
-    for a in range(3):  # the three axes x, y, z
-        pa = pos[..., :, None, a]  # (..., N, 1)
-        # the gaps to the high and low planes, kept > 0 and < 0 (a zero gap would make 0 / 0 for a
-        # parallel ray); the plane ahead is the larger quotient (a parallel ray: +inf)
-        gap_hi = xp.maximum(room_high[a] - pa, 1e-30)
-        gap_lo = xp.minimum(room_low[a] - pa, -1e-30)
-        ta = xp.maximum(gap_hi / dirs[..., a], gap_lo / dirs[..., a])
-        t = ta if t is None else xp.minimum(t, ta)
-    return t
-
-
-def column_hits(pos: Any, dirs: Any, centres: Any, valid: Any, radius: Any) -> Any:
-    """(..., N, K) distance (m) along each ray to the nearest valid vertical column (infinite
-    cylinders, centres (..., M, 2), valid (..., M), radius (...,)); inf without a hit, 0 from inside."""
-    xp = array_namespace(pos, dirs, centres)
-    r = xp.asarray(radius, dtype=pos.dtype)[..., None, None]
-    ox = pos[..., :, None, 0] - centres[..., None, :, 0]  # (..., N, M) quad - centre
-    oy = pos[..., :, None, 1] - centres[..., None, :, 1]
-    c = ox * ox + oy * oy - r * r
-    ok = valid[..., None, :]
-    inside = xp.any((c < 0.0) & ok, axis=-1)  # (..., N)
-    neg_s = xp.where(ok, -xp.sqrt(xp.maximum(c, 0.0)), -xp.inf)[..., None]  # invalid slots: never hit
-    dx, dy = dirs[..., :, None, :, 0], dirs[..., :, None, :, 1]  # (..., N, 1, K)
-    a = dx * dx + dy * dy
-    b = dx * ox[..., None] + dy * oy[..., None]  # (..., N, M, K)
-    # |o + t d|^2 = r^2 in the plane: a t^2 + 2 b t + c = 0; a hit ahead from outside needs
-    # b < -sqrt(a c) (strict: a vertical ray, a = 0, never hits)
-    t = -(b + xp.sqrt(xp.maximum(b * b - a * c[..., None], 0.0))) / xp.maximum(a, 1e-30)
-    t = xp.min(xp.where(b < xp.sqrt(a) * neg_s, t, xp.inf), axis=-2)
-    return xp.where(inside[..., None], 0.0, t)
-
-
-def sphere_hits(pos: Any, dirs: Any, radius: float) -> Any:
-    """(..., N, K) distance (m) along each ray of quad i to the nearest hitbox sphere (radius m) of
-    another quad j != i; inf without a hit, 0 from inside."""
-    xp = array_namespace(pos, dirs)
-    n = pos.shape[-2]
-    o = [pos[..., :, None, a] - pos[..., None, :, a] for a in range(3)]  # (..., N, N) quad i - quad j
-    c = xp.where(np.eye(n, dtype=bool), xp.inf, o[0] * o[0] + o[1] * o[1] + o[2] * o[2] - radius * radius)
-    inside = xp.any(c < 0.0, axis=-1)  # (..., N); the own sphere (c = inf) never counts
-    neg_s = -xp.sqrt(xp.maximum(c, 0.0))[..., None]
-    b = sum(dirs[..., :, None, :, a] * o[a][..., None] for a in range(3))  # (..., N, N, K): d_ik . o_ij
-    # |o + t d|^2 = r^2: t^2 + 2 b t + c = 0; a hit ahead from outside needs b <= -sqrt(c)
-    t = -(b + xp.sqrt(xp.maximum(b * b - c[..., None], 0.0)))
-    t = xp.min(xp.where(b <= neg_s, t, xp.inf), axis=-2)
-    return xp.where(inside[..., None], 0.0, t)
-
-
-def cast_rays(pos: Any, dirs: Any, room_low: Any, room_high: Any, columns: Any = None,
-              quad_radius: float | None = None) -> Any:
-    """(..., N, K) range (m) along the world-frame unit rays ``dirs`` (..., N, K, 3) from the quads'
-    centres ``pos`` (..., N, 3) to the first surface: the room, the ``columns`` = (centres, valid,
-    radius) of an obstacle map (or None) and the other quads' hitbox spheres (``quad_radius``, or None)."""
-    xp = array_namespace(pos, dirs)
-    with np.errstate(divide="ignore", invalid="ignore"):  # NumPy: x / 0 = inf for parallel rays (intended)
-        t = room_hits(pos, dirs, tuple(room_low), tuple(room_high))
-        if columns is not None:
-            t = xp.minimum(t, column_hits(pos, dirs, *columns))
-        if quad_radius is not None and pos.shape[-2] > 1:
-            t = xp.minimum(t, sphere_hits(pos, dirs, quad_radius))
-    return t
-
-
-def world_rays(R: Any, body_dirs: np.ndarray) -> Any:
-    """(..., N, K, 3) world-frame rays from the body-frame ``body_dirs`` (K, 3) and R (..., N, 3, 3)."""
-    xp = array_namespace(R)
-    d = xp.asarray(body_dirs, dtype=R.dtype)
-    return sum(R[..., None, :, c] * d[:, c, None] for c in range(3))
-
-
 # ------------------------------------------------------------------------------ sensor models
 
 
@@ -187,18 +99,47 @@ def tof_std(d: Any) -> Any:
 
 
 def deck_draw_spec(cfg: Any) -> DrawSpec:
-    """Draws of one control step's deck readings per world: ``range_noise`` (N, K) standard normals
-    (scaled by :func:`tof_std`), ``range_drop`` (N, K) uniforms (a reading is lost where < dropout)
-    and, with the flow deck, ``flow_noise`` (N, 2) standard normals (scaled by FLOW_STD_PX).
-    Empty when the sensors or their noise are off (``None`` draws: noise-free readings)."""
+    """Draws of one control step's deck readings per world: ``range_u`` (N, K) uniforms on [0, 1), one
+    per ray (a reading is lost where u < dropout; otherwise its noise is the standard normal
+    ``Phi^-1((u - dropout) / (1 - dropout))`` scaled by :func:`tof_std`, see :func:`tof_normal`) and,
+    with the flow deck, ``flow_noise`` (N, 2) standard normals (scaled by FLOW_STD_PX). Empty when the
+    sensors or their noise are off (``None`` draws: noise-free readings)."""
     s, n = cfg.sensors, cfg.num_quads
     if not (s.any and s.noise):
         return {}
-    k = s.num_rays
-    spec: DrawSpec = {"range_noise": Normal(0.0, 1.0, (n, k)), "range_drop": Uniform(0.0, 1.0, (n, k))}
+    spec: DrawSpec = {"range_u": Uniform(0.0, 1.0, (n, s.num_rays))}
     if s.flow:
         spec["flow_noise"] = Normal(0.0, 1.0, (n, 2))
     return spec
+
+
+@functools.lru_cache(maxsize=1)
+def _ndtri() -> Any:
+    """``scipy.special.ndtri`` (imported once, on first use)."""
+    from scipy.special import ndtri
+
+    return ndtri
+
+
+def tof_normal(u: Any, dropout: float) -> Any:
+    """The standard normal noise of the kept readings from the uniforms ``u`` on [0, 1) of
+    :func:`deck_draw_spec`: ``Phi^-1(w)``, w = (u - dropout) / (1 - dropout) (uniform on [0, 1) given
+    u >= dropout, so one uniform gives both the dropout and an exact N(0, 1) noise; two draws per ray
+    cost twice the random numbers). w is kept >= 2^-24 (the noise >= -5.3; w = 0 would give -inf).
+    NumPy: ``scipy.special.ndtri``; JAX float32: sqrt(2) erfinv(2 w - 1) with the engine's erfinv
+    (:func:`quadswarm_mj.perf.fused_draws.erf_inv_f32`, a few float32 ulp)."""
+    xp = array_namespace(u)
+    scale = 1.0 / (1.0 - dropout) if dropout < 1.0 else 0.0
+    w = xp.maximum((u - dropout) * scale, 2.0 ** -24)
+    if xp is np:
+        return _ndtri()(w)
+    if w.dtype == xp.float32:
+        from quadswarm_mj.perf.fused_draws import erf_inv_f32
+
+        return np.float32(math.sqrt(2.0)) * erf_inv_f32(2.0 * w - 1.0)
+    import jax.scipy.special
+
+    return jax.scipy.special.ndtri(w)
 
 
 @functools.lru_cache(maxsize=32)
@@ -209,6 +150,23 @@ def ray_limits(s: SensorConfig) -> np.ndarray:
     out = np.concatenate([np.full(5 * s.multiranger + s.flow, s.range_limit), np.full(h * w, s.depth_max_range)])
     out.setflags(write=False)
     return out
+
+
+def _body_velocity(xp: Any, R: Any, vel: Any) -> Any:
+    """(..., N, 3) R^T v: the body-frame velocity (m/s)."""
+    if xp is np:
+        return (vel[..., None, :] @ R)[..., 0, :]
+    return sum(R[..., c, :] * vel[..., c, None] for c in range(3))
+
+
+def flow_pixels2(v_body: Any, omega: Any, d: Any) -> tuple[Any, Any]:
+    """:func:`flow_pixels` as ``(flow (..., 2), rate_ok (...))`` (the same values, fewer array calls)."""
+    xp = array_namespace(v_body, d)
+    if xp is np:  # ufuncs only (np.all's Python wrapper costs more than the work on these small arrays)
+        w = v_body[..., :2] / np.maximum(d, 1e-3)[..., None] + omega[..., 1::-1] * _FLOW_SIGNS
+        return FLOW_GAIN * w, np.logical_and.reduce(np.abs(w) <= FLOW_MAX_RATE, axis=-1)
+    w = v_body[..., :2] / xp.maximum(d, 1e-3)[..., None] + omega[..., 1::-1] * xp.asarray([-1.0, 1.0], v_body.dtype)
+    return FLOW_GAIN * w, xp.all(xp.abs(w) <= FLOW_MAX_RATE, axis=-1)
 
 
 def flow_pixels(v_body: Any, omega: Any, d: Any) -> tuple[Any, Any, Any]:
@@ -224,6 +182,39 @@ def flow_pixels(v_body: Any, omega: Any, d: Any) -> tuple[Any, Any, Any]:
     return FLOW_GAIN * wx, FLOW_GAIN * wy, ok
 
 
+def _own_buffer(t: Any, parts: tuple[Any, ...]) -> tuple[Any, ...]:
+    """``parts`` (JAX arrays of ``t``'s shape) unchanged, computed by XLA:CPU into one buffer of their own
+    (a ``dynamic_update_slice`` of the whole buffer at a run-time offset, always 0: an exact identity).
+    Otherwise XLA fuses the per-ray model (exp, erfinv) into the observation's concatenation, whose
+    loops run along the short minor axes (5 ranges, 1 down range) at scalar speed: the multi-ranger's
+    deck part ~5x slower. ``t``: the ranges (>= 0), from which the offset is made."""
+    import jax
+
+    jnp = jax.numpy
+    stacked = jnp.stack(parts)
+    zero = (t.reshape(-1)[0] < 0.0).astype(jnp.int32)  # 0 (ranges are >= 0), unknown to the compiler
+    out = jax.lax.dynamic_update_slice(jnp.zeros_like(stacked), stacked,
+                                       (zero,) + (jnp.zeros((), jnp.int32),) * (stacked.ndim - 1))
+    return tuple(out[i] for i in range(len(parts)))
+
+
+def deck_ranges(cfg: Any, pos: Any, R: Any, obstacles: Any = None) -> Any:
+    """(..., N, K) true ranges (m) along :func:`ray_directions` (multi-ranger, flow deck down, depth
+    pixels) from the quads' centres ``pos`` (..., N, 3), R (..., N, 3, 3) body -> world, against the
+    room, the column map ``obstacles`` = (centres, valid, radius) or None, and the other quads'
+    hitboxes: the body-frame casters :func:`axis_hits` and :func:`depth_hits` (= :func:`cast_rays` of
+    :func:`world_rays`, to round-off)."""
+    xp = array_namespace(pos, R)
+    s = cfg.sensors
+    parts = []
+    if s.multiranger or s.flow:
+        t6 = axis_hits(pos, R, cfg.room_low, cfg.room_high, obstacles, cfg.hitbox)
+        parts.append(t6 if s.multiranger and s.flow else t6[..., :5] if s.multiranger else t6[..., 5:])
+    if s.depth is not None:
+        parts.append(depth_hits(pos, R, s.depth, s.depth_fov, cfg.room_low, cfg.room_high, obstacles, cfg.hitbox))
+    return parts[0] if len(parts) == 1 else xp.concatenate(parts, axis=-1)
+
+
 def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
               draws: dict[str, Any] | None = None) -> Any:
     """(..., N, sensors.obs_dim) the deck sensors' observation part (:func:`deck_layout` order, flags
@@ -232,19 +223,34 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     rad/s (body); ``obstacles`` = (centres, valid, radius) of the column map or None; ``draws`` from
     :func:`deck_draw_spec` (None: noise-free).
 
-    Every ToF reading (VL53L1x model, all rays at once) is valid where the true range ``t`` is within
-    its limit and not dropped (draw >= dropout); a valid reading is ``t + tof_std(t) z`` clipped to
-    [0, limit], an invalid one reads the limit."""
+    Every ToF reading (VL53L1x model, all rays at once; true ranges :func:`deck_ranges`) is valid where
+    the true range ``t`` is within its limit and not dropped (u >= dropout); a valid reading is
+    ``t + tof_std(t) z`` (z = :func:`tof_normal`) clipped to [0, limit], an invalid one reads the limit."""
     xp = array_namespace(pos, vel, R)
     s = cfg.sensors
-    t = cast_rays(pos, world_rays(R, ray_directions(s)), cfg.room_low, cfg.room_high, obstacles, cfg.hitbox)
-    limit = xp.asarray(ray_limits(s), dtype=t.dtype)
+    t = deck_ranges(cfg, pos, R, obstacles)
+    limit = ray_limits(s)
+    u = None if draws is None else draws["range_u"]
+    if xp is not np:  # XLA:CPU: the per-ray model on one flat axis of N K rays (a minor axis of K = 6
+        # runs at scalar speed: ~8x slower for the multi-ranger), same values
+        shape = t.shape
+        limit = np.tile(limit, shape[-2])
+        t = t.reshape(shape[:-2] + (-1,))
+        t, = _own_buffer(t, (t,))  # the ranges' stack (6 axis rays) is not fused into the model's loop
+        u = None if u is None else u.reshape(t.shape)
+    limit = xp.asarray(limit, dtype=t.dtype)
     valid = t <= limit
     r = t
-    if draws is not None:
-        valid = valid & (draws["range_drop"] >= s.dropout)
-        r = t + tof_std(t) * draws["range_noise"]
+    if u is not None:
+        valid = valid & (u >= s.dropout)
+        r = t + tof_std(t) * tof_normal(u, s.dropout)
     r = xp.where(valid, xp.minimum(xp.maximum(r, 0.0), limit), limit)
+    if xp is not np and s.depth is None:  # not with depth: its long rows vectorize anyway, and XLA:CPU
+        # updates a buffer of N (6 + H W) x 3 numbers per world slowly (a scatter under vmap)
+        t, r, valid = (x.reshape(shape) for x in _own_buffer(t, (t, r, valid.astype(t.dtype))))
+        valid = valid > 0.5
+    elif xp is not np:
+        t, r, valid = t.reshape(shape), r.reshape(shape), valid.reshape(shape)
     flags = valid.astype(t.dtype)
     parts: list[Any] = []
     k = 0
@@ -253,12 +259,10 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
         k = 5
     if s.flow:
         d = t[..., k]  # the true range along body -z
-        v_body = sum(R[..., c, :] * vel[..., c, None] for c in range(3))  # R^T v
-        fx, fy, rate_ok = flow_pixels(v_body, omega, d)
+        f, rate_ok = flow_pixels2(_body_velocity(xp, R, vel), omega, d)
         fvalid = rate_ok & (d >= FLOW_MIN_RANGE)
         if s.light_lux < FLOW_MIN_LUX:  # too dark: never valid
             fvalid = xp.zeros_like(fvalid)
-        f = xp.stack([fx, fy], axis=-1)
         if draws is not None:
             f = f + FLOW_STD_PX * draws["flow_noise"]
         f = xp.where(fvalid[..., None], xp.minimum(xp.maximum(f, -FLOW_LIMIT_PX), FLOW_LIMIT_PX), 0.0)
@@ -355,10 +359,13 @@ def deck_info(cfg: Any, obs: Any, scale: Any = None) -> dict[str, Any]:
     if not s.any:
         return {}
     xp = array_namespace(obs)
-    o = np.asarray(obs, dtype=np.float32) if xp is np else obs
     start = cfg.obs_dim - s.obs_dim
-    part = o[..., start:]
+    if xp is np:  # one fresh float32 array of the deck part; the entries are views of it (no alias of obs)
+        part = np.array(obs[..., start:], dtype=np.float32)
+        if scale is not None:
+            part *= np.asarray(scale, dtype=np.float32)[start:]
+        return _split(s, part)
+    part = obs[..., start:]
     if scale is not None:
         part = part * xp.asarray(np.asarray(scale)[start:], dtype=part.dtype)
-    out = _split(s, part)
-    return {k: np.array(v) for k, v in out.items()} if xp is np else out
+    return _split(s, part)

@@ -178,17 +178,19 @@ def test_noise_and_dropout_draws():
     c = cfg()
     spec = deck_draw_spec(c)
     k = c.sensors.num_rays
-    assert spec["range_noise"].shape == (1, k) and spec["flow_noise"].shape == (1, 2)
+    assert spec["range_u"].shape == (1, k) and spec["flow_noise"].shape == (1, 2)
     assert deck_draw_spec(c.without_noise()) == {}
-    z = np.ones((1, k))
-    keep = np.ones((1, k))
-    draws = {"range_noise": z, "range_drop": keep, "flow_noise": np.ones((1, 2))}
+    from scipy.special import ndtr
+
+    p = c.sensors.dropout
+    keep = np.full((1, k), p + (1.0 - p) * ndtr(1.0))  # kept, noise +1 std
+    draws = {"range_u": keep, "flow_noise": np.ones((1, 2))}
     r = read(c, [1.0, 0.5, 1.0], vel=[0.6, 0.0, 0.0], draws=draws)
     t = np.array([2.0, 4.0, 2.5, 3.5, 2.0])
     np.testing.assert_allclose(r["multiranger"][0], np.minimum(t + tof_std(t), 4.0))
     assert r["flow"][0, 1] == pytest.approx(FLOW_GAIN * 0.6 + 0.2)
-    drop = np.zeros((1, k))  # every reading lost: invalid, at the limit
-    r = read(c, [1.0, 0.5, 1.0], draws={**draws, "range_drop": drop})
+    drop = np.full((1, k), 0.999 * p)  # every reading lost: invalid, at the limit
+    r = read(c, [1.0, 0.5, 1.0], draws={**draws, "range_u": drop})
     assert not r["multiranger_valid"].any() and np.all(r["multiranger"] == 4.0)
     assert tof_std(np.array(2.5)) == pytest.approx(0.005)
     assert tof_std(np.array(4.0)) == pytest.approx(0.2025)
@@ -216,7 +218,7 @@ def test_numpy_equals_jax_jit():
     pos, vel, R, omega = _random_state(rng, 6, (B,))
     omap = (rng.uniform(-2.5, 2.5, (B, 5, 2)), rng.uniform(size=(B, 5)) < 0.7, np.full(B, 0.25))
     spec = deck_draw_spec(c)
-    draws = {k: (rng.normal(size=(B,) + d.shape) if k != "range_drop" else rng.uniform(size=(B,) + d.shape))
+    draws = {k: (rng.normal(size=(B,) + d.shape) if k != "range_u" else rng.uniform(size=(B,) + d.shape))
              for k, d in spec.items()}
     ref = deck_readings(c, pos, vel, R, omega, omap, draws)
 
@@ -244,7 +246,7 @@ def test_deck_part_numpy_equals_vmapped_jit_and_the_named_readings():
     pos, vel, R, omega = _random_state(rng, 5, (B,))
     pos[0, 1] = pos[0, 0] + [0.05, 0.0, 0.0]  # quad 0 inside quad 1's hitbox: its ranges are 0
     omap = (rng.uniform(-2.5, 2.5, (B, 4, 2)), rng.uniform(size=(B, 4)) < 0.7, np.full(B, 0.3))
-    draws = {k: (rng.normal(size=(B,) + d.shape) if k != "range_drop" else rng.uniform(size=(B,) + d.shape))
+    draws = {k: (rng.normal(size=(B,) + d.shape) if k != "range_u" else rng.uniform(size=(B,) + d.shape))
              for k, d in deck_draw_spec(c).items()}
     ref = deck_part(c, pos, vel, R, omega, omap, draws)
     assert ref.shape == (B, 5, c.sensors.obs_dim)

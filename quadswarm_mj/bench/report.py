@@ -64,7 +64,8 @@ def gym_table(rates: list[dict[str, Any]] | None, first: list[tuple[str, dict[st
 
 
 def document(command: str, started: datetime.datetime, load0: str, load1: str, repeat: int, seconds: float,
-             tab: str, summary: list[str], jax_table: str, gym: str, prof: str | None, comp: str | None) -> list[str]:
+             tab: str, summary: list[str], jax_table: str, gym: str, prof: str | None, comp: str | None,
+             sensors: str = "") -> list[str]:
     """The generated part of BENCHMARKS.md, as lines."""
     doc = [
         "# Benchmarks",
@@ -99,6 +100,12 @@ def document(command: str, started: datetime.datetime, load0: str, load1: str, r
                 "XLA:CPU kernels, synchronous CPU dispatch). Each crazyflow figure is the better of the same "
                 "process (\"tuned\") and a fresh process with JAX's defaults (\"JAX defaults\"), as its row says.",
                 "", jax_table, ""]
+    if sensors:
+        doc += ["## The deck sensors' cost (same run)", "",
+                "Each sensor set against the same swarm without deck sensors, timed in alternating rounds "
+                "(`quadswarm_mj.bench.sensor_rows`); ratios are medians over the rounds of the ratios within a "
+                "round. JAX rows: hover actions, jitted rollouts, worlds sharded over the CPU devices.", "",
+                sensors, ""]
     if prof:
         doc += ["## Where the time goes", "", prof, ""]
     if comp:

@@ -4,9 +4,9 @@ samples/s = quad-steps per second (one quad advanced one 100 Hz control step = 2
 200 Hz), paper defaults (collisions, noise, K = 6 neighbours, static_same_goal). Row families
 (``--rows``): ``single`` and ``vector`` (the MuJoCo engine's envs), ``jax`` (``benchmark_mjx``'s jitted
 rollout; ``--ablations`` switches stages on or off), ``jaxsingle`` and ``jaxvector`` (the envs with
-``engine="jax"``), ``peers`` (crazyflow's ``Sim``, when installed), ``obstacles`` (the cost of 12 columns)
-and ``gym`` (``gym.make("QuadSwarm-v0")`` against Hopper-v5). Every row has the bare-MuJoCo ceiling for
-the same bodies (free bodies, contacts off, ``mj_step`` on one core or ``mujoco.rollout`` on both).
+``engine="jax"``), ``peers`` (crazyflow's ``Sim``), ``obstacles`` (the cost of 12 columns), ``gym``
+(``gym.make("QuadSwarm-v0")`` against Hopper-v5) and ``sensors`` (the deck sensors' cost, both engines).
+Env rows have the bare-MuJoCo ceiling (free bodies, no contacts, ``mj_step`` or ``mujoco.rollout``).
 Each figure is the best of ``--repeat`` runs of ``--seconds``; every ratio is of figures of the same run,
 and ``--alternate R`` measures the peer and floor ratios in R alternating rounds (medians).
 
@@ -104,7 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="short runs (0.5 s, 1 repeat, hover workload only)")
     p.add_argument("--rows", default="single,vector,jax,jaxsingle,jaxvector,peers,gym",
                    help="comma list of single, vector, jax (mjx is an alias), jaxsingle, jaxvector, peers, obstacles, "
-                        "gym (gym.make('QuadSwarm-v0') vs gymnasium's Hopper-v5, first-step time)")
+                        "gym (gym.make('QuadSwarm-v0') vs gymnasium's Hopper-v5, first-step time), sensors (the deck "
+                        "sensors' cost, both engines)")
     p.add_argument("--single-n", default="1,8,32,128")
     p.add_argument("--vector-b", default="64,256,1024")
     p.add_argument("--mjx-steps", type=int, default=200)
@@ -118,6 +119,9 @@ def main(argv: list[str] | None = None) -> int:
                         "env against the floor in R alternating windows (row 'jaxvector'): median ratios, robust "
                         "to a machine whose speed drifts within a run (default 0: off)")
     p.add_argument("--alternate-worlds", default="512", help="worlds of the --alternate rounds (default 512)")
+    p.add_argument("--sensor-worlds", type=int, default=512, help="worlds of the JAX engine's sensor rows ('sensors')")
+    p.add_argument("--sensor-rounds", type=int, default=5,
+                   help="alternating rounds of the sensor rows ('sensors'; median ratios to no sensors)")
     p.add_argument("--ablations", action="store_true",
                    help="JAX engine at 512 x 8 with stages switched off/on (where the time goes)")
     p.add_argument("--skip-mjx", action="store_true")
@@ -188,11 +192,18 @@ def main(argv: list[str] | None = None) -> int:
     jax_steps = args.mjx_steps if not args.quick else max(20, args.mjx_steps // 4)
     jax_table = jax_rows(rows, args, seconds, repeat, jax_steps)
     gym = gym_rows(seconds, repeat) if "gym" in rows else ""
+    sensors = ""
+    if "sensors" in rows:
+        from quadswarm_mj.bench.sensor_rows import sensor_rows, sensor_table
+
+        sensors = sensor_table(sensor_rows(args.sensor_worlds, jax_steps // 4 if not args.quick else jax_steps,
+                                           seconds, args.sensor_rounds,
+                                           ("cpu",) if args.skip_mjx else ("jax", "cpu")))
     prof = run_profile() if args.profile else None
     comp = compare_engines(args.compare, seconds, repeat) if args.compare else None
     load1 = load()
     tab = env_table(table, workloads)
-    for extra in (tab, jax_table, gym):
+    for extra in (tab, jax_table, gym, sensors):
         if extra:
             print("\n" + extra)
     if args.no_write:
@@ -201,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
                 print("\n" + extra)
         return 0
     doc = document(command, started, load0, load1, repeat, seconds, tab, vector_summary(table, workloads),
-                   jax_table, gym, prof, comp)
+                   jax_table, gym, prof, comp, sensors=sensors)
     return write_report(args.out, doc)
 
 

@@ -1,0 +1,151 @@
+"""Deck sensors' speed forms: the body-frame casters (:func:`axis_hits`, :func:`depth_hits`) give the
+reference caster's values (:func:`cast_rays` of :func:`world_rays`), in NumPy and under jax.jit, and the
+one-uniform-per-ray noise has the VL53L1x model's distribution."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.sensor_config import SensorConfig
+from quadswarm_mj.sensor_rays import AXIS_DIRS, axis_hits, cast_rays, depth_directions, depth_hits, world_rays
+
+
+def _state(rng, n, lead=()):
+    from scipy.spatial.transform import Rotation
+
+    pos = rng.uniform([-2.5, -2.5, 0.2], [2.5, 2.5, 2.8], lead + (n, 3))
+    R = Rotation.random(int(np.prod(lead + (n,))), random_state=rng).as_matrix().reshape(lead + (n, 3, 3))
+    return pos, R
+
+
+def _scene(seed, n=8, lead=(5,), crowded=True):
+    """Random quads (some packed closely so the hitbox spheres are seen and one starts inside another),
+    level and axis-aligned quads too (rays parallel to the planes), and a column map."""
+    rng = np.random.default_rng(seed)
+    pos, R = _state(rng, n, lead)
+    if crowded:
+        pos[..., 1, :] = pos[..., 0, :] + [0.4, 0.05, -0.03]  # ahead of quad 0
+        pos[..., 2, :] = pos[..., 0, :] + [0.05, 0.02, 0.01]  # inside quad 0's hitbox
+        pos[..., 3, :] = pos[..., 4, :] + [0.0, 0.0, 0.5]  # straight above quad 4
+    R[..., -1, :, :] = np.diag([1.0, -1.0, -1.0])  # upside down
+    R[..., 0, :, :] = np.eye(3)  # level, axis-aligned: rays parallel to 4 of the 6 planes
+    omap = (rng.uniform(-2.5, 2.5, lead + (6, 2)), rng.uniform(size=lead + (6,)) < 0.7, np.full(lead, 0.25))
+    return pos, R, omap
+
+
+def _reference(c, pos, R, body_dirs, omap):
+    return cast_rays(pos, world_rays(R, body_dirs), c.room_low, c.room_high, omap, c.hitbox)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("with_columns", [False, True])
+def test_axis_hits_equal_the_reference(seed, with_columns):
+    c = EnvConfig(num_quads=8, room_size=(6.0, 5.0, 3.0))
+    pos, R, omap = _scene(seed)
+    omap = omap if with_columns else None
+    ref = _reference(c, pos, R, np.asarray(AXIS_DIRS), omap)
+    got = axis_hits(pos, R, c.room_low, c.room_high, omap, c.hitbox)
+    assert got.shape == ref.shape == (5, 8, 6) and np.all(np.isfinite(got))
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
+    assert np.all(got[:, 0] == 0.0) and np.all(got[:, 2] == 0.0)  # inside another's hitbox: 0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("shape", [(8, 8), (3, 5), (1, 1)])
+@pytest.mark.parametrize("with_columns", [False, True])
+def test_depth_hits_equal_the_reference(seed, shape, with_columns):
+    c = EnvConfig(num_quads=8, room_size=(6.0, 5.0, 3.0))
+    pos, R, omap = _scene(seed)
+    omap = omap if with_columns else None
+    fov = (60.0, 45.0)
+    ref = _reference(c, pos, R, depth_directions(shape, fov).reshape(-1, 3), omap)
+    got = depth_hits(pos, R, shape, fov, c.room_low, c.room_high, omap, c.hitbox)
+    assert got.shape == ref.shape == (5, 8, shape[0] * shape[1])
+    np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-10)
+
+
+def test_speed_forms_without_neighbours_and_one_quad():
+    c = EnvConfig(num_quads=1)
+    pos, R, _ = _scene(3, n=1, lead=(4,), crowded=False)
+    np.testing.assert_allclose(axis_hits(pos, R, c.room_low, c.room_high, None, c.hitbox),
+                               _reference(c, pos, R, np.asarray(AXIS_DIRS), None), rtol=1e-12)
+    np.testing.assert_allclose(depth_hits(pos, R, (4, 4), (45.0, 45.0), c.room_low, c.room_high),
+                               _reference(c, pos, R, depth_directions((4, 4), (45.0, 45.0)).reshape(-1, 3), None),
+                               rtol=1e-10)
+
+
+def test_speed_forms_numpy_equal_jit():
+    jax = pytest.importorskip("jax")
+    jnp = jax.numpy
+    c = EnvConfig(num_quads=8, room_size=(6.0, 5.0, 3.0))
+    pos, R, omap = _scene(4)
+    f32 = lambda x: jnp.asarray(x, jnp.float32) if np.asarray(x).dtype.kind == "f" else jnp.asarray(x)  # noqa: E731
+    jmap = tuple(f32(x) for x in omap)
+    ax = jax.jit(lambda p, r, m: axis_hits(p, r, c.room_low, c.room_high, m, c.hitbox))(f32(pos), f32(R), jmap)
+    np.testing.assert_allclose(np.asarray(ax), axis_hits(pos, R, c.room_low, c.room_high, omap, c.hitbox),
+                               rtol=1e-4, atol=1e-4)
+    dp = jax.jit(lambda p, r, m: depth_hits(p, r, (8, 8), (45.0, 45.0), c.room_low, c.room_high, m, c.hitbox))(
+        f32(pos), f32(R), jmap)
+    np.testing.assert_allclose(np.asarray(dp), depth_hits(pos, R, (8, 8), (45.0, 45.0), c.room_low, c.room_high,
+                                                          omap, c.hitbox), rtol=1e-4, atol=1e-4)
+
+
+def test_sensor_config_rays_match_the_speed_forms():
+    from quadswarm_mj.sensors import ray_directions
+
+    s = SensorConfig(multiranger=True, flow=True, depth=(2, 3))
+    np.testing.assert_array_equal(ray_directions(s)[:6], np.asarray(AXIS_DIRS))
+    np.testing.assert_allclose(ray_directions(s)[6:], depth_directions((2, 3), s.depth_fov).reshape(-1, 3))
+
+
+def test_flow_pixels2_equals_flow_pixels():
+    from quadswarm_mj.sensors import flow_pixels, flow_pixels2
+
+    rng = np.random.default_rng(7)
+    v, w, d = rng.normal(0, 2, (3, 8, 3)), rng.normal(0, 4, (3, 8, 3)), rng.uniform(0, 3, (3, 8))
+    d[0, 0] = 0.0  # the range floor 1 mm
+    fx, fy, ok = flow_pixels(v, w, d)
+    f, ok2 = flow_pixels2(v, w, d)
+    np.testing.assert_allclose(f, np.stack([fx, fy], axis=-1), rtol=1e-14)
+    np.testing.assert_array_equal(ok2, ok)
+    assert not ok.all() and ok.any()
+
+
+def test_one_uniform_gives_the_dropout_and_a_standard_normal_noise():
+    from scipy import stats
+
+    from quadswarm_mj.sensors import tof_normal
+
+    p = 0.2
+    u = np.random.default_rng(8).uniform(size=200_000)
+    kept = u >= p
+    z = tof_normal(u[kept], p)
+    assert abs(kept.mean() - (1 - p)) < 0.005
+    assert stats.kstest(z, "norm").pvalue > 1e-3
+    assert np.all(np.isfinite(tof_normal(np.array([p, 0.0, 1.0 - 1e-12]), p)))
+    # JAX float32 (the engine's erfinv) == NumPy (scipy's ndtri) to float32 round-off
+    jax = pytest.importorskip("jax")
+    w = np.linspace(p, 1.0, 1001, endpoint=False)
+    got = np.asarray(jax.jit(lambda x: tof_normal(x, p))(jax.numpy.asarray(w, jax.numpy.float32)))
+    np.testing.assert_allclose(got, tof_normal(w.astype(np.float32).astype(np.float64), p), atol=2e-4, rtol=1e-4)
+
+
+def test_deck_part_under_jit_with_x64_equals_numpy():
+    jax = pytest.importorskip("jax")
+    jnp = jax.numpy
+    from quadswarm_mj.sensors import deck_part
+
+    jax.config.update("jax_enable_x64", True)  # restored by tests/conftest.py
+    for s in (SensorConfig(multiranger=True, flow=True, depth=(2, 3)), SensorConfig(multiranger=True, flow=True)):
+        c = EnvConfig(num_quads=4, sensors=s)
+        rng = np.random.default_rng(9)
+        pos, R = _state(rng, 4, (2,))
+        vel, omega = rng.normal(size=(2, 4, 3)), rng.normal(size=(2, 4, 3))
+        d = {"range_u": rng.uniform(size=(2, 4, s.num_rays)), "flow_noise": rng.normal(size=(2, 4, 2))}
+        ref = deck_part(c, pos, vel, R, omega, None, d)
+        out = jax.jit(lambda *a, c=c: deck_part(c, *a[:4], None, a[4]))(
+            *(jnp.asarray(x) for x in (pos, vel, R, omega)), {k: jnp.asarray(v) for k, v in d.items()})
+        assert out.dtype == jnp.float64
+        np.testing.assert_allclose(np.asarray(out), ref, rtol=1e-9, atol=1e-9)
