@@ -32,8 +32,6 @@ from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj import pipeline
 from quadswarm_mj.actuation import (
     SPIN,
-    action_to_command,
-    motor_noise_step,
     rotor_positions,
     wrench_matrix,
 )
@@ -47,9 +45,10 @@ from quadswarm_mj.core.ops import ALL as _ALL
 from quadswarm_mj.core.ops import NumpyOps
 from quadswarm_mj.core.ops import put as _put
 from quadswarm_mj.core.step import velocity_stages
+from quadswarm_mj.core.substeps import step_inputs, substep_loop
 from quadswarm_mj.downwash import downwash_draw_spec
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
-from quadswarm_mj.perf.numpy_small import floor_wrench, quat_to_rotmat, substep_wrench, yaw_entries
+from quadswarm_mj.perf.numpy_small import quat_to_rotmat, substep_wrench, yaw_entries
 from quadswarm_mj.physics.mujoco_c import (  # noqa: F401  re-exported
     BACKENDS,
     BatchPhysics,
@@ -345,41 +344,17 @@ class CpuSwarm:
     # ------------------------------------------------------------------ physics
     def _physics(self, action: np.ndarray) -> dict[str, np.ndarray]:
         cfg, B, N = self.cfg, self.B, self.N
-        cmd = action_to_command(action) if not self._modes else None
-        if self._motor_noise:
-            self.motor_eps = motor_noise_step(self.motor_eps, self.params["motor_sigma"],
-                                              cfg.noise.motor_noise_theta, self.rng.standard_normal((B, N, 4)))
-        hit_floor = np.zeros((B, N), bool)
-        max_w = cfg.quad.max_omega
-        R = self._rotations()
-        for s in range(cfg.substeps):
-            if s > 0:
-                R = quat_to_rotmat(self.qpos[..., 3:7])
-            if self._act is None:
-                self.u, self.f_norm, force, torque = substep_wrench(self.u, cmd, self.motor_eps, self.params, R,
-                                                                    self.rotor_pos, self._mix, self._torque_spin)
-            else:
-                force, torque = self._actuate(action, cmd, R)
-            if self.paper_floor and self._any_on_floor:
-                w = self._worlds(self.on_floor)
-                fw, tw = floor_wrench(self.on_floor[w], force[w], torque[w], self.qvel[w, :, :3],
-                                      self.params["mass"][w], self.params["gravity"], cfg.collision.floor_friction,
-                                      cfg.sim_dt)
-                if isinstance(w, slice):
-                    force, torque = fw, tw
-                else:
-                    force[w], torque[w] = fw, tw
-            self.xfrc[..., :3] = force
-            self.xfrc[..., 3:] = torque
-            self.phys.step(max_w)  # also clips omega to +-max_w per body axis
-            if self.paper_floor:
-                grounded = self.qpos[..., 2] <= self.floor_z
-                if self._any_on_floor:
-                    grounded |= self.on_floor
-                if np.count_nonzero(grounded):  # (faster than .any() on tiny masks)
-                    self._floor_impact(self._worlds(grounded), hit_floor)
-        self._R = None
-        R = self._rotations()
+        ops = self._ops
+        inp = step_inputs(cfg, action, self.motor_eps, self.params, ops)
+        self.motor_eps = inp["eps"]
+        carry = {"q": self.qpos, "v": self.qvel, "R": self._rotations(), "u": self.u, "f_norm": self.f_norm,
+                 "on_floor": self.on_floor, "hit_floor": np.zeros((B, N), bool), "aux": None,
+                 "ctrl": (self.cmd_s, self.ctrl_state)}
+        consts = {"act": self._act, "rotor_pos": self.rotor_pos, "mix": self._mix, "torque_spin": self._torque_spin}
+        c = substep_loop(cfg, carry, inp, consts, self.phys, ops)
+        self.u, self.f_norm, self.on_floor, hit_floor, R = c["u"], c["f_norm"], c["on_floor"], c["hit_floor"], c["R"]
+        self.cmd_s, self.ctrl_state = c["ctrl"]
+        self._R = R
         # once per control step: walls, ceiling (or the room guard), quad-quad, obstacles, downwash
         pos = self.qpos[..., :3] - self.offsets if not self._offsets_zero else self.qpos[..., :3].copy()
         kin = {"pos": pos, "vel": self.qvel[..., :3].copy(), "omega": self.qvel[..., 3:].copy(), "R": R,
@@ -402,15 +377,6 @@ class CpuSwarm:
         k.setdefault("obst_new", None)
         k.setdefault("obst_feats", None)
         return k
-
-    def _actuate(self, action: np.ndarray, cmd: np.ndarray | None, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One sub-step of :func:`pipeline.make_substep_actuation` (control mode, thrust map,
-        aerodynamics): updates ``u``, ``f_norm``, ``ctrl_state``, ``cmd_s``; returns the world wrench."""
-        pos = self.qpos[..., :3] - self.offsets
-        self.u, self.f_norm, force, torque, self.cmd_s, self.ctrl_state = self._act(
-            self.u, action, cmd, self.motor_eps, self.params, pos, self.qvel[..., :3].copy(),
-            R, self.qvel[..., 3:].copy(), self.ctrl_state, self.rotor_pos, self._mix, self._torque_spin)
-        return force, torque
 
     def _worlds(self, flags: np.ndarray) -> Any:
         """Index of the worlds with any flag set: a slice when that is every world (views, no copy)."""

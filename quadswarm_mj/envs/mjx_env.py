@@ -47,11 +47,8 @@ from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj import pipeline
 from quadswarm_mj.actuation import (
     SPIN,
-    action_to_command,
     motor_noise_draw_spec,
-    motor_noise_step,
     rotor_positions,
-    substep_wrench,
     wrench_matrix,
 )
 from quadswarm_mj.aerodynamics import aero_draw_spec
@@ -63,8 +60,6 @@ from quadswarm_mj.collisions import (
     collision_draw_specs,
     expand_per_quad,
     floor_draw_spec,
-    floor_impact,
-    floor_wrench,
     pairwise_contacts,
     quad_collision_slot_spec,
     wall_draw_spec,
@@ -74,6 +69,7 @@ from quadswarm_mj.core.ops import JaxOps
 from quadswarm_mj.core.ops import sub as _sub
 from quadswarm_mj.core.state import State
 from quadswarm_mj.core.step import velocity_stages
+from quadswarm_mj.core.substeps import CARRY, step_inputs, substep_loop
 from quadswarm_mj.devices import check_mjx_batch
 from quadswarm_mj.downwash import DOWNWASH_BUDGET, downwash_slot_spec
 from quadswarm_mj.envs.autoreset import AutoResetWrapper, _run_if, _select  # noqa: F401  re-exported
@@ -86,8 +82,8 @@ from quadswarm_mj.perf.fused_draws import (  # noqa: F401  re-exported (their ho
     step_words,
     threefry_2x32_unrolled,
 )
-from quadswarm_mj.perf.jax_substeps import component_substeps
-from quadswarm_mj.physics.mjx import MjxPhysics
+from quadswarm_mj.perf.jax_substeps import ComponentLoop
+from quadswarm_mj.physics.mjx import JaxSubstep, MjxPhysics
 from quadswarm_mj.random_draws import DrawSpec, JaxSampler, MeanSampler, Uniform
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
 from quadswarm_mj.rewards import anneal_factor, env_terms, total_reward
@@ -287,6 +283,14 @@ class MjxQuadSwarmEnv:
         """The rigid-body stage of this env's ``physics`` (:meth:`quadswarm_mj.physics.mjx.MjxPhysics.integrator`)."""
         return self._mjx_physics.integrator(self.physics, params, obstacle_radius)
 
+    def _substep_physics(self, params: dict[str, Any], obstacle_radius: Any = None) -> Any:
+        """The ``physics`` of :func:`quadswarm_mj.core.substeps.substep_loop`: the whole loop on components
+        in the default configuration (:class:`~quadswarm_mj.perf.jax_substeps.ComponentLoop`), else one
+        integrator sub-step at a time (:class:`~quadswarm_mj.physics.mjx.JaxSubstep`)."""
+        if self._component_substeps:
+            return ComponentLoop(self._fb_constants, self._mix)
+        return JaxSubstep(self._integrator(params, obstacle_radius), self.cfg.quad.max_omega)
+
     def _observe(self, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, draws: dict[str, Any],
                  dist: Any = None, omap: Any = None) -> jax.Array:
         f = _float()
@@ -403,63 +407,24 @@ class MjxQuadSwarmEnv:
         cfg, n = self.cfg, self.N
         f = _float()
         params = self._params(info)
-        integrate = self._integrator(params, info.get("obstacle_radius"))
-        rotor_pos = jnp.asarray(self._rotor_pos, f)
-        mix = jnp.asarray(self._mix, f)
-        torque_spin = params["torque_max"] * jnp.asarray(SPIN, f)
-        cmd = action_to_command(action) if not self._modes else None
-        eps = info["motor_eps"]
-        if cfg.noise.motor_noise_ratio > 0:
-            eps = motor_noise_step(eps, params["motor_sigma"], cfg.noise.motor_noise_theta, rnd["motor/motor"])
-        max_w = cfg.quad.max_omega
-        floor_z = cfg.quad.arm
-        paper_floor = self._paper_floor
-        act = self._act
-
-        def substep(carry: tuple, yaw_slots: jax.Array) -> tuple[tuple, None]:
-            (q, v, R, u, f_norm, on_floor, hit_floor, aux), ctrl = carry[:-1], carry[-1]
-            if act is None:
-                u, f_norm, force, torque = substep_wrench(u, cmd, eps, params, R, rotor_pos, mix, torque_spin)
-            else:  # control mode, thrust map, aerodynamics (pipeline.make_substep_actuation)
-                u, f_norm, force, torque, cmd_s, cs = act(u, action, cmd, eps, params, q[:, :3], v[:, :3], R,
-                                                          v[:, 3:], ctrl[1], rotor_pos, mix, torque_spin)
-                ctrl = (cmd_s, cs)
-            if paper_floor:
-                force, torque = floor_wrench(on_floor, force, torque, v[:, :3], params["mass"], params["gravity"],
-                                             cfg.collision.floor_friction, cfg.sim_dt)
-            q, v, aux = integrate(q, v, jnp.concatenate([force, torque], axis=-1), aux)
-            omega = jnp.clip(v[:, 3:], -max_w, max_w)
-            R = quat_to_rotmat(q[:, 3:7])
-            if not paper_floor:  # MuJoCo's contacts act on the floor
-                v = jnp.concatenate([v[:, :3], omega], -1)
-                return (q, v, R, u, f_norm, on_floor, hit_floor, aux, ctrl), None
-            landing = (q[:, 2] <= floor_z) & ~on_floor
-            d = expand_per_quad(landing, {"c": yaw_slots[0], "s": yaw_slots[1]})  # trig-free yaw draws
-            r = floor_impact(q[:, :3], v[:, :3], omega, q[:, 3:7], R, u, on_floor, floor_z, None,
-                             yaw_draw_cs=(d["c"], d["s"]))
-            q = jnp.concatenate([r["pos"], r["quat"]], -1)
-            v = jnp.concatenate([r["vel"], r["omega"]], -1)
-            return (q, v, r["R"], r["u"], f_norm, r["on_floor"], hit_floor | r["hit_floor"], aux, ctrl), None
-
+        obst = None if self._obst is None else functools.partial(self._obstacles, info, rnd)
+        ops = JaxOps(cfg, rnd, f, obst)
+        consts = {"act": self._act, "rotor_pos": jnp.asarray(self._rotor_pos, f), "mix": jnp.asarray(self._mix, f),
+                  "torque_spin": params["torque_max"] * jnp.asarray(SPIN, f)}
+        inp = step_inputs(cfg, action, info["motor_eps"], params, ops)
         q0, v0 = self._read(data)
-        if self._component_substeps:
-            q, v, R, u, f_norm, on_floor, hit_floor = component_substeps(
-                cfg, self._fb_constants, self._mix, q0.astype(f), v0.astype(f), info, params, cmd, eps, torque_spin,
-                rnd["floor/yaw"])
-            aux, ctrl = None, None
-        else:
-            yaw_cs = (jnp.cos(rnd["floor/yaw"]), jnp.sin(rnd["floor/yaw"]))  # (substeps, slots) each
-            aux0 = data if self.physics == "mjx" else None
-            carry0 = (q0.astype(f), v0.astype(f), info["state"]["rot"], info["motor_u"], info["state"]["thrust"],
-                      info["on_floor"], jnp.zeros((n,), bool), aux0, self._ctrl0(info, eps))
-            (q, v, R, u, f_norm, on_floor, hit_floor, aux, ctrl), _ = jax.lax.scan(substep, carry0, yaw_cs)
+        carry = {"q": q0.astype(f), "v": v0.astype(f), "R": info["state"]["rot"], "u": info["motor_u"],
+                 "f_norm": info["state"]["thrust"], "on_floor": info["on_floor"], "hit_floor": jnp.zeros((n,), bool),
+                 "aux": data if self.physics == "mjx" else None, "ctrl": self._ctrl0(info, inp["eps"])}
+        c = substep_loop(cfg, carry, inp, consts, self._substep_physics(params, info.get("obstacle_radius")), ops)
+        q, v, R, u, f_norm, on_floor, hit_floor, aux, ctrl = (c[k] for k in CARRY)
+        eps = inp["eps"]
         data = data if aux is None else aux
         # once per control step: walls, ceiling (or the room guard), quad-quad, obstacles, downwash
         kin = {"pos": q[:, :3], "vel": v[:, :3], "omega": v[:, 3:], "R": R, "quat": q[:, 3:7], "u": u,
                "on_floor": on_floor, "hit_floor": hit_floor}
         prev = {k2: info[k2] for k2 in ("on_floor", "at_wall", "at_ceiling", "contact")}
-        obst = None if self._obst is None else functools.partial(self._obstacles, info, rnd)
-        k = velocity_stages(cfg, kin, prev, JaxOps(cfg, rnd, f, obst))
+        k = velocity_stages(cfg, kin, prev, ops)
         pos, vel, omega = k["pos"], k["vel"], k["omega"]
         data = self._write(data, jnp.concatenate([pos, k["quat"]], -1), jnp.concatenate([vel, omega], -1))
         if aux is None:

@@ -81,3 +81,25 @@ class MjxPhysics:
 
         return integrate_mjx
 
+
+
+class JaxSubstep:
+    """The sub-step interface of :func:`quadswarm_mj.core.substeps.substep_loop` around an integrator
+    ``integrate(q, v, wrench, aux) -> (q, v, aux)`` (:meth:`MjxPhysics.integrator`), with the angular
+    velocity clipped to +-``max_omega`` (rad/s) per body axis after it. Positions are world-local."""
+
+    def __init__(self, integrate: Any, max_omega: float) -> None:
+        self.integrate, self.max_omega = integrate, max_omega
+
+    def substep(self, q: Any, v: Any, force: Any, torque: Any, aux: Any) -> tuple[Any, Any, Any]:
+        q, v, aux = self.integrate(q, v, jnp.concatenate([force, torque], axis=-1), aux)
+        w = self.max_omega
+        return q, jnp.concatenate([v[..., :3], jnp.clip(v[..., 3:], -w, w)], -1), aux
+
+    @staticmethod
+    def local_pos(q: Any) -> Any:
+        return q[..., :3]
+
+    @staticmethod
+    def velocities(v: Any) -> tuple[Any, Any]:
+        return v[..., :3], v[..., 3:]

@@ -83,11 +83,40 @@ def _check_simple_bodies(model: mujoco.MjModel, arena: Any) -> None:
                            "must coincide with the body frame")
 
 
-class MjDataPhysics:
+class _SubstepAdapter:
+    """The sub-step interface of :func:`quadswarm_mj.core.substeps.substep_loop` on the (B, N, .) views
+    ``qpos``/``qvel``/``xfrc`` (MuJoCo's frame: positions include the world offsets)."""
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+    xfrc: np.ndarray
+    offsets: np.ndarray
+    max_omega: float
+
+    def substep(self, q: np.ndarray, v: np.ndarray, force: np.ndarray, torque: np.ndarray, aux: Any) -> tuple:
+        """Write the world wrench into ``xfrc_applied``, step once (angular velocity clipped); the state
+        arrays are MuJoCo's own (returned as they are: ``q``/``v`` are ``qpos``/``qvel``)."""
+        self.xfrc[..., :3] = force
+        self.xfrc[..., 3:] = torque
+        self.step(self.max_omega)
+        return self.qpos, self.qvel, aux
+
+    def local_pos(self, q: np.ndarray) -> np.ndarray:
+        """World-local positions (m) of ``q`` (B, N, 7) (a fresh array)."""
+        return q[..., :3] - self.offsets
+
+    @staticmethod
+    def velocities(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(vel m/s world, omega rad/s body) copies (``v`` is MuJoCo's, overwritten by the next sub-step)."""
+        return v[..., :3].copy(), v[..., 3:].copy()
+
+
+class MjDataPhysics(_SubstepAdapter):
     """All B worlds in one MjModel/MjData; qpos/qvel/xfrc are views into it (no copies)."""
 
     def __init__(self, cfg: EnvConfig, num_worlds: int, visual: bool = True):
         B, N = num_worlds, cfg.num_quads
+        self.max_omega = cfg.quad.max_omega
         self.arena = build_arena(cfg, num_worlds) if visual else build_arena(cfg, num_worlds, visual=False)
         self.model = self.arena.model
         _no_autoreset(self.model)
@@ -161,7 +190,7 @@ class MjDataPhysics:
 _CHUNK_MODELS: dict[Any, Any] = {}  # (cfg, worlds) -> lean arena, compiled once per process
 
 
-class BatchPhysics:
+class BatchPhysics(_SubstepAdapter):
     """B worlds as K = ceil(B / C) simulations of a C-world model (no visual geoms) in one
     ``mujoco.batch.Batch``: one call steps them all. The engine's qpos/qvel/xfrc are (B, N, .)
     arrays copied into the simulations' state rows before each step and back after it.
@@ -176,6 +205,7 @@ class BatchPhysics:
         import mujoco.batch
 
         B, N = num_worlds, cfg.num_quads
+        self.max_omega = cfg.quad.max_omega
         C = max(1, min(int(chunk_worlds), B))
         K = -(-B // C)
         key = (cfg, C)
