@@ -13,9 +13,11 @@ upside down, grounded, wall, ceiling, a colliding pair, a column, one under anot
 Measured (3 chained steps; ``python -m pytest -q -m "" tests/test_numpy_jax_step.py``, errors relative to
 max(1, |value|)): the rotor cases agree to 2e-15, the "ctbr" case to 1e-8 (see ``TOL_SQRT``).
 
-For the one ``control_step`` of issue 33: point ``STEP`` at it (NumPy ops + free-body physics vs
-JAX ops + free-body physics; the inputs and outputs here are plain dicts of arrays, easy to map onto
-its state pytree), and keep the comparisons.
+``STEP`` is the package's one control step's physics half, :func:`quadswarm_mj.core.control.physics_stage`
+(the sub-step loop and the stages after it, written once for both engines), with the free-body physics
+:class:`quadswarm_mj.physics.freebody.FreeBodyPhysics` and the dense-draw ops
+:class:`quadswarm_mj.core.dense_ops.DenseOps` in either namespace: the NumPy and JAX runs of it must
+agree, and in NumPy it must agree with ``physics_half`` (the leaf chain) to round-off.
 """
 
 from __future__ import annotations
@@ -161,7 +163,30 @@ def physics_half(xp: Any, cfg: EnvConfig, s: dict[str, Any], action: Any, params
             "hit_ceiling": hit_ceiling, "new_contact": qc["new_contact"], "obst_new": ob["new_contact"]}
 
 
-STEP = physics_half
+def control_step_physics(xp: Any, cfg: EnvConfig, s: dict[str, Any], action: Any, params: dict[str, Any],
+                         d: dict[str, Any], yaw_cs: bool) -> dict[str, Any]:
+    """``physics_half``'s contract through the package's ``core.control.physics_stage``."""
+    from quadswarm_mj.core.control import physics_stage
+    from quadswarm_mj.core.dense_ops import DenseOps
+    from quadswarm_mj.physics.freebody import FreeBodyPhysics
+
+    act = pipeline.make_substep_actuation(cfg)
+    physics = FreeBodyPhysics(params["mass"], params["inertia"], xp.asarray([0.0, 0.0, -params["gravity"]]),
+                              cfg.sim_dt, cfg.quad.max_omega)
+    ops = DenseOps(cfg, d, xp, yaw_cs, omap=d["omap"], obst_contact=s["obst_contact"])
+    consts = {"act": act, "rotor_pos": xp.asarray(rotor_positions(cfg.quad)),
+              "mix": wrench_matrix(rotor_positions(cfg.quad)), "torque_spin": params["torque_max"] * xp.asarray(SPIN)}
+    state = {**{k: s[k] for k in ("q", "v", "u", "eps", "f_norm", "on_floor", "at_wall", "at_ceiling", "contact")},
+             "R": quat_to_rotmat(s["q"][..., 3:7]), "params": params, "aux": None,
+             "ctrl": None if act is None else (xp.zeros_like(s["u"]), s["ctrl"])}
+    k, _ = physics_stage(cfg, state, action, consts, physics, ops)
+    return {"q": xp.concatenate([k["pos"], k["quat"]], -1), "v": xp.concatenate([k["vel"], k["omega"]], -1),
+            "u": k["u"], "eps": k["eps"], "f_norm": k["f_norm"], "ctrl": s["ctrl"] if act is None else k["ctrl"][1],
+            **{key: k[key] for key in ("on_floor", "at_wall", "at_ceiling", "contact", "obst_contact", "R", "dist",
+                                       "hit_floor", "hit_wall", "hit_ceiling", "new_contact", "obst_new")}}
+
+
+STEP = control_step_physics
 STATE_KEYS = ("q", "v", "u", "eps", "f_norm", "ctrl", "on_floor", "at_wall", "at_ceiling", "contact", "obst_contact")
 
 
@@ -235,14 +260,16 @@ def _to_jax(tree: Any) -> Any:
     return jax.tree.map(lambda a: jnp.asarray(a) if isinstance(a, np.ndarray) else a, tree)
 
 
-def rollout(xp: Any, cfg: EnvConfig, yaw_cs: bool, seed: int = 1) -> list[dict[str, np.ndarray]]:
-    """``STEPS`` chained control steps of ``STEP`` in ``xp`` (jax.numpy: jitted, float64); NumPy outputs."""
+def rollout(xp: Any, cfg: EnvConfig, yaw_cs: bool, seed: int = 1, step: Any = None) -> list[dict[str, np.ndarray]]:
+    """``STEPS`` chained control steps of ``step`` (default ``STEP``) in ``xp`` (jax.numpy: jitted,
+    float64); NumPy outputs."""
+    step = STEP if step is None else step
     params, actions, draws = step_inputs(cfg, seed)
     state = start_state(cfg, seed)
     if xp is np:
-        fn = lambda s, a, p, d: STEP(np, cfg, s, a, p, d, yaw_cs)  # noqa: E731
+        fn = lambda s, a, p, d: step(np, cfg, s, a, p, d, yaw_cs)  # noqa: E731
     else:
-        fn = jax.jit(lambda s, a, p, d: STEP(jnp, cfg, s, a, p, d, yaw_cs))
+        fn = jax.jit(lambda s, a, p, d: step(jnp, cfg, s, a, p, d, yaw_cs))
         state, actions, draws, params = _to_jax((state, actions, draws, params))
     out = []
     for a, d in zip(actions, draws):
@@ -279,6 +306,21 @@ def test_numpy_equals_jax_float64(case: str, yaw_cs: bool) -> None:
     for t, (r, g) in enumerate(zip(ref, got)):
         err, key = _max_err(r, g)
         assert err <= tol, f"step {t}: {key} differs by {err:.3g} (relative) between NumPy and JAX"
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+@pytest.mark.parametrize("yaw_cs", [False, True])
+def test_the_control_step_is_the_leaf_chain(case: str, yaw_cs: bool) -> None:
+    """``core.control.physics_stage`` (NumPy, free-body physics, dense draws) computes what the leaf
+    functions chained in the documented order compute (``physics_half``), to round-off: the control
+    step's order is the model's."""
+    cfg = CASES[case]
+    tol = TOL if cfg.control_mode == "rotor" else TOL_SQRT
+    ref = rollout(np, cfg, yaw_cs, step=physics_half)
+    got = rollout(np, cfg, yaw_cs)
+    for t, (r, g) in enumerate(zip(ref, got)):
+        err, key = _max_err(_w_positive(r), _w_positive(g))
+        assert err <= tol, f"step {t}: {key} differs by {err:.3g} (relative) from the leaf chain"
 
 
 def _w_positive(out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -15,7 +15,9 @@ Both offer, for the sub-steps (:mod:`quadswarm_mj.core.substeps`): ``loop(body, 
 (the paper's floor, event-gated on the CPU engine); for the stages after them (:mod:`quadswarm_mj.core.
 step`): ``room`` (room_low, room_high), ``gate(mask_fn)``, ``wall_gate``, ``put(arr, w, value)``,
 ``zeros_like``, ``draws(kind, mask_fn, w)`` (kind: "motor", "wall", "yaw", "down"), ``quad_quad`` and
-``obstacles``; ``mask_fn`` is called only where the engine needs the mask.
+``obstacles``; ``mask_fn`` is called only where the engine needs the mask; for the task step
+(:func:`quadswarm_mj.core.control.task_step`): ``dtype`` (the float dtype), ``terms`` and the draws
+"scenario", "sensor", "deck".
 """
 
 from __future__ import annotations
@@ -56,6 +58,12 @@ class NumpyOps:
 
     wrench = staticmethod(numpy_small.substep_wrench)
     rotmat = staticmethod(numpy_small.quat_to_rotmat)
+    dtype = np.float64
+
+    @staticmethod
+    def terms(terms: dict[str, Any]) -> dict[str, Any]:
+        """The reward terms as they are (float64 already)."""
+        return terms
 
     def __init__(self, swarm: Any) -> None:
         self.s = swarm
@@ -119,6 +127,19 @@ class NumpyOps:
         s, noise = self.s, self.s.cfg.noise
         if kind == "motor":  # the step's motor-noise normals (B, N, 4)
             return s.rng.standard_normal((s.B, s.N, 4))
+        if kind == "scenario":  # the scenario's uniforms (B, n)
+            return s.rng.uniform(size=(s.B, s._n_scn))
+        if kind == "sensor":  # = NumpySampler(rng).draw(sensor_noise_spec(cfg), (B,)): 0 + std * N(0, 1)
+            if not s._sensor_on:
+                return None
+            return dict(zip(s._sensor_keys, 0.0 + s._sensor_std * s.rng.standard_normal((3, s.B, s.N, 3))))
+        if kind == "deck":  # deck sensor noise (quadswarm_mj.sensors), None: noise-free
+            if not (s.cfg.sensors.any and s.cfg.sensors.noise):
+                return None
+            from quadswarm_mj.random_draws import NumpySampler
+            from quadswarm_mj.sensors import deck_draw_spec
+
+            return NumpySampler(s.rng).draw(deck_draw_spec(s.cfg), (s.B,))
         if kind == "wall":
             return s._sampler(noise.stochastic_collisions).draw(s._spec_wall, (s._count(w),))
         if kind == "yaw":  # = s._sampler(...).draw(s._spec_floor, (M,))["yaw"]
@@ -156,7 +177,7 @@ class JaxOps:
     def __init__(self, cfg: Any, rnd: dict[str, Any], dtype: Any, obstacle_stage: Any = None) -> None:
         import jax.numpy as jnp
 
-        self.cfg, self.rnd, self.jnp = cfg, rnd, jnp
+        self.cfg, self.rnd, self.jnp, self.dtype = cfg, rnd, jnp, dtype
         self.room = (jnp.asarray(cfg.room_low, dtype), jnp.asarray(cfg.room_high, dtype))
         self._obstacle_stage = obstacle_stage
 
@@ -186,6 +207,11 @@ class JaxOps:
         v = jnp.concatenate([r["vel"], r["omega"]], -1)
         return q, v, r["u"], r["on_floor"], hit_floor | r["hit_floor"], r["R"]
 
+    def terms(self, terms: dict[str, Any]) -> dict[str, Any]:
+        """The reward terms in the engine's float dtype (a zero-scale term may come back weakly typed, and
+        a state whose leaf types change between reset and step would make jit compile step twice)."""
+        return {name: v.astype(self.dtype) for name, v in terms.items()}
+
     @staticmethod
     def gate(mask_fn: Any) -> Any:
         return ALL
@@ -205,6 +231,10 @@ class JaxOps:
         jnp, rnd = self.jnp, self.rnd
         if kind == "motor":
             return rnd["motor/motor"]
+        if kind == "scenario":
+            return rnd["scenario"]
+        if kind in ("sensor", "deck"):  # None: noise-free
+            return sub(rnd, kind) or None
         if kind == "wall":
             return expand_per_quad(mask_fn(), sub(rnd, "wall"))
         if kind == "yaw":  # the last sub-step's landing slots (unused without the paper's floor), trig-free

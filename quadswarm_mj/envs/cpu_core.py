@@ -1,8 +1,10 @@
 """The CPU engine shared by every CPU front end: B worlds x N quads stepped by MuJoCo's C engine.
 
 All model math is batched over (B, N) with the pure functions of the package; MuJoCo integrates the
-rigid bodies. ``QuadSwarmEnv`` is this engine with B = 1, ``QuadSwarmVectorEnv`` runs several of
-them (shards of worlds), ``QuadSwarmParallelEnv`` wraps ``QuadSwarmEnv``.
+rigid bodies. ``step`` is :func:`quadswarm_mj.core.control.control_step` (the control step both engines
+call) with :class:`~quadswarm_mj.core.ops.NumpyOps` and the MuJoCo back end as ``physics``.
+``QuadSwarmEnv`` is this engine with B = 1, ``QuadSwarmVectorEnv`` runs several of them (shards of
+worlds), ``QuadSwarmParallelEnv`` wraps ``QuadSwarmEnv``.
 
 Two physics back ends hold the B worlds (``backend``: ``"mjdata"``, one ``MjData`` with all worlds, the
 default; ``"batch"``, ``mujoco.batch`` chunks; :mod:`quadswarm_mj.physics.mujoco_c`); they give
@@ -41,11 +43,10 @@ from quadswarm_mj.collisions import (
 )
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.constants import FLOOR_TOL
+from quadswarm_mj.core.control import control_step
 from quadswarm_mj.core.ops import ALL as _ALL
 from quadswarm_mj.core.ops import NumpyOps
 from quadswarm_mj.core.ops import put as _put
-from quadswarm_mj.core.step import velocity_stages
-from quadswarm_mj.core.substeps import step_inputs, substep_loop
 from quadswarm_mj.downwash import downwash_draw_spec
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.perf.numpy_small import quat_to_rotmat, substep_wrench, yaw_entries
@@ -57,7 +58,7 @@ from quadswarm_mj.physics.mujoco_c import (  # noqa: F401  re-exported
 )
 from quadswarm_mj.random_draws import MeanSampler, NumpySampler
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
-from quadswarm_mj.rewards import anneal_factor, total_reward, zero_terms
+from quadswarm_mj.rewards import zero_terms
 from quadswarm_mj.scenarios import ScenarioState, get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
 from quadswarm_mj.spatial import rotmat_to_quat
@@ -342,31 +343,17 @@ class CpuSwarm:
         self.phys.after_reset(idx)
 
     # ------------------------------------------------------------------ physics
-    def _physics(self, action: np.ndarray) -> dict[str, np.ndarray]:
-        cfg, B, N = self.cfg, self.B, self.N
-        ops = self._ops
-        inp = step_inputs(cfg, action, self.motor_eps, self.params, ops)
-        self.motor_eps = inp["eps"]
-        carry = {"q": self.qpos, "v": self.qvel, "R": self._rotations(), "u": self.u, "f_norm": self.f_norm,
-                 "on_floor": self.on_floor, "hit_floor": np.zeros((B, N), bool), "aux": None,
-                 "ctrl": (self.cmd_s, self.ctrl_state)}
-        consts = {"act": self._act, "rotor_pos": self.rotor_pos, "mix": self._mix, "torque_spin": self._torque_spin}
-        c = substep_loop(cfg, carry, inp, consts, self.phys, ops)
-        self.u, self.f_norm, self.on_floor, hit_floor, R = c["u"], c["f_norm"], c["on_floor"], c["hit_floor"], c["R"]
-        self.cmd_s, self.ctrl_state = c["ctrl"]
-        self._R = R
-        # once per control step: walls, ceiling (or the room guard), quad-quad, obstacles, downwash
-        pos = self.qpos[..., :3] - self.offsets if not self._offsets_zero else self.qpos[..., :3].copy()
-        kin = {"pos": pos, "vel": self.qvel[..., :3].copy(), "omega": self.qvel[..., 3:].copy(), "R": R,
-               "quat": self.qpos[..., 3:7], "u": self.u, "hit_floor": hit_floor}
-        prev = {"on_floor": self.on_floor, "at_wall": self.at_wall, "at_ceiling": self.at_ceiling,
-                "contact": self.contact}
-        k = velocity_stages(cfg, kin, prev, self._ops)
-        if not self.paper_floor and k["u"] is not self.u:  # the room guard ran
+    def _store(self, k: dict[str, Any], c: dict[str, Any]) -> None:
+        """Keep :func:`quadswarm_mj.core.control.physics_stage`'s results (``c``: after the sub-steps, whose
+        qpos/qvel are MuJoCo's own arrays, written there; ``k``: after the stages that follow them)."""
+        self.motor_eps, self.f_norm, self.u, self._R = k["eps"], k["f_norm"], c["u"], c["R"]
+        self.cmd_s, self.ctrl_state = k["ctrl"]
+        if not self.paper_floor and k["u"] is not c["u"]:  # the room guard ran
             self.qpos[..., 3:7] = k["quat"]
             self.u, self._R = k["u"], k["R"]
-        if not self.paper_floor:  # (with the paper's floor, on_floor and its mirror change in the sub-steps)
-            self.on_floor = k["on_floor"]
+        # the floor flags: with the paper's floor they (and their mirror) changed in the sub-steps
+        self.on_floor = k["on_floor"]
+        if not self.paper_floor:
             self._sync_flags()
         self.at_wall, self.at_ceiling, self.contact = k["at_wall"], k["at_ceiling"], k["contact"]
         if k["changed"] or not self._offsets_zero:  # otherwise qpos/qvel hold these values already
@@ -374,9 +361,6 @@ class CpuSwarm:
             self.qvel[..., :3] = k["vel"]
             self.qvel[..., 3:] = k["omega"]
             self.phys.touch()
-        k.setdefault("obst_new", None)
-        k.setdefault("obst_feats", None)
-        return k
 
     def _worlds(self, flags: np.ndarray) -> Any:
         """Index of the worlds with any flag set: a slice when that is every world (views, no copy)."""
@@ -427,25 +411,28 @@ class CpuSwarm:
     # ------------------------------------------------------------------ step
     def step(self, action: np.ndarray) -> dict[str, Any]:
         """Advance all worlds one control step with validated actions (B, N, 4) of ``cfg.control_mode``
-        (per-rotor in [-1, 1], or physical units clipped into ``control_action_bounds``)."""
-        cfg = self.cfg
+        (per-rotor in [-1, 1], or physical units clipped into ``control_action_bounds``):
+        :func:`quadswarm_mj.core.control.control_step` on MuJoCo (``self.phys``) with :class:`NumpyOps`."""
         self.prev_f_norm = self.f_norm
-        k = self._physics(action)
-        self.steps = self.steps + 1
-        self.total_steps += 1
-        t = self.steps * cfg.control_dt  # (B,)
-        u = self.rng.uniform(size=(self.B, self._n_scn))
-        effort = pipeline.effort_action(cfg, action, self.cmd_s) if self._modes else action
-        r = pipeline.task_stage(cfg, self.scenario, self.sstate, t, k, effort, self.f_norm, self.prev_f_norm,
-                                self.on_floor, anneal_factor(cfg, self.total_steps), u, self.metrics, self.omap,
-                                self.obst_metrics if self.omap is not None else None, self._obst_thr)
-        self.sstate, terms, self.metrics = r["sstate"], r["terms"], r["metrics_acc"]
+        s = {"q": self.qpos, "v": self.qvel, "R": self._rotations(), "u": self.u, "eps": self.motor_eps,
+             "f_norm": self.f_norm, "on_floor": self.on_floor, "at_wall": self.at_wall, "at_ceiling": self.at_ceiling,
+             "contact": self.contact, "params": self.params, "aux": None, "ctrl": (self.cmd_s, self.ctrl_state),
+             "steps": self.steps, "total_steps": self.total_steps, "sstate": self.sstate, "metrics_acc": self.metrics}
+        if self.omap is not None:
+            s.update(omap=self.omap, obst_metrics=self.obst_metrics, obst_threshold=self._obst_thr)
+        consts = {"act": self._act, "rotor_pos": self.rotor_pos, "mix": self._mix, "torque_spin": self._torque_spin,
+                  "obs_low": self.obs_low, "obs_high": self.obs_high, "obs_scale": self.obs_scale,
+                  "zero_terms": self._zero_terms}
+        k, c, r = control_step(self.cfg, self.scenario, s, action, consts, self.phys, self._ops)
+        self._store(k, c)
+        self.steps, self.total_steps = r["steps"], r["total_steps"]
+        self.sstate, self.metrics = r["sstate"], r["metrics_acc"]
         if self.omap is not None:
             self.obst_metrics = r["obst_metrics"]
-        rewards = total_reward(terms, self._zero_terms)
-        truncated = self.steps >= cfg.episode_steps
-        return {"obs": self.observe(k), "rewards": rewards, "terms": terms, "truncated": truncated,
-                "kin": k, "t": t}
+        k.setdefault("obst_new", None)
+        k.setdefault("obst_feats", None)
+        return {"obs": r["obs"], "rewards": r["reward"], "terms": r["terms"], "truncated": r["done"], "kin": k,
+                "t": r["t"]}
 
     def observe(self, kin: dict[str, Any] | None = None, worlds: Any = None) -> np.ndarray:
         """Observations (B, N, obs_dim) float64 (sensor noise drawn now), or (len(worlds), N,

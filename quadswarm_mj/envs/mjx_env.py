@@ -16,19 +16,18 @@ batch with ``jax.vmap`` and compile with ``jax.jit``::
     state = step(state, action)                                  # state.obs (64, 8, obs_dim)
 
 The model is the package's single definition (the functions the CPU engine calls, on ``jax.numpy``);
-the stages after the sub-steps are :func:`quadswarm_mj.core.step.velocity_stages` with
+``step`` is :func:`quadswarm_mj.core.control.control_step`, the control step both engines call, with
 :class:`~quadswarm_mj.core.ops.JaxOps` (always-on stages, budgeted draws: every event's draws have the
 model's distribution, beyond the budget events reuse an earlier event's slot and new quad-quad pairs
 wait one step; ``tests/test_draw_budget.py``); the reset math is :func:`quadswarm_mj.pipeline.
-initial_state` and the task stage :func:`quadswarm_mj.pipeline.task_stage`, both shared with the CPU
-engine. Rigid-body integration is ``physics``: the exact free-body step (default with the paper's
-collision model) or ``mjx.step`` (MJX's contacts for ``collision_model`` "mujoco"/"blend", with the
-room guard as backstop). Random numbers: :mod:`quadswarm_mj.perf.fused_draws` (one threefry hash per
-reset and step); per-world domain randomization is redrawn at every ``reset`` into
-``info["params"]`` and reaches ``mjx.step`` through ``model.replace``. The fields of ``State`` are
-documented in :class:`quadswarm_mj.core.state.State`; docs/engines.md explains the design. Without
-noise, this engine (float32) and the CPU engine (float64) agree to well under 2 mm over 150 control
-steps with either physics (``tests/test_mjx_env.py``).
+initial_state`, shared with the CPU engine. Rigid-body integration is ``physics``: the exact
+free-body step (default with the paper's collision model) or ``mjx.step`` (MJX's contacts for
+``collision_model`` "mujoco"/"blend", with the room guard as backstop). Random numbers:
+:mod:`quadswarm_mj.perf.fused_draws` (one threefry hash per reset and step); per-world domain
+randomization is redrawn at every ``reset`` into ``info["params"]`` and reaches ``mjx.step`` through
+``model.replace``. The fields of ``State`` are documented in :class:`quadswarm_mj.core.state.State`;
+docs/engines.md explains the design. Without noise, this engine (float32) and the CPU engine (float64)
+agree to well under 2 mm over 150 control steps with either physics (``tests/test_mjx_env.py``).
 """
 
 from __future__ import annotations
@@ -65,11 +64,10 @@ from quadswarm_mj.collisions import (
     wall_draw_spec,
 )
 from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.core.control import control_step
 from quadswarm_mj.core.ops import JaxOps
 from quadswarm_mj.core.ops import sub as _sub
 from quadswarm_mj.core.state import State
-from quadswarm_mj.core.step import velocity_stages
-from quadswarm_mj.core.substeps import CARRY, step_inputs, substep_loop
 from quadswarm_mj.devices import check_mjx_batch
 from quadswarm_mj.downwash import DOWNWASH_BUDGET, downwash_slot_spec
 from quadswarm_mj.envs.autoreset import AutoResetWrapper, _run_if, _select  # noqa: F401  re-exported
@@ -83,10 +81,10 @@ from quadswarm_mj.perf.fused_draws import (  # noqa: F401  re-exported (their ho
     threefry_2x32_unrolled,
 )
 from quadswarm_mj.perf.jax_substeps import ComponentLoop
-from quadswarm_mj.physics.mjx import JaxSubstep, MjxPhysics
+from quadswarm_mj.physics.mjx import MjxPhysics
 from quadswarm_mj.random_draws import DrawSpec, JaxSampler, MeanSampler, Uniform
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
-from quadswarm_mj.rewards import anneal_factor, env_terms, total_reward
+from quadswarm_mj.rewards import env_terms
 from quadswarm_mj.scenarios import get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
 from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
@@ -279,17 +277,13 @@ class MjxQuadSwarmEnv:
     def _params(self, info: dict[str, Any]) -> dict[str, Any]:
         return {**info["params"], "gravity": self.cfg.quad.gravity}
 
-    def _integrator(self, params: dict[str, Any], obstacle_radius: Any = None) -> Any:
-        """The rigid-body stage of this env's ``physics`` (:meth:`quadswarm_mj.physics.mjx.MjxPhysics.integrator`)."""
-        return self._mjx_physics.integrator(self.physics, params, obstacle_radius)
-
     def _substep_physics(self, params: dict[str, Any], obstacle_radius: Any = None) -> Any:
         """The ``physics`` of :func:`quadswarm_mj.core.substeps.substep_loop`: the whole loop on components
         in the default configuration (:class:`~quadswarm_mj.perf.jax_substeps.ComponentLoop`), else one
-        integrator sub-step at a time (:class:`~quadswarm_mj.physics.mjx.JaxSubstep`)."""
+        integrator sub-step at a time (:meth:`~quadswarm_mj.physics.mjx.MjxPhysics.substep_physics`)."""
         if self._component_substeps:
             return ComponentLoop(self._fb_constants, self._mix)
-        return JaxSubstep(self._integrator(params, obstacle_radius), self.cfg.quad.max_omega)
+        return self._mjx_physics.substep_physics(self.physics, params, self.cfg.quad.max_omega, obstacle_radius)
 
     def _observe(self, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, draws: dict[str, Any],
                  dist: Any = None, omap: Any = None) -> jax.Array:
@@ -400,37 +394,27 @@ class MjxQuadSwarmEnv:
         return State(data=data, obs=obs, reward=zero_n, done=jnp.zeros((), bool), metrics=metrics, info=info)
 
     # ------------------------------------------------------------------ physics
-    def _physics(self, data: mjx.Data, info: dict[str, Any], action: jax.Array,
-                 rnd: dict[str, Any]) -> tuple[mjx.Data, dict[str, Any]]:
-        """One control step of the simulator, in the order of ``CpuSwarm._physics``; the stages and
-        their extension points are those of :mod:`quadswarm_mj.pipeline`."""
-        cfg, n = self.cfg, self.N
-        f = _float()
+    def _step_inputs(self, data: mjx.Data, info: dict[str, Any], rnd: dict[str, Any]) -> tuple[dict, dict, Any, Any]:
+        """(state fields, constants, physics, ops) of :func:`quadswarm_mj.core.control.control_step` for one
+        world from ``data``/``info`` and the step's draws ``rnd``."""
+        cfg, f = self.cfg, _float()
         params = self._params(info)
         obst = None if self._obst is None else functools.partial(self._obstacles, info, rnd)
         ops = JaxOps(cfg, rnd, f, obst)
-        consts = {"act": self._act, "rotor_pos": jnp.asarray(self._rotor_pos, f), "mix": jnp.asarray(self._mix, f),
-                  "torque_spin": params["torque_max"] * jnp.asarray(SPIN, f)}
-        inp = step_inputs(cfg, action, info["motor_eps"], params, ops)
         q0, v0 = self._read(data)
-        carry = {"q": q0.astype(f), "v": v0.astype(f), "R": info["state"]["rot"], "u": info["motor_u"],
-                 "f_norm": info["state"]["thrust"], "on_floor": info["on_floor"], "hit_floor": jnp.zeros((n,), bool),
-                 "aux": data if self.physics == "mjx" else None, "ctrl": self._ctrl0(info, inp["eps"])}
-        c = substep_loop(cfg, carry, inp, consts, self._substep_physics(params, info.get("obstacle_radius")), ops)
-        q, v, R, u, f_norm, on_floor, hit_floor, aux, ctrl = (c[k] for k in CARRY)
-        eps = inp["eps"]
-        data = data if aux is None else aux
-        # once per control step: walls, ceiling (or the room guard), quad-quad, obstacles, downwash
-        kin = {"pos": q[:, :3], "vel": v[:, :3], "omega": v[:, 3:], "R": R, "quat": q[:, 3:7], "u": u,
-               "on_floor": on_floor, "hit_floor": hit_floor}
-        prev = {k2: info[k2] for k2 in ("on_floor", "at_wall", "at_ceiling", "contact")}
-        k = velocity_stages(cfg, kin, prev, ops)
-        pos, vel, omega = k["pos"], k["vel"], k["omega"]
-        data = self._write(data, jnp.concatenate([pos, k["quat"]], -1), jnp.concatenate([vel, omega], -1))
-        if aux is None:
-            data = data.replace(time=data.time + cfg.control_dt)
-        k.update(f_norm=f_norm, eps=eps, ctrl=ctrl)
-        return data, k
+        s = {"q": q0.astype(f), "v": v0.astype(f), "R": info["state"]["rot"], "u": info["motor_u"],
+             "eps": info["motor_eps"], "f_norm": info["state"]["thrust"], "params": params,
+             "aux": data if self.physics == "mjx" else None, "ctrl": self._ctrl0(info),
+             "steps": info["step"], "total_steps": info["total_steps"], "sstate": info["scenario"],
+             "metrics_acc": info["metrics_acc"],
+             **{k2: info[k2] for k2 in ("on_floor", "at_wall", "at_ceiling", "contact")}}
+        if self._obst is not None:
+            s.update(omap=self._omap(info), obst_metrics=info["obstacle_metrics"])
+        consts = {"act": self._act, "rotor_pos": jnp.asarray(self._rotor_pos, f), "mix": jnp.asarray(self._mix, f),
+                  "torque_spin": params["torque_max"] * jnp.asarray(SPIN, f), "obs_low": jnp.asarray(self._obs_low, f),
+                  "obs_high": jnp.asarray(self._obs_high, f),
+                  "obs_scale": None if self._obs_scale is None else jnp.asarray(self._obs_scale, f), "zero_terms": ()}
+        return s, consts, self._substep_physics(params, info.get("obstacle_radius")), ops
 
     def _obstacles(self, info: dict[str, Any], rnd: dict[str, Any], pos: Any, vel: Any, omega: Any) -> dict[str, Any]:
         """The obstacle stage (after quad-quad): the budgeted response slots spread over this step's new
@@ -444,11 +428,12 @@ class MjxQuadSwarmEnv:
         return {"vel": r["vel"], "omega": r["omega"], "obst_new": r["new_contact"], "obst_contact": r["contact"],
                 "changed": True}
 
-    def _ctrl0(self, info: dict[str, Any], eps: Any) -> Any:
+    def _ctrl0(self, info: dict[str, Any]) -> Any:
         """The sub-step carry of :func:`pipeline.make_substep_actuation`: (last rotor command (N, 4),
         controller state (N, 6)), None (no leaves) in the default configuration."""
         if self._act is None:
             return None
+        eps = info["motor_eps"]
         return (jnp.zeros_like(eps), info["ctrl_state"] if self._modes else jnp.zeros(eps.shape[:-1] + (6,), eps.dtype))
 
     # ------------------------------------------------------------------ step
@@ -469,23 +454,16 @@ class MjxQuadSwarmEnv:
         else:
             k_draw, k_next = jax.random.split(info["rng"])
             rnd = self._draw(self._step_spec, k_draw, self._step_mean_spec)
-        prev_f_norm = info["state"]["thrust"]
-        data, k = self._physics(state.data, info, action, rnd)
-        steps = info["step"] + 1
-        total_steps = info["total_steps"] + 1
-        t = steps.astype(f) * cfg.control_dt
-        omap = None if self._obst is None else self._omap(info)
-        effort = pipeline.effort_action(cfg, action, k["ctrl"][0]) if self._modes else action
-        r = pipeline.task_stage(cfg, self.scenario, info["scenario"], t, k, effort, k["f_norm"], prev_f_norm,
-                                k["on_floor"], anneal_factor(cfg, total_steps), rnd["scenario"], info["metrics_acc"],
-                                omap, info.get("obstacle_metrics"))
-        sstate, goals, goal_vel, acc = r["sstate"], r["goals"], r["goal_vel"], r["metrics_acc"]
-        # explicit dtype: a zero-scale term may come back weakly typed, and a state whose leaf types
-        # change between reset and step would make jit compile step twice
-        terms = {name: v.astype(f) for name, v in r["terms"].items()}
-        reward = total_reward(terms)
-        obs = self._observe(k["pos"], k["vel"], k["R"], k["omega"], goals, rnd, k["dist"], omap)
-        done = steps >= cfg.episode_steps
+        s, consts, physics, ops = self._step_inputs(state.data, info, rnd)
+        k, c, r = control_step(cfg, self.scenario, s, action, consts, physics, ops)
+        data = state.data if c["aux"] is None else c["aux"]  # mjx.step's data, else the state's
+        q, v = jnp.concatenate([k["pos"], k["quat"]], -1), jnp.concatenate([k["vel"], k["omega"]], -1)
+        data = self._write(data, q, v)
+        if c["aux"] is None:
+            data = data.replace(time=data.time + cfg.control_dt)
+        steps, total_steps, t, done = r["steps"], r["total_steps"], r["t"], r["done"]
+        sstate, goals, goal_vel, acc, terms, obs = (r[k2] for k2 in ("sstate", "goals", "goal_vel", "metrics_acc",
+                                                                      "terms", "obs"))
         new_info = {
             "state": {"pos": k["pos"], "vel": k["vel"], "rot": k["R"], "omega": k["omega"], "thrust": k["f_norm"]},
             "params": info["params"],
@@ -507,7 +485,7 @@ class MjxQuadSwarmEnv:
             new_info.update({"obstacle_contact": k["obst_contact"], "obstacle_metrics": om,
                              "episode_metrics": self._episode_metrics(acc, om, t)})
         metrics = {f"reward/{name}": terms[name] for name in self._terms}
-        return State(data=data, obs=obs, reward=reward, done=done, metrics=metrics, info=new_info)
+        return State(data=data, obs=obs, reward=r["reward"], done=done, metrics=metrics, info=new_info)
 
 
 # ---------------------------------------------------------------------------------- benchmark

@@ -32,6 +32,16 @@ class ComponentLoop:
     def __init__(self, fb_constants: Any, mix: np.ndarray) -> None:
         self.k, self.mix = fb_constants, mix
 
+    @staticmethod
+    def local_pos(q: Any) -> Any:
+        """World-local positions (m): the one world has no offset."""
+        return q[..., :3]
+
+    @staticmethod
+    def velocities(v: Any) -> tuple[Any, Any]:
+        """(vel m/s world, omega rad/s body)."""
+        return v[..., :3], v[..., 3:]
+
     def fused_loop(self, cfg: Any, carry: dict[str, Any], inp: dict[str, Any], consts: dict[str, Any],
                    ops: Any) -> dict[str, Any]:
         """:func:`~quadswarm_mj.core.substeps.substep_loop` (``carry["hit_floor"]`` all False, as there)."""

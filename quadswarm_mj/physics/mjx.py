@@ -81,6 +81,18 @@ class MjxPhysics:
 
         return integrate_mjx
 
+    def substep_physics(self, physics: str, params: dict[str, Any], max_omega: float,
+                        obstacle_radius: Any = None) -> Any:
+        """The ``physics`` of :func:`quadswarm_mj.core.substeps.substep_loop`: :class:`~quadswarm_mj.physics.
+        freebody.FreeBodyPhysics` for "freebody", :class:`JaxSubstep` around ``mjx.step`` for "mjx"."""
+        if physics == "freebody":
+            from quadswarm_mj.freebody import freebody_constants
+            from quadswarm_mj.physics.freebody import FreeBodyPhysics
+
+            c = freebody_constants(self.arena.model, self.arena)
+            return FreeBodyPhysics(params["mass"], params["inertia"], c.gravity, c.dt, max_omega, c.ipos, c.iquat)
+        return JaxSubstep(self.integrator(physics, params, obstacle_radius), max_omega)
+
 
 
 class JaxSubstep:
