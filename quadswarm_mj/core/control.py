@@ -14,6 +14,9 @@ from typing import Any
 
 from quadswarm_mj.core.step import velocity_stages
 from quadswarm_mj.core.substeps import step_inputs, substep_loop
+from quadswarm_mj.observations import build_obs
+from quadswarm_mj.pipeline import effort_action, task_stage
+from quadswarm_mj.rewards import anneal_factor, total_reward
 
 #: the fields of ``s`` that :func:`physics_stage` reads (``aux``: the back end's own carry or None;
 #: ``ctrl``: (last rotor command, controller state) of the extended actuation chain, or None)
@@ -59,10 +62,6 @@ def task_step(cfg: Any, scenario: Any, s: dict[str, Any], k: dict[str, Any], act
     Returns ``steps``, ``total_steps``, ``t`` (s), ``sstate``, ``goals``, ``goal_vel``, ``terms``,
     ``reward`` (..., N), ``metrics_acc``, ``obst_metrics``, ``obs`` (..., N, obs_dim) and ``done`` (the
     time limit)."""
-    from quadswarm_mj.observations import build_obs
-    from quadswarm_mj.pipeline import effort_action, task_stage
-    from quadswarm_mj.rewards import anneal_factor, total_reward
-
     steps, total_steps = s["steps"] + 1, s["total_steps"] + 1
     t = steps.astype(ops.dtype) * cfg.control_dt
     effort = action if cfg.control_mode == "rotor" else effort_action(cfg, action, k["ctrl"][0])
