@@ -2,6 +2,5 @@
 :func:`~quadswarm_mj.core.control.control_step` = the sub-steps of :mod:`quadswarm_mj.core.substeps`,
 the stages after them in :mod:`quadswarm_mj.core.step`, then the task step), the engine differences
 passed into it (:mod:`quadswarm_mj.core.ops`; :mod:`quadswarm_mj.core.dense_ops` the plain dense-draw
-form), the JAX engine's state (:mod:`quadswarm_mj.core.state`). The rigid-body back ends are in
-:mod:`quadswarm_mj.physics`. The reset math is :func:`quadswarm_mj.pipeline.initial_state` (both
-engines call it)."""
+form), the JAX engine's state (:mod:`quadswarm_mj.core.state`). The reset math is :mod:`quadswarm_mj.core.reset`.
+The rigid-body back ends are in :mod:`quadswarm_mj.physics`."""

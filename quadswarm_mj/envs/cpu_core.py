@@ -47,6 +47,7 @@ from quadswarm_mj.core.control import control_step
 from quadswarm_mj.core.ops import ALL as _ALL
 from quadswarm_mj.core.ops import NumpyOps
 from quadswarm_mj.core.ops import put as _put
+from quadswarm_mj.core.reset import start_accumulators, start_flags, start_state
 from quadswarm_mj.downwash import downwash_draw_spec
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.perf.numpy_small import quat_to_rotmat, substep_wrench, yaw_entries
@@ -290,8 +291,8 @@ class CpuSwarm:
         overrides["motors"] = motors if isinstance(motors, str) else rows("motors", (4,))
         aero_draws = (NumpySampler(self.rng).draw(aero_draw_spec(cfg), (M,)) if cfg.randomize and cfg.aero.any
                       else None)
-        init = pipeline.initial_state(cfg, self.scenario, draws, scenario_u, spawn_u, overrides, np, np.float64,
-                                      aero_draws, obstacles=new_map)
+        init = start_state(cfg, self.scenario, draws, scenario_u, spawn_u, overrides, np, np.float64, aero_draws,
+                           omap=new_map)
         # 1. dynamics parameters
         new_params = init["params"]
         self.params = {k: (v if k == "gravity" else _put(self.params[k], idx, v)) for k, v in new_params.items()}
@@ -314,31 +315,27 @@ class CpuSwarm:
         self.phys.touch()
         self._R = None
         self.u = _put(self.u, idx, u0)
-        self.motor_eps = _put(self.motor_eps, idx, 0.0)
+        self.motor_eps = _put(self.motor_eps, idx, init["eps"])
         if self._modes:
             self.ctrl_state = _put(self.ctrl_state, idx, 0.0)
-        self.f_norm = _put(self.f_norm, idx, u0**2)
+        self.f_norm = _put(self.f_norm, idx, init["f_norm"])
         self.prev_f_norm = self.f_norm.copy()
-        cur_pos = self.qpos[idx, :, :3] - offsets
-        on_floor, at_wall, at_ceiling = pipeline.initial_flags(cfg, cur_pos, np)
-        self.on_floor = _put(self.on_floor, idx, on_floor)
-        self.at_wall = _put(self.at_wall, idx, at_wall)
-        self.at_ceiling = _put(self.at_ceiling, idx, at_ceiling)
+        flags = start_flags(cfg, self.qpos[idx, :, :3] - offsets, np, new_map)  # as MuJoCo stores the start
+        self.on_floor = _put(self.on_floor, idx, flags["on_floor"])
+        self.at_wall = _put(self.at_wall, idx, flags["at_wall"])
+        self.at_ceiling = _put(self.at_ceiling, idx, flags["at_ceiling"])
         self._sync_flags()
-        # no pair is 'already colliding' at the start: one overlapping at reset is a new contact at the
-        # first step (the paper's response separates it), as in the original
-        self.contact = _put(self.contact, idx, False)
+        self.contact = _put(self.contact, idx, flags["contact"])
         self.steps = _put(self.steps, idx, 0)
-        fresh = metrics_lib.init(np.zeros((M, N)), (M,), N)
-        self.metrics = {k: _put(v, idx, fresh[k]) for k, v in self.metrics.items()}
+        fresh = start_accumulators(cfg, np.zeros((M, N)), (M,), N)
+        self.metrics = {k: _put(v, idx, fresh["metrics_acc"][k]) for k, v in self.metrics.items()}
         if new_map is not None:
             from quadswarm_mj import obstacles as ob
 
             self.omap = ob.ObstacleMap(*(_put(a, idx, b) for a, b in zip(self.omap, new_map)))
             self.phys.set_obstacles(cfg, idx, new_map)
-            self.obst_contact = _put(self.obst_contact, idx, ob.detect(cur_pos, *new_map, cfg.quad.arm)[0])
-            fresh_o = ob.metrics_init(np.zeros(1), (M,), N)
-            self.obst_metrics = {k: _put(v, idx, fresh_o[k]) for k, v in self.obst_metrics.items()}
+            self.obst_contact = _put(self.obst_contact, idx, flags["obst_contact"])
+            self.obst_metrics = {k: _put(v, idx, fresh["obst_metrics"][k]) for k, v in self.obst_metrics.items()}
         self.xfrc[...] = 0.0
         self.phys.after_reset(idx)
 

@@ -67,6 +67,7 @@ from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.core.control import control_step
 from quadswarm_mj.core.ops import JaxOps
 from quadswarm_mj.core.ops import sub as _sub
+from quadswarm_mj.core.reset import start_accumulators, start_flags, start_state
 from quadswarm_mj.core.state import State
 from quadswarm_mj.devices import check_mjx_batch
 from quadswarm_mj.downwash import DOWNWASH_BUDGET, downwash_slot_spec
@@ -346,8 +347,8 @@ class MjxQuadSwarmEnv:
             ob = _obst_lib()
             omap = ob.reset_map(self._obst, _sub(rnd, "omap"), given_obst, xp=jnp)
             omap = ob.ObstacleMap(omap.centres.astype(f), omap.valid, jnp.asarray(omap.radius, f))
-        init = pipeline.initial_state(cfg, self.scenario, draws, rnd["scenario"], rnd["spawn"], init_state, jnp, f,
-                                      aero_draws, obstacles=omap)
+        init = start_state(cfg, self.scenario, draws, rnd["scenario"], rnd["spawn"], init_state, jnp, f, aero_draws,
+                           omap=omap)
         params, sstate, goals = init["params"], init["scenario"], init["scenario"].goals
         pos, vel, R, omega, u0 = init["pos"], init["vel"], init["rot"], init["omega"], init["u0"]
         data = self._write(self._data0, jnp.concatenate([pos, rotmat_to_quat(R)], -1),
@@ -363,19 +364,18 @@ class MjxQuadSwarmEnv:
         q, v = self._read(data)  # as stored (quaternion round trip), like the CPU env
         pos, vel, omega = q[:, :3].astype(f), v[:, :3].astype(f), v[:, 3:].astype(f)
         R = quat_to_rotmat(q[:, 3:7]).astype(f)
-        on_floor, at_wall, at_ceiling = pipeline.initial_flags(cfg, pos, jnp)
+        flags = start_flags(cfg, pos, jnp, omap)
         _, dist = pairwise_contacts(pos, cfg.hitbox)
-        contact = jnp.zeros((n, n), bool)  # none 'already colliding' at the start (as CpuSwarm.reset)
-        acc = metrics_lib.init(jnp.zeros((n,), f), (), n)
-        f_norm = u0 * u0
+        fresh = start_accumulators(cfg, jnp.zeros((n,), f), (), n)
+        acc, f_norm = fresh["metrics_acc"], init["f_norm"]
         obs = self._observe(pos, vel, R, omega, goals, rnd, dist, omap)
         zero_n = jnp.zeros((n,), f)
         info = {
             "state": {"pos": pos, "vel": vel, "rot": R, "omega": omega, "thrust": f_norm},
             "params": {k: jnp.asarray(v, f) for k, v in params.items() if k != "gravity"},
             "goals": goals, "goal_vel": sstate.goal_vel,
-            "motor_u": u0, "motor_eps": jnp.zeros((n, 4), f),
-            "on_floor": on_floor, "at_wall": at_wall, "at_ceiling": at_ceiling, "contact": contact,
+            "motor_u": u0, "motor_eps": init["eps"],
+            **{k: flags[k] for k in ("on_floor", "at_wall", "at_ceiling", "contact")},
             "scenario": sstate, "metrics_acc": acc,
             "episode_metrics": metrics_lib.finalize(acc, jnp.zeros((), f)),
             "step": jnp.zeros((), jnp.int32), "time": jnp.zeros((), f), "total_steps": jnp.zeros((), jnp.int32),
@@ -385,10 +385,8 @@ class MjxQuadSwarmEnv:
             **self._deck_info(obs),  # deck sensor readings ({} when off)
         }
         if omap is not None:
-            ob = _obst_lib()
             info.update({"obstacles": omap.centres, "obstacles_valid": omap.valid, "obstacle_radius": omap.radius,
-                         "obstacle_contact": ob.detect(pos, *omap, cfg.quad.arm)[0],
-                         "obstacle_metrics": ob.metrics_init(zero_n, (), n)})
+                         "obstacle_contact": flags["obst_contact"], "obstacle_metrics": fresh["obst_metrics"]})
             info["episode_metrics"] = self._episode_metrics(acc, info["obstacle_metrics"], jnp.zeros((), f))
         metrics = {f"reward/{k}": zero_n for k in self._terms}
         return State(data=data, obs=obs, reward=zero_n, done=jnp.zeros((), bool), metrics=metrics, info=info)
