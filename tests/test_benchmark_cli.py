@@ -100,3 +100,20 @@ def test_first_step_code_runs_in_a_fresh_process() -> None:
 
     res = _fresh_process(first_step_code({"num_quads": 1, "engine": "mujoco"}), {})
     assert res is not None and res["import_s"] > 0 and res["first_step_s"] > 0
+
+
+@pytest.mark.slow
+def test_worker_probe_runs_and_leaves_the_callers_jax_untouched() -> None:
+    """bench.worker_probe: the JAX engine stepped in a spawned worker that tunes itself; the caller gets
+    steps and figures, and its own process has no XLA_FLAGS entry or JAX config change from it."""
+    import os
+    import sys
+
+    from quadswarm_mj.bench.worker_probe import probe
+
+    flags = os.environ.get("XLA_FLAGS")
+    out = probe(num_quads=1, steps=30, rounds=1)
+    assert out["rate"] > 0 and out["hopper_rate"] > 0 and out["first_step_s"] > 0
+    assert out["worker_step_us"] > 0 and out["pipe_round_trip_us"] > 0
+    assert os.environ.get("XLA_FLAGS") == flags
+    assert "jax" not in sys.modules or sys.modules["jax"].config.jax_cpu_enable_async_dispatch

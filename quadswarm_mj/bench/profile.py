@@ -17,7 +17,8 @@ from quadswarm_mj.bench.envs import bench_vector
 
 PROFILE_GROUPS = [  # (label, [(file suffix, function name)]); builtins have file "~" and match by substring
     ("MuJoCo physics step (C)", [("~", "mj_step"), ("~", "_batch.step")]),
-    # the CPU engine calls the sub-step functions through quadswarm_mj.perf.numpy_small
+    # the CPU engine calls the sub-step functions through quadswarm_mj.perf.numpy_small (which hands one quad
+    # to quadswarm_mj.perf.one_quad, counted in the same groups)
     ("actuation: command, motor noise, lag, thrusts, wrench", [("numpy_small.py", "substep_wrench"),
                                                                ("actuation.py", "motor_noise_step"),
                                                                ("actuation.py", "action_to_command")]),
@@ -67,6 +68,33 @@ def _profile_table(total: float, groups: list[tuple[str, float]]) -> list[str]:
     return lines
 
 
+def gym_profile(steps: int = 3000) -> list[str]:
+    """The default Gymnasium env with one quad as the gym rows run it (``gym.make``, random actions from a
+    pool, resets included), ``steps`` steps under cProfile: a table of stage shares."""
+    import gymnasium as gym
+
+    import quadswarm_mj  # noqa: F401  (registers QuadSwarm-v0)
+
+    env = gym.make("QuadSwarm-v0", num_quads=1)
+    env.reset(seed=0)
+    env.action_space.seed(0)
+    pool = [np.asarray(env.action_space.sample()) for _ in range(64)]
+
+    def run() -> None:
+        for i in range(steps):
+            _, _, term, trunc, _ = env.step(pool[i % 64])
+            if term or trunc:
+                env.reset()
+
+    run()  # warm up
+    total, groups = profile_breakdown(run)
+    env.close()
+    lines = ["gym.make('QuadSwarm-v0', num_quads=1), random actions (the quad lies on the floor most of the time; "
+             f"perf/one_quad.py's forms run), {steps} steps under cProfile: {total / steps * 1e6:.0f} us/step "
+             "profiled:", ""]
+    return lines + _profile_table(total, groups)
+
+
 def run_profile() -> str:
     cfg = EnvConfig(num_quads=8)
     env = QuadSwarmEnv(cfg)
@@ -81,7 +109,8 @@ def run_profile() -> str:
 
     total, groups = profile_breakdown(single)
     env.close()
-    lines = ["QuadSwarmEnv, 8 quads, hover workload (quads crash after ~1 s, so the floor model runs), one "
+    lines = gym_profile() + [""]
+    lines += ["QuadSwarmEnv, 8 quads, hover workload (quads crash after ~1 s, so the floor model runs), one "
              f"1500-step episode under cProfile: {total / 1500 * 1e6:.0f} us/step profiled (cProfile adds"
              " overhead per Python call, so Python-heavy stages look larger than they are):", ""]
     lines += _profile_table(total, groups)

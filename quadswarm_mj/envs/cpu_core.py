@@ -50,7 +50,9 @@ from quadswarm_mj.core.ops import put as _put
 from quadswarm_mj.core.reset import start_accumulators, start_flags, start_state
 from quadswarm_mj.downwash import downwash_draw_spec
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
+from quadswarm_mj.perf import one_quad
 from quadswarm_mj.perf.numpy_small import quat_to_rotmat, substep_wrench, yaw_entries
+from quadswarm_mj.perf.one_quad import floor_impact_inplace as floor_impact_one
 from quadswarm_mj.physics.mujoco_c import (  # noqa: F401  re-exported
     BACKENDS,
     BatchPhysics,
@@ -374,6 +376,17 @@ class CpuSwarm:
         the floor height or grounded; elsewhere it changes nothing): ``perf.numpy_small.floor_impact``
         (same bits, signs of zero included) as masked writes into qpos/qvel."""
         cfg, fz = self.cfg, self.floor_z
+        if self.B * self.N == 1 and one_quad.ENABLED:  # one quad: perf.one_quad's float form (same draw, same bits)
+            d = self._spec_floor["yaw"]
+            yaw1 = self.rng.uniform(d.low, d.high) if cfg.noise.stochastic_collisions else float(d.mean)
+            grounded1, hit1, self.u = floor_impact_one(self.qpos[0, 0], self.qvel[0, 0], self.u,
+                                                       bool(self.on_floor[0, 0]), fz, self.offsets[0, 0], yaw1)
+            if hit1:
+                hit_floor[0, 0] = True
+            self.phys.touch()
+            self.on_floor = np.array([[grounded1]])
+            self._any_on_floor = grounded1
+            return
         rows = isinstance(w, slice)  # views: write in place; else copies written back
         q, v = self.qpos[w], self.qvel[w]
         offsets = self.offsets if self.offsets.shape[0] == 1 else self.offsets[w]

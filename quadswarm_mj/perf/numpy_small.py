@@ -19,6 +19,7 @@ import numpy as np
 from quadswarm_mj import actuation, collisions, spatial
 from quadswarm_mj.actuation import SPIN, motor_lag, rotor_thrust, thrust_map, wrench_matrix
 from quadswarm_mj.constants import FLOOR_TOL
+from quadswarm_mj.perf import one_quad
 from quadswarm_mj.spatial import BIG, norm_last, sum_last, yaw_of, yaw_quat, yaw_rotmat
 
 
@@ -26,6 +27,9 @@ def substep_wrench(u: Any, cmd: Any, noise: Any, params: dict[str, Any], R: Any,
                    mix: Any | None = None, torque_spin: Any | None = None, thrust_quadratic: float = 0.0,
                    rotor_gain: Any | None = None) -> tuple[Any, Any, Any, Any]:
     """:func:`quadswarm_mj.actuation.substep_wrench` (same arguments, same bits)."""
+    one = u.size == 4 and one_quad.ENABLED and thrust_quadratic == 0.0 and rotor_gain is None
+    if one and mix is not None and torque_spin is not None:  # one quad: perf.one_quad's float form
+        return one_quad.substep_wrench(u, cmd, noise, params["alpha"], params["thrust_max"], torque_spin, mix, R)
     if u.size >= BIG:
         return actuation.substep_wrench(u, cmd, noise, params, R, rotor_pos, mix, torque_spin, thrust_quadratic,
                                         rotor_gain)
@@ -49,6 +53,8 @@ def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any
                  friction: float, dt: float) -> tuple[Any, Any]:
     """:func:`quadswarm_mj.collisions.floor_wrench` (same arguments, same bits; the two results may be
     views of one (..., 6) array)."""
+    if force_w.size == 3 and one_quad.ENABLED:
+        return one_quad.floor_wrench(on_floor, force_w, torque_w, vel, mass, gravity, friction, dt)
     if force_w.size >= BIG:
         return collisions.floor_wrench(on_floor, force_w, torque_w, vel, mass, gravity, friction, dt)
     normal = np.maximum(0.0, mass * gravity - force_w[..., 2])
@@ -110,6 +116,8 @@ _Q_BASE = np.array([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
 
 def quat_to_rotmat(q: Any) -> Any:
     """:func:`quadswarm_mj.spatial.quat_to_rotmat` (the same values; the sign of an exact zero may differ)."""
+    if q.size == 4 and one_quad.ENABLED:
+        return one_quad.quat_to_rotmat(q)
     if q.size >= BIG:
         return spatial.quat_to_rotmat(q)
     lead = q.shape[:-1]

@@ -1,0 +1,243 @@
+"""quadswarm_mj.perf.one_quad (the one-quad float forms of the sub-step model) gives the bits of the array
+forms: function by function on random inputs (signs of zero included) and over whole seeded episodes of
+the single env with random actions (floor hits, staying on the floor, lift-off)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from quadswarm_mj import actuation, collisions
+from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.envs.cpu_core import CpuSwarm
+from quadswarm_mj.envs.gym_env import QuadSwarmEnv
+from quadswarm_mj.perf import numpy_small as small
+from quadswarm_mj.perf import one_quad
+
+
+def _same(a, b):
+    a, b = np.asarray(a), np.asarray(b)
+    assert a.shape == b.shape and a.dtype == b.dtype
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(np.signbit(a), np.signbit(b))
+
+
+def _rotations(rng, n):
+    q = rng.normal(size=(n, 1, 1, 4))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    q[0, 0, 0] = [1.0, 0.0, 0.0, 0.0]
+    q[1, 0, 0] = [0.0, 1.0, 0.0, -0.0]
+    return q, small.quat_to_rotmat(q)
+
+
+def test_quat_to_rotmat_is_the_array_form_bitwise():
+    rng = np.random.default_rng(4)
+    q, _ = _rotations(rng, 500)
+    q[2, 0, 0] = [-0.0, 0.0, -1.0, 0.0]
+    for i in range(500):
+        got = one_quad.quat_to_rotmat(q[i])
+        one_quad.ENABLED = False
+        try:
+            ref = small.quat_to_rotmat(q[i])
+        finally:
+            one_quad.ENABLED = True
+        _same(got, ref)
+        _same(small.quat_to_rotmat(q[i, 0, 0]), ref[0, 0])
+
+
+def test_substep_wrench_is_the_array_forms_bitwise():
+    rng = np.random.default_rng(0)
+    cfg = EnvConfig(num_quads=1)
+    core = CpuSwarm(cfg, visual=False)
+    params = {k: v for k, v in core.params.items()}
+    _, Rs = _rotations(rng, 200)
+    for i in range(200):
+        u = rng.uniform(0, 1, (1, 1, 4))
+        cmd = rng.choice([0.0, 1.0, 0.3, rng.uniform()], size=(1, 1, 4))
+        noise = rng.normal(0, 0.5, (1, 1, 4))
+        noise[..., i % 4] = -u[..., i % 4] ** 2  # a thrust of exactly 0 (and of -0.0 rounded)
+        got = one_quad.substep_wrench(u, cmd, noise, params["alpha"], params["thrust_max"], core._torque_spin,
+                                      core._mix, Rs[i])
+        one_quad.ENABLED = False
+        try:
+            ref = small.substep_wrench(u, cmd, noise, params, Rs[i], core.rotor_pos, core._mix, core._torque_spin)
+        finally:
+            one_quad.ENABLED = True
+        body = actuation.substep_wrench(u, cmd, noise, params, Rs[i], core.rotor_pos, core._mix, core._torque_spin)
+        for a, b, c in zip(got, ref, body):
+            _same(a, b)
+            np.testing.assert_array_equal(a, c)
+
+
+def test_floor_wrench_is_the_array_forms_bitwise():
+    rng = np.random.default_rng(1)
+    for i in range(300):
+        force = rng.normal(0, 0.3, (1, 1, 3))
+        torque = rng.normal(0, 1e-3, (1, 1, 3))
+        vel = rng.normal(0, 1, (1, 1, 3))
+        if i % 3 == 0:
+            vel[..., :2] = 0.0  # at rest: static friction
+        if i % 5 == 0:
+            force[..., :2] = 0.0
+        if i % 7 == 0:
+            force[..., 2] = 5.0  # lifting: no normal force
+        mass = np.full((1, 1), 0.028 + 0.01 * rng.uniform())
+        on = np.array([[i % 11 != 0]])
+        args = (on, force, torque, vel, mass, 9.81, 0.3, 0.005)
+        got = one_quad.floor_wrench(*args)
+        one_quad.ENABLED = False
+        try:
+            ref = small.floor_wrench(*args)
+        finally:
+            one_quad.ENABLED = True
+        body = collisions.floor_wrench(*args)
+        for a, b, c in zip(got, ref, body):
+            _same(a, b)
+            np.testing.assert_array_equal(a, c)
+
+
+@pytest.mark.parametrize("stochastic", [True, False])
+def test_engine_floor_impact_is_the_array_form_bitwise(stochastic):
+    """``CpuSwarm._floor_impact`` with one quad (the float form) = perf.numpy_small's array form."""
+    import copy
+    import dataclasses
+
+    cfg = EnvConfig(num_quads=1)
+    cfg = cfg.replace(noise=dataclasses.replace(cfg.noise, stochastic_collisions=stochastic))
+    rng = np.random.default_rng(2)
+    quats, Rs = _rotations(rng, 300)
+    seen = set()
+    core = CpuSwarm(cfg, visual=False)
+    core.seed(2)
+    core.reset()
+    fz = core.floor_z
+    for i in range(300):
+        core.qpos[0, 0, 2] = rng.choice([fz - 0.01, fz, fz + 5e-7, fz + 0.01, 1.0])
+        core.qpos[0, 0, 3:7] = quats[i, 0, 0]
+        core.qvel[...] = rng.normal(size=(1, 1, 6))
+        if i % 4 == 0:
+            core.qvel[...] = -0.0
+        core.on_floor = np.array([[bool(rng.uniform() < 0.5)]])
+        core.u = rng.uniform(size=(1, 1, 4))
+        core.state_changed()
+        q, v, u, on = core.qpos.copy(), core.qvel.copy(), core.u.copy(), core.on_floor.copy()
+        d = core._spec_floor["yaw"]
+        yaw = (copy.deepcopy(core.rng).uniform(d.low, d.high, size=(1, 1)) if stochastic
+               else np.full((1, 1), d.mean))
+        ref = small.floor_impact(q[..., :3], v[..., :3], v[..., 3:], q[..., 3:7], small.quat_to_rotmat(q[..., 3:7]),
+                                 u, on, fz, yaw)
+        hit_floor = np.zeros((1, 1), bool)
+        core._floor_impact(slice(None), hit_floor)
+        _same(core.qpos[..., :3], ref["pos"])
+        _same(core.qpos[..., 3:7], ref["quat"])
+        _same(core.qvel[..., :3], ref["vel"])
+        _same(core.qvel[..., 3:], ref["omega"])
+        _same(core.u, ref["u"])
+        _same(core.on_floor, ref["on_floor"])
+        _same(hit_floor, ref["hit_floor"])
+        assert core._any_on_floor == bool(core.on_floor.any())
+        seen.add((bool(ref["hit_floor"][0, 0]), bool(ref["on_floor"][0, 0]),
+                  bool(ref["hit_floor"][0, 0] and Rs[i, 0, 0, 2, 2] < 0)))
+    assert {(True, True, True), (True, True, False), (False, True, False), (False, False, False)} <= seen
+
+
+def _episode(seed: int, enabled: bool, **kw) -> list[np.ndarray]:
+    one_quad.ENABLED = enabled
+    try:
+        env = QuadSwarmEnv(EnvConfig(num_quads=1, episode_seconds=3.0, **kw))
+        env.action_space.seed(seed)
+        obs, info = env.reset(seed=seed)
+        out = [obs]
+        for t in range(700):  # random actions: falls, floor hits, staying, lift-offs; an episode end
+            a = env.action_space.sample() if t % 100 < 70 else np.ones(4, np.float32)
+            obs, r, term, trunc, info = env.step(a)
+            out += [obs, np.float64(r), info["state"]["pos"], info["state"]["vel"], info["state"]["rot"],
+                    info["state"]["omega"], info["state"]["thrust"], info["on_floor"], info["rewards"],
+                    *info["reward_terms"].values()]
+            if trunc:
+                out += list(info["episode_metrics"].values())
+                obs, info = env.reset()
+                out.append(obs)
+        return out
+    finally:
+        one_quad.ENABLED = True
+
+
+@pytest.mark.parametrize("kw", [{}, {"randomize": True}])
+def test_single_env_episodes_are_the_array_forms_bitwise(kw):
+    got, ref = _episode(3, True, **kw), _episode(3, False, **kw)
+    assert len(got) == len(ref)
+    on_floor = [bool(x) for x in got if np.shape(x) == (1,) and np.asarray(x).dtype == bool]
+    assert any(on_floor) and not all(on_floor)  # on the floor and in the air
+    for a, b in zip(got, ref):
+        _same(a, b)
+
+
+def _rewards_and_metrics(enabled: bool, scales, seed: int) -> list:
+    """reward_terms, total_reward and metrics.update on random one-quad inputs (events, goal jumps)."""
+    from quadswarm_mj import metrics as metrics_lib
+    from quadswarm_mj import rewards
+
+    cfg = EnvConfig(num_quads=1, rewards=scales)
+    rng = np.random.default_rng(seed)
+    _, Rs = _rotations(rng, 100)
+    m = metrics_lib.init(np.zeros((1, 1)), (1,), 1)
+    out = []
+    one_quad.ENABLED = enabled
+    try:
+        for i in range(100):
+            pos, vel, omega, goals = (rng.normal(size=(1, 1, 3)) for _ in range(4))
+            action = rng.normal(0, 1.5, (1, 1, 4))
+            f, pf = rng.uniform(size=(1, 1, 4)), rng.uniform(size=(1, 1, 4))
+            flags = [rng.uniform(size=(1, 1)) < 0.3 for _ in range(4)]
+            contact = rng.uniform(size=(1, 1, 1)) < 0.3
+            dist = np.zeros((1, 1, 1))
+            gd = None if i % 2 else np.sqrt(((goals - pos) ** 2).sum(-1))
+            anneal = min(1.0, i / 50) if i % 3 else np.minimum(1.0, i / 70)
+            terms = rewards.reward_terms(cfg, pos, vel, Rs[i], omega, goals, action, f, pf, flags[0], *flags[1:],
+                                         contact, dist, anneal, goal_dist=gd)
+            out += [*terms.values(), rewards.total_reward(terms, rewards.zero_terms(cfg))]
+            t = np.full((1, 1), 0.01 * i + (3.0 if i > 50 else 0.0))
+            d = np.abs(rng.normal(0, 0.4, (1, 1)))
+            m = metrics_lib.update(m, t, d, contact, *flags[1:], rng.uniform(size=(1, 1)) < 0.2, 0.3)
+            out += list(m.values())
+        out += list(metrics_lib.finalize(m, np.array([[2.0]])).values())
+    finally:
+        one_quad.ENABLED = True
+    return out
+
+
+@pytest.mark.parametrize("which", ["default", "all"])
+def test_reward_terms_and_metrics_are_the_array_forms_bitwise(which):
+    from quadswarm_mj.config import RewardScales
+
+    scales = RewardScales() if which == "default" else RewardScales(
+        **{k: 0.5 + i for i, k in enumerate(RewardScales.TERMS)})
+    got, ref = _rewards_and_metrics(True, scales, 7), _rewards_and_metrics(False, scales, 7)
+    assert len(got) == len(ref)
+    for a, b in zip(got, ref):
+        _same(a, b)
+
+
+@pytest.mark.parametrize("obs_self", ["base", "floor"])
+@pytest.mark.parametrize("normalize", [False, True])
+def test_build_obs_is_the_array_form_bitwise(obs_self, normalize):
+    from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale
+
+    cfg = EnvConfig(num_quads=1, obs_self=obs_self, normalize_obs=normalize)
+    low, high = obs_bounds(cfg)
+    low, high = low.astype(np.float64), high.astype(np.float64)
+    scale = obs_scale(cfg) if normalize else None
+    rng = np.random.default_rng(5)
+    _, Rs = _rotations(rng, 200)
+    for i in range(200):
+        pos, vel, omega, goals = (rng.normal(0, 20, (1, 1, 3)) for _ in range(4))  # beyond the bounds too
+        noise = None if i % 3 == 0 else {k: rng.normal(0, 0.1, (1, 1, 3)) for k in ("pos", "vel", "omega")}
+        args = (cfg, pos, vel, Rs[i], omega, goals, noise, low, high, scale)
+        got = build_obs(*args)
+        one_quad.ENABLED = False
+        try:
+            ref = build_obs(*args)
+        finally:
+            one_quad.ENABLED = True
+        _same(got, ref)
