@@ -142,6 +142,9 @@ class CpuSwarm:
         self._R: np.ndarray | None = None  # rotations of the current qpos (None: recompute)
         self._obst_init()
         self._ops = NumpyOps(self)
+        # the constants of core.control.control_step
+        self._consts = {"act": self._act, "rotor_pos": self.rotor_pos, "mix": self._mix, "obs_low": self.obs_low,
+                        "obs_high": self.obs_high, "obs_scale": self.obs_scale, "zero_terms": self._zero_terms}
 
     # ------------------------------------------------------------------ copy / pickle
     def __getstate__(self) -> dict[str, Any]:
@@ -430,9 +433,8 @@ class CpuSwarm:
              "steps": self.steps, "total_steps": self.total_steps, "sstate": self.sstate, "metrics_acc": self.metrics}
         if self.omap is not None:
             s.update(omap=self.omap, obst_metrics=self.obst_metrics, obst_threshold=self._obst_thr)
-        consts = {"act": self._act, "rotor_pos": self.rotor_pos, "mix": self._mix, "torque_spin": self._torque_spin,
-                  "obs_low": self.obs_low, "obs_high": self.obs_high, "obs_scale": self.obs_scale,
-                  "zero_terms": self._zero_terms}
+        consts = self._consts
+        consts["torque_spin"] = self._torque_spin  # (drawn at reset)
         k, c, r = control_step(self.cfg, self.scenario, s, action, consts, self.phys, self._ops)
         self._store(k, c)
         self.steps, self.total_steps = r["steps"], r["total_steps"]

@@ -92,6 +92,7 @@ class _SubstepAdapter:
     xfrc: np.ndarray
     offsets: np.ndarray
     max_omega: float
+    _any_offset: bool
 
     def substep(self, q: np.ndarray, v: np.ndarray, force: np.ndarray, torque: np.ndarray, aux: Any) -> tuple:
         """Write the world wrench into ``xfrc_applied``, step once (angular velocity clipped); the state
@@ -102,8 +103,9 @@ class _SubstepAdapter:
         return self.qpos, self.qvel, aux
 
     def local_pos(self, q: np.ndarray) -> np.ndarray:
-        """World-local positions (m) of ``q`` (B, N, 7) (a fresh array)."""
-        return q[..., :3] - self.offsets
+        """World-local positions (m) of ``q`` (B, N, 7) (a fresh array; x - 0.0 is x, signed zeros included,
+        so with all offsets zero a copy gives the same bits)."""
+        return q[..., :3] - self.offsets if self._any_offset else q[..., :3].copy()
 
     @staticmethod
     def velocities(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -130,6 +132,7 @@ class MjDataPhysics(_SubstepAdapter):
         self.xfrc = self.data.xfrc_applied[fb:fb + B * N].reshape(B, N, 6)
         assert np.shares_memory(self.qpos, self.data.qpos) and np.shares_memory(self.xfrc, self.data.xfrc_applied)
         self.offsets = self.arena.world_offsets[:, None, :]
+        self._any_offset = bool(np.any(self.offsets))
         _check_simple_bodies(self.model, self.arena)
         self._M0 = self.model.dof_M0[vs:vs + 6 * B * N].reshape(B * N, 6)  # a view
 
@@ -239,6 +242,7 @@ class BatchPhysics(_SubstepAdapter):
         self._pad_qpos = self._qpos[B:].copy()
         self.qpos, self.qvel, self.xfrc = self._qpos[:B], self._qvel[:B], self._xfrc[:B]
         self.offsets = np.tile(self.arena.world_offsets, (K, 1))[:B, None, :]
+        self._any_offset = bool(np.any(self.offsets))
 
     def __getstate__(self) -> dict[str, Any]:
         raise TypeError("a CpuSwarm on the 'batch' back end (mujoco.batch) cannot be copied or pickled; use "
