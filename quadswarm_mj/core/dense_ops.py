@@ -14,8 +14,10 @@ from quadswarm_mj.core.ops import ALL
 class DenseOps:
     """The ops of :mod:`quadswarm_mj.core.control` with the step's draws ``d`` given dense: ``motor``
     (..., N, 4) normals, ``yaw`` (substeps, ..., N) landing yaw draws (rad), ``wall``, ``quad``, ``obst``,
-    ``down`` (the draw specs' dicts at (...,) worlds). ``yaw_cs``: the floor impact's trig-free path
-    (cos, sin of the yaw draws; the JAX engine's) instead of the angle path (the MuJoCo engine's).
+    ``down`` (the draw specs' dicts at (...,) worlds); for the task step ``scenario`` (..., n) uniforms
+    and optionally ``sensor``/``deck`` (the noise specs' dicts; absent: noise-free). ``yaw_cs``: the
+    floor impact's trig-free path (cos, sin of the yaw draws; the JAX engine's) instead of the angle path
+    (the MuJoCo engine's).
     With obstacles: ``omap`` (:class:`~quadswarm_mj.obstacles.ObstacleMap`) and the last step's column
     contacts ``obst_contact`` (..., N)."""
 
@@ -23,10 +25,15 @@ class DenseOps:
     rotmat = staticmethod(spatial.quat_to_rotmat)
 
     def __init__(self, cfg: Any, d: dict[str, Any], xp: Any, yaw_cs: bool = False, omap: Any = None,
-                 obst_contact: Any = None) -> None:
+                 obst_contact: Any = None, dtype: Any = None) -> None:
         self.cfg, self.d, self.xp, self.yaw_cs = cfg, d, xp, yaw_cs
         self.omap, self.obst_contact = omap, obst_contact
-        self.room = (xp.asarray(cfg.room_low), xp.asarray(cfg.room_high))
+        self.dtype = xp.float64 if dtype is None else dtype
+        self.room = (xp.asarray(cfg.room_low, dtype=self.dtype), xp.asarray(cfg.room_high, dtype=self.dtype))
+
+    def terms(self, terms: dict[str, Any]) -> dict[str, Any]:
+        """The reward terms in ``dtype``."""
+        return {k: self.xp.asarray(v, dtype=self.dtype) for k, v in terms.items()}
 
     @staticmethod
     def loop(body: Any, carry: Any, n: int) -> Any:
@@ -69,6 +76,8 @@ class DenseOps:
     def draws(self, kind: str, mask_fn: Any, w: Any) -> Any:
         if kind == "yaw":  # the room guard's landings: the last sub-step's draws
             return self._yaw(-1)
+        if kind in ("sensor", "deck"):  # None: noise-free
+            return self.d.get(kind)
         return self.d[kind]
 
     def quad_quad(self, pos: Any, vel: Any, omega: Any, prev: Any, contact: Any, new: Any) -> dict[str, Any]:
