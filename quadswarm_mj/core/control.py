@@ -35,8 +35,8 @@ def physics_stage(cfg: Any, s: dict[str, Any], action: Any, consts: dict[str, An
     ``eps`` (the motor noise after this step) and ``ctrl``; ``c`` the carry after the sub-steps (``q``,
     ``v`` in the back end's storage, ``aux``), which the engine stores where ``k["changed"]`` says."""
     inp = step_inputs(cfg, action, s["eps"], s["params"], ops)
-    carry = {k: s[k] for k in ("q", "v", "R", "u", "f_norm", "on_floor", "aux", "ctrl")}
-    carry["hit_floor"] = ops.zeros_like(s["on_floor"])
+    carry = {"q": s["q"], "v": s["v"], "R": s["R"], "u": s["u"], "f_norm": s["f_norm"], "on_floor": s["on_floor"],
+             "hit_floor": ops.zeros_like(s["on_floor"]), "aux": s["aux"], "ctrl": s["ctrl"]}
     c = substep_loop(cfg, carry, inp, consts, physics, ops)
     vel, omega = physics.velocities(c["v"])
     kin = {"pos": physics.local_pos(c["q"]), "vel": vel, "omega": omega, "R": c["R"], "quat": c["q"][..., 3:7],

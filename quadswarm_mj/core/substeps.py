@@ -69,7 +69,8 @@ def substep_loop(cfg: Any, carry: dict[str, Any], inp: dict[str, Any], consts: d
             q, v, u, on_floor, hit_floor, R = ops.floor_impact(cfg, x, q, v, u, on_floor, hit_floor)
         else:
             R = ops.rotmat(q[..., 3:7])
-        return {"q": q, "v": v, "R": R, "u": u, "f_norm": f_norm, "on_floor": on_floor, "hit_floor": hit_floor,
-                "aux": aux, "ctrl": ctrl}
+        c["q"], c["v"], c["R"], c["u"], c["f_norm"] = q, v, R, u, f_norm
+        c["on_floor"], c["hit_floor"], c["aux"], c["ctrl"] = on_floor, hit_floor, aux, ctrl
+        return c  # (the loop's own dict, updated)
 
-    return ops.loop(substep, carry, cfg.substeps)
+    return ops.loop(substep, dict(carry), cfg.substeps)
