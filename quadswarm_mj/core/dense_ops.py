@@ -8,10 +8,10 @@ from __future__ import annotations
 from typing import Any
 
 from quadswarm_mj import actuation, collisions, pipeline, spatial
-from quadswarm_mj.core.ops import ALL
+from quadswarm_mj.core.ops import AlwaysOn
 
 
-class DenseOps:
+class DenseOps(AlwaysOn):
     """The ops of :mod:`quadswarm_mj.core.control` with the step's draws ``d`` given dense: ``motor``
     (..., N, 4) normals, ``yaw`` (substeps, ..., N) landing yaw draws (rad), ``wall``, ``quad``, ``obst``,
     ``down`` (the draw specs' dicts at (...,) worlds); for the task step ``scenario`` (..., n) uniforms
@@ -58,20 +58,8 @@ class DenseOps:
         v = xp.concatenate([r["vel"], r["omega"]], -1)
         return q, v, r["u"], r["on_floor"], hit_floor | r["hit_floor"], r["R"]
 
-    @staticmethod
-    def gate(mask_fn: Any) -> Any:
-        return ALL
-
-    @staticmethod
-    def wall_gate(pos: Any, at_wall: Any, at_ceiling: Any) -> Any:
-        return ALL
-
     def zeros_like(self, a: Any) -> Any:
         return self.xp.zeros(a.shape, dtype=bool)
-
-    @staticmethod
-    def put(arr: Any, w: Any, value: Any) -> Any:
-        return value
 
     def draws(self, kind: str, mask_fn: Any, w: Any) -> Any:
         if kind == "yaw":  # the room guard's landings: the last sub-step's draws

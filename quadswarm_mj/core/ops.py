@@ -168,7 +168,24 @@ class NumpyOps:
         return {"vel": vel, "omega": omega, "obst_new": new, "obst_feats": self.s._obst_feats, "changed": changed}
 
 
-class JaxOps:
+class AlwaysOn:
+    """The gating of engines that run every stage on every quad (a model function leaves unaffected quads
+    unchanged): every world, always; a stage's result replaces the whole array."""
+
+    @staticmethod
+    def gate(mask_fn: Any) -> Any:
+        return ALL
+
+    @staticmethod
+    def wall_gate(pos: Any, at_wall: Any, at_ceiling: Any) -> Any:
+        return ALL
+
+    @staticmethod
+    def put(arr: Any, w: Any, value: Any) -> Any:
+        return value
+
+
+class JaxOps(AlwaysOn):
     """Always-on stages with the step's budgeted draws ``rnd`` (one world, ``jax.numpy``)."""
 
     wrench = staticmethod(actuation.substep_wrench)
@@ -212,20 +229,8 @@ class JaxOps:
         a state whose leaf types change between reset and step would make jit compile step twice)."""
         return {name: v.astype(self.dtype) for name, v in terms.items()}
 
-    @staticmethod
-    def gate(mask_fn: Any) -> Any:
-        return ALL
-
-    @staticmethod
-    def wall_gate(pos: Any, at_wall: Any, at_ceiling: Any) -> Any:
-        return ALL
-
     def zeros_like(self, a: Any) -> Any:
         return self.jnp.zeros_like(a)
-
-    @staticmethod
-    def put(arr: Any, w: Any, value: Any) -> Any:
-        return value
 
     def draws(self, kind: str, mask_fn: Any, w: Any) -> dict[str, Any]:
         jnp, rnd = self.jnp, self.rnd

@@ -20,10 +20,11 @@ from quadswarm_mj import components
 from quadswarm_mj.collisions import expand_per_quad
 from quadswarm_mj.freebody import freebody_step_components
 from quadswarm_mj.perf.xla_cpu import kernel_boundary
+from quadswarm_mj.physics.freebody import WorldLocal
 from quadswarm_mj.spatial import quat_to_rotmat_components
 
 
-class ComponentLoop:
+class ComponentLoop(WorldLocal):
     """The free-body physics of the default configuration as a whole sub-step loop on components, for
     :func:`quadswarm_mj.core.substeps.substep_loop` (its ``fused_loop``; the same formulas as the general
     loop with :class:`quadswarm_mj.physics.mjx.JaxSubstep` and :class:`quadswarm_mj.core.ops.JaxOps`).
@@ -31,16 +32,6 @@ class ComponentLoop:
 
     def __init__(self, fb_constants: Any, mix: np.ndarray) -> None:
         self.k, self.mix = fb_constants, mix
-
-    @staticmethod
-    def local_pos(q: Any) -> Any:
-        """World-local positions (m): the one world has no offset."""
-        return q[..., :3]
-
-    @staticmethod
-    def velocities(v: Any) -> tuple[Any, Any]:
-        """(vel m/s world, omega rad/s body)."""
-        return v[..., :3], v[..., 3:]
 
     def fused_loop(self, cfg: Any, carry: dict[str, Any], inp: dict[str, Any], consts: dict[str, Any],
                    ops: Any) -> dict[str, Any]:

@@ -10,7 +10,21 @@ from quadswarm_mj._xp import array_namespace
 from quadswarm_mj.freebody import freebody_step
 
 
-class FreeBodyPhysics:
+class WorldLocal:
+    """Kinematics of a back end whose state has no world offsets (one world, or world-local storage)."""
+
+    @staticmethod
+    def local_pos(q: Any) -> Any:
+        """Positions (m, world-local) of ``q`` (..., N, 7)."""
+        return q[..., :3]
+
+    @staticmethod
+    def velocities(v: Any) -> tuple[Any, Any]:
+        """(vel m/s world, omega rad/s body) of ``v`` (..., N, 6)."""
+        return v[..., :3], v[..., 3:]
+
+
+class FreeBodyPhysics(WorldLocal):
     """Free bodies of ``mass`` (..., N) kg and principal ``inertia`` (..., N, 3) kg m^2 under ``gravity``
     (3,) m/s^2 world, one step of ``dt`` s, angular velocity clipped to +-``max_omega`` rad/s per body
     axis; ``ipos``/``iquat``: the inertial frame in the body frame (None: the body frame, the Crazyflie).
@@ -26,11 +40,3 @@ class FreeBodyPhysics:
         q, v = freebody_step(q, v, xp.concatenate([force, torque], -1), self.mass, self.inertia, self.ipos,
                              self.iquat, self.gravity, self.dt, max_omega=self.max_omega)
         return q, v, aux
-
-    @staticmethod
-    def local_pos(q: Any) -> Any:
-        return q[..., :3]
-
-    @staticmethod
-    def velocities(v: Any) -> tuple[Any, Any]:
-        return v[..., :3], v[..., 3:]

@@ -11,6 +11,8 @@ import jax
 import jax.numpy as jnp
 from mujoco import mjx
 
+from quadswarm_mj.physics.freebody import WorldLocal
+
 
 class MjxPhysics:
     """The quads' rows of an MJX model of one world (``arena``: :func:`quadswarm_mj.arena.build_arena`
@@ -95,7 +97,7 @@ class MjxPhysics:
 
 
 
-class JaxSubstep:
+class JaxSubstep(WorldLocal):
     """The sub-step interface of :func:`quadswarm_mj.core.substeps.substep_loop` around an integrator
     ``integrate(q, v, wrench, aux) -> (q, v, aux)`` (:meth:`MjxPhysics.integrator`), with the angular
     velocity clipped to +-``max_omega`` (rad/s) per body axis after it. Positions are world-local."""
@@ -107,11 +109,3 @@ class JaxSubstep:
         q, v, aux = self.integrate(q, v, jnp.concatenate([force, torque], axis=-1), aux)
         w = self.max_omega
         return q, jnp.concatenate([v[..., :3], jnp.clip(v[..., 3:], -w, w)], -1), aux
-
-    @staticmethod
-    def local_pos(q: Any) -> Any:
-        return q[..., :3]
-
-    @staticmethod
-    def velocities(v: Any) -> tuple[Any, Any]:
-        return v[..., :3], v[..., 3:]
