@@ -1,23 +1,23 @@
 """The stages of one control step, and the extension points between them.
 
-Order of a control step (:meth:`quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv._physics` and ``step``;
-``CpuSwarm._physics``/``step`` run the same order with event gating; stages 3 and 4 and the reset
-math (:func:`initial_state`, :func:`initial_flags`) are one function each, called by both engines):
+Order of a control step, spelled once by :func:`quadswarm_mj.core.control.control_step` (which
+``CpuSwarm.step`` and ``MjxQuadSwarmEnv.step`` call; the reset math :func:`initial_state` and
+:func:`initial_flags` is also one function each, called by both engines):
 
 1. draws: one fused draw of everything the step can use (motor and sensor noise per quad, the
    event models' budgeted slots: :mod:`quadswarm_mj.collisions`, :mod:`quadswarm_mj.downwash`).
-2. sub-steps (``lax.scan`` over ``cfg.substeps``): :func:`make_substep_actuation` (control mode:
+2. sub-steps (:func:`quadswarm_mj.core.substeps.substep_loop`): :func:`make_substep_actuation` (control mode:
    action -> rotor command at the physics rate -> ground-effect gain -> motor lag and noise -> thrust
    map -> rotor thrusts -> body wrench -> rotor drag; just ``substep_wrench`` in the default
    configuration) -> floor normal and friction ->
-   rigid-body integrator (passed in: ``freebody_step`` or ``mjx.step``) -> omega clip -> floor
-   landing.
+   rigid-body integrator (passed in, :mod:`quadswarm_mj.physics`: MuJoCo C, ``freebody_step`` or
+   ``mjx.step``) -> omega clip -> floor landing.
 3. once per control step (:func:`quadswarm_mj.core.step.velocity_stages`, one function for both
    engines, their differences in :mod:`quadswarm_mj.core.ops`): walls and ceiling (or the room guard
    and the surface flags with MuJoCo contacts) -> quad-quad -> :func:`obstacle_stage` (with
    ``cfg.obstacles``) -> downwash.
-4. :func:`task_stage` (both engines, one function): scenario (goals) -> goal jumps -> reward terms
-   (obstacle penalty) -> episode metrics (obstacle metrics); then observations.
+4. :func:`task_stage` (in :func:`quadswarm_mj.core.control.task_step`): scenario (goals) -> goal jumps
+   -> reward terms (obstacle penalty) -> episode metrics (obstacle metrics); then observations.
 
 The stages are pure (any leading dims, ``jax.numpy`` or NumPy); their draws are in the step's and
 the reset's specs. :func:`obstacle_stage` is the obstacle stage of the JAX engine (the CPU engine

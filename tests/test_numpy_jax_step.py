@@ -13,9 +13,13 @@ upside down, grounded, wall, ceiling, a colliding pair, a column, one under anot
 Measured (3 chained steps; ``python -m pytest -q -m "" tests/test_numpy_jax_step.py``, errors relative to
 max(1, |value|)): the rotor cases agree to 2e-15, the "ctbr" case to 1e-8 (see ``TOL_SQRT``).
 
-For the one ``control_step`` of issue 33: point ``STEP`` at it (NumPy ops + free-body physics vs
-JAX ops + free-body physics; the inputs and outputs here are plain dicts of arrays, easy to map onto
-its state pytree), and keep the comparisons.
+``STEP`` is the package's one control step's physics half, :func:`quadswarm_mj.core.control.physics_stage`
+(the sub-step loop and the stages after it, written once for both engines), with the free-body physics
+:class:`quadswarm_mj.physics.freebody.FreeBodyPhysics` and the dense-draw ops
+:class:`quadswarm_mj.core.dense_ops.DenseOps` in either namespace: the NumPy and JAX runs of it must
+agree, and in NumPy it must agree with ``physics_half`` (the leaf chain) to round-off. The whole
+:func:`quadswarm_mj.core.control.control_step` (plus scenario, rewards, metrics, observations) is run
+the same way by ``test_the_whole_control_step_numpy_equals_jax_float64``.
 """
 
 from __future__ import annotations
@@ -161,7 +165,30 @@ def physics_half(xp: Any, cfg: EnvConfig, s: dict[str, Any], action: Any, params
             "hit_ceiling": hit_ceiling, "new_contact": qc["new_contact"], "obst_new": ob["new_contact"]}
 
 
-STEP = physics_half
+def control_step_physics(xp: Any, cfg: EnvConfig, s: dict[str, Any], action: Any, params: dict[str, Any],
+                         d: dict[str, Any], yaw_cs: bool) -> dict[str, Any]:
+    """``physics_half``'s contract through the package's ``core.control.physics_stage``."""
+    from quadswarm_mj.core.control import physics_stage
+    from quadswarm_mj.core.dense_ops import DenseOps
+    from quadswarm_mj.physics.freebody import FreeBodyPhysics
+
+    act = pipeline.make_substep_actuation(cfg)
+    physics = FreeBodyPhysics(params["mass"], params["inertia"], xp.asarray([0.0, 0.0, -params["gravity"]]),
+                              cfg.sim_dt, cfg.quad.max_omega)
+    ops = DenseOps(cfg, d, xp, yaw_cs, omap=d["omap"], obst_contact=s["obst_contact"])
+    consts = {"act": act, "rotor_pos": xp.asarray(rotor_positions(cfg.quad)),
+              "mix": wrench_matrix(rotor_positions(cfg.quad)), "torque_spin": params["torque_max"] * xp.asarray(SPIN)}
+    state = {**{k: s[k] for k in ("q", "v", "u", "eps", "f_norm", "on_floor", "at_wall", "at_ceiling", "contact")},
+             "R": quat_to_rotmat(s["q"][..., 3:7]), "params": params, "aux": None,
+             "ctrl": None if act is None else (xp.zeros_like(s["u"]), s["ctrl"])}
+    k, _ = physics_stage(cfg, state, action, consts, physics, ops)
+    return {"q": xp.concatenate([k["pos"], k["quat"]], -1), "v": xp.concatenate([k["vel"], k["omega"]], -1),
+            "u": k["u"], "eps": k["eps"], "f_norm": k["f_norm"], "ctrl": s["ctrl"] if act is None else k["ctrl"][1],
+            **{key: k[key] for key in ("on_floor", "at_wall", "at_ceiling", "contact", "obst_contact", "R", "dist",
+                                       "hit_floor", "hit_wall", "hit_ceiling", "new_contact", "obst_new")}}
+
+
+STEP = control_step_physics
 STATE_KEYS = ("q", "v", "u", "eps", "f_norm", "ctrl", "on_floor", "at_wall", "at_ceiling", "contact", "obst_contact")
 
 
@@ -235,14 +262,16 @@ def _to_jax(tree: Any) -> Any:
     return jax.tree.map(lambda a: jnp.asarray(a) if isinstance(a, np.ndarray) else a, tree)
 
 
-def rollout(xp: Any, cfg: EnvConfig, yaw_cs: bool, seed: int = 1) -> list[dict[str, np.ndarray]]:
-    """``STEPS`` chained control steps of ``STEP`` in ``xp`` (jax.numpy: jitted, float64); NumPy outputs."""
+def rollout(xp: Any, cfg: EnvConfig, yaw_cs: bool, seed: int = 1, step: Any = None) -> list[dict[str, np.ndarray]]:
+    """``STEPS`` chained control steps of ``step`` (default ``STEP``) in ``xp`` (jax.numpy: jitted,
+    float64); NumPy outputs."""
+    step = STEP if step is None else step
     params, actions, draws = step_inputs(cfg, seed)
     state = start_state(cfg, seed)
     if xp is np:
-        fn = lambda s, a, p, d: STEP(np, cfg, s, a, p, d, yaw_cs)  # noqa: E731
+        fn = lambda s, a, p, d: step(np, cfg, s, a, p, d, yaw_cs)  # noqa: E731
     else:
-        fn = jax.jit(lambda s, a, p, d: STEP(jnp, cfg, s, a, p, d, yaw_cs))
+        fn = jax.jit(lambda s, a, p, d: step(jnp, cfg, s, a, p, d, yaw_cs))
         state, actions, draws, params = _to_jax((state, actions, draws, params))
     out = []
     for a, d in zip(actions, draws):
@@ -281,6 +310,21 @@ def test_numpy_equals_jax_float64(case: str, yaw_cs: bool) -> None:
         assert err <= tol, f"step {t}: {key} differs by {err:.3g} (relative) between NumPy and JAX"
 
 
+@pytest.mark.parametrize("case", sorted(CASES))
+@pytest.mark.parametrize("yaw_cs", [False, True])
+def test_the_control_step_is_the_leaf_chain(case: str, yaw_cs: bool) -> None:
+    """``core.control.physics_stage`` (NumPy, free-body physics, dense draws) computes what the leaf
+    functions chained in the documented order compute (``physics_half``), to round-off: the control
+    step's order is the model's."""
+    cfg = CASES[case]
+    tol = TOL if cfg.control_mode == "rotor" else TOL_SQRT
+    ref = rollout(np, cfg, yaw_cs, step=physics_half)
+    got = rollout(np, cfg, yaw_cs)
+    for t, (r, g) in enumerate(zip(ref, got)):
+        err, key = _max_err(_w_positive(r), _w_positive(g))
+        assert err <= tol, f"step {t}: {key} differs by {err:.3g} (relative) from the leaf chain"
+
+
 def _w_positive(out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """``out`` with each quaternion of ``q`` as the one of its pair (q, -q) with w >= 0."""
     q = out["q"].copy()
@@ -313,3 +357,88 @@ def test_the_inputs_exercise_every_event(case: str) -> None:
     assert out[0]["on_floor"][:, 3].all()
     mask, _ = downwash_mask(out[0]["q"][..., :3], out[0]["R"])
     assert mask[:, 7, 8].all()
+
+
+# ------------------------------------------------------------------------------------ the whole control step
+def _task_inputs(cfg: EnvConfig, seed: int) -> tuple[dict[str, Any], list[dict[str, Any]], dict[str, Any]]:
+    """(the task state of ``B`` worlds at reset, per-step task draws, observation constants): NumPy."""
+    from quadswarm_mj.core.reset import start_accumulators, start_state
+    from quadswarm_mj.observations import obs_bounds, obs_scale, sensor_noise_spec
+    from quadswarm_mj.randomization import nominal_draws
+    from quadswarm_mj.scenarios import get_scenario
+    from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
+
+    rng = np.random.default_rng(seed + 7)
+    scenario = get_scenario(cfg.scenario)
+    n_scn = scenario_num_uniforms(scenario, cfg)
+    omap = step_inputs(cfg, seed)[2][0]["omap"]
+    init = start_state(cfg, scenario, nominal_draws(cfg, np.zeros((B, N)), (B,)), rng.uniform(size=(B, n_scn)),
+                       rng.uniform(size=(B, scenario_spawn_uniforms(cfg))), {}, np, np.float64, omap=omap)
+    task = {"steps": np.zeros(B, np.int64), "total_steps": np.asarray(0), "sstate": init["scenario"],
+            "omap": omap, **start_accumulators(cfg, np.zeros((B, N)), (B,), N)}
+    spec = sensor_noise_spec(cfg)
+    draws = [{"scenario": rng.uniform(size=(B, n_scn)), "sensor": NumpySampler(rng).draw(spec, (B,))}
+             for _ in range(STEPS)]
+    low, high = obs_bounds(cfg)
+    consts = {"obs_low": low.astype(np.float64), "obs_high": high.astype(np.float64),
+              "obs_scale": obs_scale(cfg) if cfg.normalize_obs else None, "zero_terms": ()}
+    return task, draws, consts
+
+
+def whole_step(xp: Any, cfg: EnvConfig, s: dict[str, Any], action: Any, params: dict[str, Any], d: dict[str, Any],
+               consts: dict[str, Any]) -> dict[str, Any]:
+    """``core.control.control_step`` (free-body physics, dense draws) on ``s``: the physics state of
+    ``control_step_physics`` plus the task state; returns the next state and the step's outputs."""
+    from quadswarm_mj.core.control import control_step
+    from quadswarm_mj.core.dense_ops import DenseOps
+    from quadswarm_mj.physics.freebody import FreeBodyPhysics
+    from quadswarm_mj.scenarios import get_scenario
+
+    physics = FreeBodyPhysics(params["mass"], params["inertia"], xp.asarray([0.0, 0.0, -params["gravity"]]),
+                              cfg.sim_dt, cfg.quad.max_omega)
+    ops = DenseOps(cfg, d, xp, False, omap=s["omap"], obst_contact=s["obst_contact"])
+    consts = {**consts, "act": None, "rotor_pos": xp.asarray(rotor_positions(cfg.quad)),
+              "mix": wrench_matrix(rotor_positions(cfg.quad)), "torque_spin": params["torque_max"] * xp.asarray(SPIN)}
+    state = {**s, "R": quat_to_rotmat(s["q"][..., 3:7]), "params": params, "aux": None, "ctrl": None}
+    k, _, r = control_step(cfg, get_scenario(cfg.scenario), state, action, consts, physics, ops)
+    nxt = {"q": xp.concatenate([k["pos"], k["quat"]], -1), "v": xp.concatenate([k["vel"], k["omega"]], -1),
+           "u": k["u"], "eps": k["eps"], "f_norm": k["f_norm"], "obst_contact": k["obst_contact"],
+           **{key: k[key] for key in ("on_floor", "at_wall", "at_ceiling", "contact")},
+           "steps": r["steps"], "total_steps": r["total_steps"], "sstate": r["sstate"], "omap": s["omap"],
+           "metrics_acc": r["metrics_acc"], "obst_metrics": r["obst_metrics"]}
+    return {"state": nxt, "out": {"obs": r["obs"], "reward": r["reward"], "terms": r["terms"], "t": r["t"]}}
+
+
+def test_the_whole_control_step_numpy_equals_jax_float64() -> None:
+    """``core.control.control_step`` (sub-steps, stages, scenario, rewards, metrics, observations) with
+    the free-body physics and dense draws: NumPy and jitted JAX (float64) agree on every output and
+    accumulator over chained steps (default rotor model, every event happening, sensor noise on)."""
+    cfg = CASES["paper_rotor"]
+    params, actions, draws = step_inputs(cfg, 1)
+    task, task_draws, consts = _task_inputs(cfg, 1)
+    s0 = {**{k: v for k, v in start_state(cfg, 1).items() if k != "ctrl"}, **task}
+    outs: dict[str, list] = {"numpy": [], "jax": []}
+    for name in ("numpy", "jax"):
+        state, ds = s0, [{**d, **t} for d, t in zip(draws, task_draws)]
+        p, acts = params, actions
+        with jax.enable_x64(name == "jax"):
+            if name == "jax":
+                fn = jax.jit(lambda s, a, p_, d: whole_step(jnp, cfg, s, a, p_, d, _to_jax(consts)))
+                state, acts, ds, p = _to_jax((state, acts, ds, p))
+            else:
+                fn = lambda s, a, p_, d: whole_step(np, cfg, s, a, p_, d, consts)  # noqa: E731
+            for a, d in zip(acts, ds):
+                r = fn(state, a, p, d)
+                state = r["state"]
+                outs[name].append(jax.tree.map(np.asarray, (r["out"], state["metrics_acc"], state["obst_metrics"],
+                                                            state["sstate"].goals)))
+    for t, (ref, got) in enumerate(zip(outs["numpy"], outs["jax"])):
+        for path, rv in jax.tree_util.tree_leaves_with_path(ref):
+            gv = dict(jax.tree_util.tree_leaves_with_path(got))[path]
+            assert gv.shape == rv.shape, (t, path)
+            if rv.dtype == bool:
+                np.testing.assert_array_equal(gv, rv, err_msg=f"step {t} {path}")
+            else:
+                err = float(np.max(np.abs(gv - rv) / np.maximum(1.0, np.abs(rv)))) if rv.size else 0.0
+                assert err <= TOL, f"step {t}: {jax.tree_util.keystr(path)} differs by {err:.3g} (relative)"
+    assert np.any(outs["numpy"][-1][0]["reward"] != 0.0)

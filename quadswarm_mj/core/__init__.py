@@ -1,4 +1,6 @@
-"""The engine core: the control step's stages written once (:mod:`quadswarm_mj.core.step`), the engine
-differences passed into them (:mod:`quadswarm_mj.core.ops`), the JAX engine's state (:mod:`quadswarm_mj.
-core.state`). The reset math is :func:`quadswarm_mj.pipeline.initial_state`, the task stage
-:func:`quadswarm_mj.pipeline.task_stage` (both engines call each)."""
+"""The engine core, written once for both engines: the control step (:mod:`quadswarm_mj.core.control`:
+:func:`~quadswarm_mj.core.control.control_step` = the sub-steps of :mod:`quadswarm_mj.core.substeps`,
+the stages after them in :mod:`quadswarm_mj.core.step`, then the task step), the engine differences
+passed into it (:mod:`quadswarm_mj.core.ops`; :mod:`quadswarm_mj.core.dense_ops` the plain dense-draw
+form), the JAX engine's state (:mod:`quadswarm_mj.core.state`). The reset math is :mod:`quadswarm_mj.core.reset`.
+The rigid-body back ends are in :mod:`quadswarm_mj.physics`."""

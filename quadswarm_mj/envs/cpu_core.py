@@ -1,8 +1,10 @@
 """The CPU engine shared by every CPU front end: B worlds x N quads stepped by MuJoCo's C engine.
 
 All model math is batched over (B, N) with the pure functions of the package; MuJoCo integrates the
-rigid bodies. ``QuadSwarmEnv`` is this engine with B = 1, ``QuadSwarmVectorEnv`` runs several of
-them (shards of worlds), ``QuadSwarmParallelEnv`` wraps ``QuadSwarmEnv``.
+rigid bodies. ``step`` is :func:`quadswarm_mj.core.control.control_step` (the control step both engines
+call) with :class:`~quadswarm_mj.core.ops.NumpyOps` and the MuJoCo back end as ``physics``.
+``QuadSwarmEnv`` is this engine with B = 1, ``QuadSwarmVectorEnv`` runs several of them (shards of
+worlds), ``QuadSwarmParallelEnv`` wraps ``QuadSwarmEnv``.
 
 Two physics back ends hold the B worlds (``backend``: ``"mjdata"``, one ``MjData`` with all worlds, the
 default; ``"batch"``, ``mujoco.batch`` chunks; :mod:`quadswarm_mj.physics.mujoco_c`); they give
@@ -32,8 +34,6 @@ from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj import pipeline
 from quadswarm_mj.actuation import (
     SPIN,
-    action_to_command,
-    motor_noise_step,
     rotor_positions,
     wrench_matrix,
 )
@@ -43,14 +43,15 @@ from quadswarm_mj.collisions import (
 )
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.constants import FLOOR_TOL
+from quadswarm_mj.core.control import control_step
 from quadswarm_mj.core.ops import ALL as _ALL
 from quadswarm_mj.core.ops import NumpyOps
 from quadswarm_mj.core.ops import put as _put
-from quadswarm_mj.core.step import velocity_stages
+from quadswarm_mj.core.reset import start_accumulators, start_flags, start_state
 from quadswarm_mj.downwash import downwash_draw_spec
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.perf import one_quad
-from quadswarm_mj.perf.numpy_small import floor_wrench, quat_to_rotmat, substep_wrench, yaw_entries
+from quadswarm_mj.perf.numpy_small import quat_to_rotmat, substep_wrench, yaw_entries
 from quadswarm_mj.perf.one_quad import floor_impact_inplace as floor_impact_one
 from quadswarm_mj.physics.mujoco_c import (  # noqa: F401  re-exported
     BACKENDS,
@@ -60,7 +61,7 @@ from quadswarm_mj.physics.mujoco_c import (  # noqa: F401  re-exported
 )
 from quadswarm_mj.random_draws import MeanSampler, NumpySampler
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
-from quadswarm_mj.rewards import anneal_factor, total_reward, zero_terms
+from quadswarm_mj.rewards import zero_terms
 from quadswarm_mj.scenarios import ScenarioState, get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
 from quadswarm_mj.spatial import rotmat_to_quat
@@ -141,6 +142,9 @@ class CpuSwarm:
         self._R: np.ndarray | None = None  # rotations of the current qpos (None: recompute)
         self._obst_init()
         self._ops = NumpyOps(self)
+        # the constants of core.control.control_step
+        self._consts = {"act": self._act, "rotor_pos": self.rotor_pos, "mix": self._mix, "obs_low": self.obs_low,
+                        "obs_high": self.obs_high, "obs_scale": self.obs_scale, "zero_terms": self._zero_terms}
 
     # ------------------------------------------------------------------ copy / pickle
     def __getstate__(self) -> dict[str, Any]:
@@ -292,8 +296,8 @@ class CpuSwarm:
         overrides["motors"] = motors if isinstance(motors, str) else rows("motors", (4,))
         aero_draws = (NumpySampler(self.rng).draw(aero_draw_spec(cfg), (M,)) if cfg.randomize and cfg.aero.any
                       else None)
-        init = pipeline.initial_state(cfg, self.scenario, draws, scenario_u, spawn_u, overrides, np, np.float64,
-                                      aero_draws, obstacles=new_map)
+        init = start_state(cfg, self.scenario, draws, scenario_u, spawn_u, overrides, np, np.float64, aero_draws,
+                           omap=new_map)
         # 1. dynamics parameters
         new_params = init["params"]
         self.params = {k: (v if k == "gravity" else _put(self.params[k], idx, v)) for k, v in new_params.items()}
@@ -316,84 +320,42 @@ class CpuSwarm:
         self.phys.touch()
         self._R = None
         self.u = _put(self.u, idx, u0)
-        self.motor_eps = _put(self.motor_eps, idx, 0.0)
+        self.motor_eps = _put(self.motor_eps, idx, init["eps"])
         if self._modes:
             self.ctrl_state = _put(self.ctrl_state, idx, 0.0)
-        self.f_norm = _put(self.f_norm, idx, u0**2)
+        self.f_norm = _put(self.f_norm, idx, init["f_norm"])
         self.prev_f_norm = self.f_norm.copy()
-        cur_pos = self.qpos[idx, :, :3] - offsets
-        on_floor, at_wall, at_ceiling = pipeline.initial_flags(cfg, cur_pos, np)
-        self.on_floor = _put(self.on_floor, idx, on_floor)
-        self.at_wall = _put(self.at_wall, idx, at_wall)
-        self.at_ceiling = _put(self.at_ceiling, idx, at_ceiling)
+        flags = start_flags(cfg, self.qpos[idx, :, :3] - offsets, np, new_map)  # as MuJoCo stores the start
+        self.on_floor = _put(self.on_floor, idx, flags["on_floor"])
+        self.at_wall = _put(self.at_wall, idx, flags["at_wall"])
+        self.at_ceiling = _put(self.at_ceiling, idx, flags["at_ceiling"])
         self._sync_flags()
-        # no pair is 'already colliding' at the start: one overlapping at reset is a new contact at the
-        # first step (the paper's response separates it), as in the original
-        self.contact = _put(self.contact, idx, False)
+        self.contact = _put(self.contact, idx, flags["contact"])
         self.steps = _put(self.steps, idx, 0)
-        fresh = metrics_lib.init(np.zeros((M, N)), (M,), N)
-        self.metrics = {k: _put(v, idx, fresh[k]) for k, v in self.metrics.items()}
+        fresh = start_accumulators(cfg, np.zeros((M, N)), (M,), N)
+        self.metrics = {k: _put(v, idx, fresh["metrics_acc"][k]) for k, v in self.metrics.items()}
         if new_map is not None:
             from quadswarm_mj import obstacles as ob
 
             self.omap = ob.ObstacleMap(*(_put(a, idx, b) for a, b in zip(self.omap, new_map)))
             self.phys.set_obstacles(cfg, idx, new_map)
-            self.obst_contact = _put(self.obst_contact, idx, ob.detect(cur_pos, *new_map, cfg.quad.arm)[0])
-            fresh_o = ob.metrics_init(np.zeros(1), (M,), N)
-            self.obst_metrics = {k: _put(v, idx, fresh_o[k]) for k, v in self.obst_metrics.items()}
+            self.obst_contact = _put(self.obst_contact, idx, flags["obst_contact"])
+            self.obst_metrics = {k: _put(v, idx, fresh["obst_metrics"][k]) for k, v in self.obst_metrics.items()}
         self.xfrc[...] = 0.0
         self.phys.after_reset(idx)
 
     # ------------------------------------------------------------------ physics
-    def _physics(self, action: np.ndarray) -> dict[str, np.ndarray]:
-        cfg, B, N = self.cfg, self.B, self.N
-        cmd = action_to_command(action) if not self._modes else None
-        if self._motor_noise:
-            self.motor_eps = motor_noise_step(self.motor_eps, self.params["motor_sigma"],
-                                              cfg.noise.motor_noise_theta, self.rng.standard_normal((B, N, 4)))
-        hit_floor = np.zeros((B, N), bool)
-        max_w = cfg.quad.max_omega
-        R = self._rotations()
-        for s in range(cfg.substeps):
-            if s > 0:
-                R = quat_to_rotmat(self.qpos[..., 3:7])
-            if self._act is None:
-                self.u, self.f_norm, force, torque = substep_wrench(self.u, cmd, self.motor_eps, self.params, R,
-                                                                    self.rotor_pos, self._mix, self._torque_spin)
-            else:
-                force, torque = self._actuate(action, cmd, R)
-            if self.paper_floor and self._any_on_floor:
-                w = self._worlds(self.on_floor)
-                fw, tw = floor_wrench(self.on_floor[w], force[w], torque[w], self.qvel[w, :, :3],
-                                      self.params["mass"][w], self.params["gravity"], cfg.collision.floor_friction,
-                                      cfg.sim_dt)
-                if isinstance(w, slice):
-                    force, torque = fw, tw
-                else:
-                    force[w], torque[w] = fw, tw
-            self.xfrc[..., :3] = force
-            self.xfrc[..., 3:] = torque
-            self.phys.step(max_w)  # also clips omega to +-max_w per body axis
-            if self.paper_floor:
-                grounded = self.qpos[..., 2] <= self.floor_z
-                if self._any_on_floor:
-                    grounded |= self.on_floor
-                if np.count_nonzero(grounded):  # (faster than .any() on tiny masks)
-                    self._floor_impact(self._worlds(grounded), hit_floor)
-        self._R = None
-        R = self._rotations()
-        # once per control step: walls, ceiling (or the room guard), quad-quad, obstacles, downwash
-        pos = self.qpos[..., :3] - self.offsets if not self._offsets_zero else self.qpos[..., :3].copy()
-        kin = {"pos": pos, "vel": self.qvel[..., :3].copy(), "omega": self.qvel[..., 3:].copy(), "R": R,
-               "quat": self.qpos[..., 3:7], "u": self.u, "hit_floor": hit_floor}
-        prev = {"on_floor": self.on_floor, "at_wall": self.at_wall, "at_ceiling": self.at_ceiling,
-                "contact": self.contact}
-        k = velocity_stages(cfg, kin, prev, self._ops)
-        if not self.paper_floor and k["u"] is not self.u:  # the room guard ran
+    def _store(self, k: dict[str, Any], c: dict[str, Any]) -> None:
+        """Keep :func:`quadswarm_mj.core.control.physics_stage`'s results (``c``: after the sub-steps, whose
+        qpos/qvel are MuJoCo's own arrays, written there; ``k``: after the stages that follow them)."""
+        self.motor_eps, self.f_norm, self.u, self._R = k["eps"], k["f_norm"], c["u"], c["R"]
+        self.cmd_s, self.ctrl_state = k["ctrl"]
+        if not self.paper_floor and k["u"] is not c["u"]:  # the room guard ran
             self.qpos[..., 3:7] = k["quat"]
             self.u, self._R = k["u"], k["R"]
-        if not self.paper_floor:  # (with the paper's floor, on_floor and its mirror change in the sub-steps)
-            self.on_floor = k["on_floor"]
+        # the floor flags: with the paper's floor they (and their mirror) changed in the sub-steps
+        self.on_floor = k["on_floor"]
+        if not self.paper_floor:
             self._sync_flags()
         self.at_wall, self.at_ceiling, self.contact = k["at_wall"], k["at_ceiling"], k["contact"]
         if k["changed"] or not self._offsets_zero:  # otherwise qpos/qvel hold these values already
@@ -401,18 +363,6 @@ class CpuSwarm:
             self.qvel[..., :3] = k["vel"]
             self.qvel[..., 3:] = k["omega"]
             self.phys.touch()
-        k.setdefault("obst_new", None)
-        k.setdefault("obst_feats", None)
-        return k
-
-    def _actuate(self, action: np.ndarray, cmd: np.ndarray | None, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One sub-step of :func:`pipeline.make_substep_actuation` (control mode, thrust map,
-        aerodynamics): updates ``u``, ``f_norm``, ``ctrl_state``, ``cmd_s``; returns the world wrench."""
-        pos = self.qpos[..., :3] - self.offsets
-        self.u, self.f_norm, force, torque, self.cmd_s, self.ctrl_state = self._act(
-            self.u, action, cmd, self.motor_eps, self.params, pos, self.qvel[..., :3].copy(),
-            R, self.qvel[..., 3:].copy(), self.ctrl_state, self.rotor_pos, self._mix, self._torque_spin)
-        return force, torque
 
     def _worlds(self, flags: np.ndarray) -> Any:
         """Index of the worlds with any flag set: a slice when that is every world (views, no copy)."""
@@ -474,25 +424,27 @@ class CpuSwarm:
     # ------------------------------------------------------------------ step
     def step(self, action: np.ndarray) -> dict[str, Any]:
         """Advance all worlds one control step with validated actions (B, N, 4) of ``cfg.control_mode``
-        (per-rotor in [-1, 1], or physical units clipped into ``control_action_bounds``)."""
-        cfg = self.cfg
+        (per-rotor in [-1, 1], or physical units clipped into ``control_action_bounds``):
+        :func:`quadswarm_mj.core.control.control_step` on MuJoCo (``self.phys``) with :class:`NumpyOps`."""
         self.prev_f_norm = self.f_norm
-        k = self._physics(action)
-        self.steps = self.steps + 1
-        self.total_steps += 1
-        t = self.steps * cfg.control_dt  # (B,)
-        u = self.rng.uniform(size=(self.B, self._n_scn))
-        effort = pipeline.effort_action(cfg, action, self.cmd_s) if self._modes else action
-        r = pipeline.task_stage(cfg, self.scenario, self.sstate, t, k, effort, self.f_norm, self.prev_f_norm,
-                                self.on_floor, anneal_factor(cfg, self.total_steps), u, self.metrics, self.omap,
-                                self.obst_metrics if self.omap is not None else None, self._obst_thr)
-        self.sstate, terms, self.metrics = r["sstate"], r["terms"], r["metrics_acc"]
+        s = {"q": self.qpos, "v": self.qvel, "R": self._rotations(), "u": self.u, "eps": self.motor_eps,
+             "f_norm": self.f_norm, "on_floor": self.on_floor, "at_wall": self.at_wall, "at_ceiling": self.at_ceiling,
+             "contact": self.contact, "params": self.params, "aux": None, "ctrl": (self.cmd_s, self.ctrl_state),
+             "steps": self.steps, "total_steps": self.total_steps, "sstate": self.sstate, "metrics_acc": self.metrics}
+        if self.omap is not None:
+            s.update(omap=self.omap, obst_metrics=self.obst_metrics, obst_threshold=self._obst_thr)
+        consts = self._consts
+        consts["torque_spin"] = self._torque_spin  # (drawn at reset)
+        k, c, r = control_step(self.cfg, self.scenario, s, action, consts, self.phys, self._ops)
+        self._store(k, c)
+        self.steps, self.total_steps = r["steps"], r["total_steps"]
+        self.sstate, self.metrics = r["sstate"], r["metrics_acc"]
         if self.omap is not None:
             self.obst_metrics = r["obst_metrics"]
-        rewards = total_reward(terms, self._zero_terms)
-        truncated = self.steps >= cfg.episode_steps
-        return {"obs": self.observe(k), "rewards": rewards, "terms": terms, "truncated": truncated,
-                "kin": k, "t": t}
+        k.setdefault("obst_new", None)
+        k.setdefault("obst_feats", None)
+        return {"obs": r["obs"], "rewards": r["reward"], "terms": r["terms"], "truncated": r["done"], "kin": k,
+                "t": r["t"]}
 
     def observe(self, kin: dict[str, Any] | None = None, worlds: Any = None) -> np.ndarray:
         """Observations (B, N, obs_dim) float64 (sensor noise drawn now), or (len(worlds), N,

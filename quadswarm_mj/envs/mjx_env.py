@@ -16,19 +16,18 @@ batch with ``jax.vmap`` and compile with ``jax.jit``::
     state = step(state, action)                                  # state.obs (64, 8, obs_dim)
 
 The model is the package's single definition (the functions the CPU engine calls, on ``jax.numpy``);
-the stages after the sub-steps are :func:`quadswarm_mj.core.step.velocity_stages` with
+``step`` is :func:`quadswarm_mj.core.control.control_step`, the control step both engines call, with
 :class:`~quadswarm_mj.core.ops.JaxOps` (always-on stages, budgeted draws: every event's draws have the
 model's distribution, beyond the budget events reuse an earlier event's slot and new quad-quad pairs
 wait one step; ``tests/test_draw_budget.py``); the reset math is :func:`quadswarm_mj.pipeline.
-initial_state` and the task stage :func:`quadswarm_mj.pipeline.task_stage`, both shared with the CPU
-engine. Rigid-body integration is ``physics``: the exact free-body step (default with the paper's
-collision model) or ``mjx.step`` (MJX's contacts for ``collision_model`` "mujoco"/"blend", with the
-room guard as backstop). Random numbers: :mod:`quadswarm_mj.perf.fused_draws` (one threefry hash per
-reset and step); per-world domain randomization is redrawn at every ``reset`` into
-``info["params"]`` and reaches ``mjx.step`` through ``model.replace``. The fields of ``State`` are
-documented in :class:`quadswarm_mj.core.state.State`; docs/engines.md explains the design. Without
-noise, this engine (float32) and the CPU engine (float64) agree to well under 2 mm over 150 control
-steps with either physics (``tests/test_mjx_env.py``).
+initial_state`, shared with the CPU engine. Rigid-body integration is ``physics``: the exact
+free-body step (default with the paper's collision model) or ``mjx.step`` (MJX's contacts for
+``collision_model`` "mujoco"/"blend", with the room guard as backstop). Random numbers:
+:mod:`quadswarm_mj.perf.fused_draws` (one threefry hash per reset and step); per-world domain
+randomization is redrawn at every ``reset`` into ``info["params"]`` and reaches ``mjx.step`` through
+``model.replace``. The fields of ``State`` are documented in :class:`quadswarm_mj.core.state.State`;
+docs/engines.md explains the design. Without noise, this engine (float32) and the CPU engine (float64)
+agree to well under 2 mm over 150 control steps with either physics (``tests/test_mjx_env.py``).
 """
 
 from __future__ import annotations
@@ -47,11 +46,8 @@ from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj import pipeline
 from quadswarm_mj.actuation import (
     SPIN,
-    action_to_command,
     motor_noise_draw_spec,
-    motor_noise_step,
     rotor_positions,
-    substep_wrench,
     wrench_matrix,
 )
 from quadswarm_mj.aerodynamics import aero_draw_spec
@@ -63,17 +59,16 @@ from quadswarm_mj.collisions import (
     collision_draw_specs,
     expand_per_quad,
     floor_draw_spec,
-    floor_impact,
-    floor_wrench,
     pairwise_contacts,
     quad_collision_slot_spec,
     wall_draw_spec,
 )
 from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.core.control import control_step
 from quadswarm_mj.core.ops import JaxOps
 from quadswarm_mj.core.ops import sub as _sub
+from quadswarm_mj.core.reset import start_accumulators, start_flags, start_state
 from quadswarm_mj.core.state import State
-from quadswarm_mj.core.step import velocity_stages
 from quadswarm_mj.devices import check_mjx_batch
 from quadswarm_mj.downwash import DOWNWASH_BUDGET, downwash_slot_spec
 from quadswarm_mj.envs.autoreset import AutoResetWrapper, _run_if, _select  # noqa: F401  re-exported
@@ -86,11 +81,11 @@ from quadswarm_mj.perf.fused_draws import (  # noqa: F401  re-exported (their ho
     step_words,
     threefry_2x32_unrolled,
 )
-from quadswarm_mj.perf.jax_substeps import component_substeps
+from quadswarm_mj.perf.jax_substeps import ComponentLoop
 from quadswarm_mj.physics.mjx import MjxPhysics
 from quadswarm_mj.random_draws import DrawSpec, JaxSampler, MeanSampler, Uniform
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
-from quadswarm_mj.rewards import anneal_factor, env_terms, total_reward
+from quadswarm_mj.rewards import env_terms
 from quadswarm_mj.scenarios import get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
 from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
@@ -283,9 +278,13 @@ class MjxQuadSwarmEnv:
     def _params(self, info: dict[str, Any]) -> dict[str, Any]:
         return {**info["params"], "gravity": self.cfg.quad.gravity}
 
-    def _integrator(self, params: dict[str, Any], obstacle_radius: Any = None) -> Any:
-        """The rigid-body stage of this env's ``physics`` (:meth:`quadswarm_mj.physics.mjx.MjxPhysics.integrator`)."""
-        return self._mjx_physics.integrator(self.physics, params, obstacle_radius)
+    def _substep_physics(self, params: dict[str, Any], obstacle_radius: Any = None) -> Any:
+        """The ``physics`` of :func:`quadswarm_mj.core.substeps.substep_loop`: the whole loop on components
+        in the default configuration (:class:`~quadswarm_mj.perf.jax_substeps.ComponentLoop`), else one
+        integrator sub-step at a time (:meth:`~quadswarm_mj.physics.mjx.MjxPhysics.substep_physics`)."""
+        if self._component_substeps:
+            return ComponentLoop(self._fb_constants, self._mix)
+        return self._mjx_physics.substep_physics(self.physics, params, self.cfg.quad.max_omega, obstacle_radius)
 
     def _observe(self, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, draws: dict[str, Any],
                  dist: Any = None, omap: Any = None) -> jax.Array:
@@ -348,8 +347,8 @@ class MjxQuadSwarmEnv:
             ob = _obst_lib()
             omap = ob.reset_map(self._obst, _sub(rnd, "omap"), given_obst, xp=jnp)
             omap = ob.ObstacleMap(omap.centres.astype(f), omap.valid, jnp.asarray(omap.radius, f))
-        init = pipeline.initial_state(cfg, self.scenario, draws, rnd["scenario"], rnd["spawn"], init_state, jnp, f,
-                                      aero_draws, obstacles=omap)
+        init = start_state(cfg, self.scenario, draws, rnd["scenario"], rnd["spawn"], init_state, jnp, f, aero_draws,
+                           omap=omap)
         params, sstate, goals = init["params"], init["scenario"], init["scenario"].goals
         pos, vel, R, omega, u0 = init["pos"], init["vel"], init["rot"], init["omega"], init["u0"]
         data = self._write(self._data0, jnp.concatenate([pos, rotmat_to_quat(R)], -1),
@@ -365,19 +364,18 @@ class MjxQuadSwarmEnv:
         q, v = self._read(data)  # as stored (quaternion round trip), like the CPU env
         pos, vel, omega = q[:, :3].astype(f), v[:, :3].astype(f), v[:, 3:].astype(f)
         R = quat_to_rotmat(q[:, 3:7]).astype(f)
-        on_floor, at_wall, at_ceiling = pipeline.initial_flags(cfg, pos, jnp)
+        flags = start_flags(cfg, pos, jnp, omap)
         _, dist = pairwise_contacts(pos, cfg.hitbox)
-        contact = jnp.zeros((n, n), bool)  # none 'already colliding' at the start (as CpuSwarm.reset)
-        acc = metrics_lib.init(jnp.zeros((n,), f), (), n)
-        f_norm = u0 * u0
+        fresh = start_accumulators(cfg, jnp.zeros((n,), f), (), n)
+        acc, f_norm = fresh["metrics_acc"], init["f_norm"]
         obs = self._observe(pos, vel, R, omega, goals, rnd, dist, omap)
         zero_n = jnp.zeros((n,), f)
         info = {
             "state": {"pos": pos, "vel": vel, "rot": R, "omega": omega, "thrust": f_norm},
             "params": {k: jnp.asarray(v, f) for k, v in params.items() if k != "gravity"},
             "goals": goals, "goal_vel": sstate.goal_vel,
-            "motor_u": u0, "motor_eps": jnp.zeros((n, 4), f),
-            "on_floor": on_floor, "at_wall": at_wall, "at_ceiling": at_ceiling, "contact": contact,
+            "motor_u": u0, "motor_eps": init["eps"],
+            **{k: flags[k] for k in ("on_floor", "at_wall", "at_ceiling", "contact")},
             "scenario": sstate, "metrics_acc": acc,
             "episode_metrics": metrics_lib.finalize(acc, jnp.zeros((), f)),
             "step": jnp.zeros((), jnp.int32), "time": jnp.zeros((), f), "total_steps": jnp.zeros((), jnp.int32),
@@ -387,85 +385,34 @@ class MjxQuadSwarmEnv:
             **self._deck_info(obs),  # deck sensor readings ({} when off)
         }
         if omap is not None:
-            ob = _obst_lib()
             info.update({"obstacles": omap.centres, "obstacles_valid": omap.valid, "obstacle_radius": omap.radius,
-                         "obstacle_contact": ob.detect(pos, *omap, cfg.quad.arm)[0],
-                         "obstacle_metrics": ob.metrics_init(zero_n, (), n)})
+                         "obstacle_contact": flags["obst_contact"], "obstacle_metrics": fresh["obst_metrics"]})
             info["episode_metrics"] = self._episode_metrics(acc, info["obstacle_metrics"], jnp.zeros((), f))
         metrics = {f"reward/{k}": zero_n for k in self._terms}
         return State(data=data, obs=obs, reward=zero_n, done=jnp.zeros((), bool), metrics=metrics, info=info)
 
     # ------------------------------------------------------------------ physics
-    def _physics(self, data: mjx.Data, info: dict[str, Any], action: jax.Array,
-                 rnd: dict[str, Any]) -> tuple[mjx.Data, dict[str, Any]]:
-        """One control step of the simulator, in the order of ``CpuSwarm._physics``; the stages and
-        their extension points are those of :mod:`quadswarm_mj.pipeline`."""
-        cfg, n = self.cfg, self.N
-        f = _float()
+    def _step_inputs(self, data: mjx.Data, info: dict[str, Any], rnd: dict[str, Any]) -> tuple[dict, dict, Any, Any]:
+        """(state fields, constants, physics, ops) of :func:`quadswarm_mj.core.control.control_step` for one
+        world from ``data``/``info`` and the step's draws ``rnd``."""
+        cfg, f = self.cfg, _float()
         params = self._params(info)
-        integrate = self._integrator(params, info.get("obstacle_radius"))
-        rotor_pos = jnp.asarray(self._rotor_pos, f)
-        mix = jnp.asarray(self._mix, f)
-        torque_spin = params["torque_max"] * jnp.asarray(SPIN, f)
-        cmd = action_to_command(action) if not self._modes else None
-        eps = info["motor_eps"]
-        if cfg.noise.motor_noise_ratio > 0:
-            eps = motor_noise_step(eps, params["motor_sigma"], cfg.noise.motor_noise_theta, rnd["motor/motor"])
-        max_w = cfg.quad.max_omega
-        floor_z = cfg.quad.arm
-        paper_floor = self._paper_floor
-        act = self._act
-
-        def substep(carry: tuple, yaw_slots: jax.Array) -> tuple[tuple, None]:
-            (q, v, R, u, f_norm, on_floor, hit_floor, aux), ctrl = carry[:-1], carry[-1]
-            if act is None:
-                u, f_norm, force, torque = substep_wrench(u, cmd, eps, params, R, rotor_pos, mix, torque_spin)
-            else:  # control mode, thrust map, aerodynamics (pipeline.make_substep_actuation)
-                u, f_norm, force, torque, cmd_s, cs = act(u, action, cmd, eps, params, q[:, :3], v[:, :3], R,
-                                                          v[:, 3:], ctrl[1], rotor_pos, mix, torque_spin)
-                ctrl = (cmd_s, cs)
-            if paper_floor:
-                force, torque = floor_wrench(on_floor, force, torque, v[:, :3], params["mass"], params["gravity"],
-                                             cfg.collision.floor_friction, cfg.sim_dt)
-            q, v, aux = integrate(q, v, jnp.concatenate([force, torque], axis=-1), aux)
-            omega = jnp.clip(v[:, 3:], -max_w, max_w)
-            R = quat_to_rotmat(q[:, 3:7])
-            if not paper_floor:  # MuJoCo's contacts act on the floor
-                v = jnp.concatenate([v[:, :3], omega], -1)
-                return (q, v, R, u, f_norm, on_floor, hit_floor, aux, ctrl), None
-            landing = (q[:, 2] <= floor_z) & ~on_floor
-            d = expand_per_quad(landing, {"c": yaw_slots[0], "s": yaw_slots[1]})  # trig-free yaw draws
-            r = floor_impact(q[:, :3], v[:, :3], omega, q[:, 3:7], R, u, on_floor, floor_z, None,
-                             yaw_draw_cs=(d["c"], d["s"]))
-            q = jnp.concatenate([r["pos"], r["quat"]], -1)
-            v = jnp.concatenate([r["vel"], r["omega"]], -1)
-            return (q, v, r["R"], r["u"], f_norm, r["on_floor"], hit_floor | r["hit_floor"], aux, ctrl), None
-
-        q0, v0 = self._read(data)
-        if self._component_substeps:
-            q, v, R, u, f_norm, on_floor, hit_floor = component_substeps(
-                cfg, self._fb_constants, self._mix, q0.astype(f), v0.astype(f), info, params, cmd, eps, torque_spin,
-                rnd["floor/yaw"])
-            aux, ctrl = None, None
-        else:
-            yaw_cs = (jnp.cos(rnd["floor/yaw"]), jnp.sin(rnd["floor/yaw"]))  # (substeps, slots) each
-            aux0 = data if self.physics == "mjx" else None
-            carry0 = (q0.astype(f), v0.astype(f), info["state"]["rot"], info["motor_u"], info["state"]["thrust"],
-                      info["on_floor"], jnp.zeros((n,), bool), aux0, self._ctrl0(info, eps))
-            (q, v, R, u, f_norm, on_floor, hit_floor, aux, ctrl), _ = jax.lax.scan(substep, carry0, yaw_cs)
-        data = data if aux is None else aux
-        # once per control step: walls, ceiling (or the room guard), quad-quad, obstacles, downwash
-        kin = {"pos": q[:, :3], "vel": v[:, :3], "omega": v[:, 3:], "R": R, "quat": q[:, 3:7], "u": u,
-               "on_floor": on_floor, "hit_floor": hit_floor}
-        prev = {k2: info[k2] for k2 in ("on_floor", "at_wall", "at_ceiling", "contact")}
         obst = None if self._obst is None else functools.partial(self._obstacles, info, rnd)
-        k = velocity_stages(cfg, kin, prev, JaxOps(cfg, rnd, f, obst))
-        pos, vel, omega = k["pos"], k["vel"], k["omega"]
-        data = self._write(data, jnp.concatenate([pos, k["quat"]], -1), jnp.concatenate([vel, omega], -1))
-        if aux is None:
-            data = data.replace(time=data.time + cfg.control_dt)
-        k.update(f_norm=f_norm, eps=eps, ctrl=ctrl)
-        return data, k
+        ops = JaxOps(cfg, rnd, f, obst)
+        q0, v0 = self._read(data)
+        s = {"q": q0.astype(f), "v": v0.astype(f), "R": info["state"]["rot"], "u": info["motor_u"],
+             "eps": info["motor_eps"], "f_norm": info["state"]["thrust"], "params": params,
+             "aux": data if self.physics == "mjx" else None, "ctrl": self._ctrl0(info),
+             "steps": info["step"], "total_steps": info["total_steps"], "sstate": info["scenario"],
+             "metrics_acc": info["metrics_acc"],
+             **{k2: info[k2] for k2 in ("on_floor", "at_wall", "at_ceiling", "contact")}}
+        if self._obst is not None:
+            s.update(omap=self._omap(info), obst_metrics=info["obstacle_metrics"])
+        consts = {"act": self._act, "rotor_pos": jnp.asarray(self._rotor_pos, f), "mix": jnp.asarray(self._mix, f),
+                  "torque_spin": params["torque_max"] * jnp.asarray(SPIN, f), "obs_low": jnp.asarray(self._obs_low, f),
+                  "obs_high": jnp.asarray(self._obs_high, f),
+                  "obs_scale": None if self._obs_scale is None else jnp.asarray(self._obs_scale, f), "zero_terms": ()}
+        return s, consts, self._substep_physics(params, info.get("obstacle_radius")), ops
 
     def _obstacles(self, info: dict[str, Any], rnd: dict[str, Any], pos: Any, vel: Any, omega: Any) -> dict[str, Any]:
         """The obstacle stage (after quad-quad): the budgeted response slots spread over this step's new
@@ -479,11 +426,12 @@ class MjxQuadSwarmEnv:
         return {"vel": r["vel"], "omega": r["omega"], "obst_new": r["new_contact"], "obst_contact": r["contact"],
                 "changed": True}
 
-    def _ctrl0(self, info: dict[str, Any], eps: Any) -> Any:
+    def _ctrl0(self, info: dict[str, Any]) -> Any:
         """The sub-step carry of :func:`pipeline.make_substep_actuation`: (last rotor command (N, 4),
         controller state (N, 6)), None (no leaves) in the default configuration."""
         if self._act is None:
             return None
+        eps = info["motor_eps"]
         return (jnp.zeros_like(eps), info["ctrl_state"] if self._modes else jnp.zeros(eps.shape[:-1] + (6,), eps.dtype))
 
     # ------------------------------------------------------------------ step
@@ -504,23 +452,16 @@ class MjxQuadSwarmEnv:
         else:
             k_draw, k_next = jax.random.split(info["rng"])
             rnd = self._draw(self._step_spec, k_draw, self._step_mean_spec)
-        prev_f_norm = info["state"]["thrust"]
-        data, k = self._physics(state.data, info, action, rnd)
-        steps = info["step"] + 1
-        total_steps = info["total_steps"] + 1
-        t = steps.astype(f) * cfg.control_dt
-        omap = None if self._obst is None else self._omap(info)
-        effort = pipeline.effort_action(cfg, action, k["ctrl"][0]) if self._modes else action
-        r = pipeline.task_stage(cfg, self.scenario, info["scenario"], t, k, effort, k["f_norm"], prev_f_norm,
-                                k["on_floor"], anneal_factor(cfg, total_steps), rnd["scenario"], info["metrics_acc"],
-                                omap, info.get("obstacle_metrics"))
-        sstate, goals, goal_vel, acc = r["sstate"], r["goals"], r["goal_vel"], r["metrics_acc"]
-        # explicit dtype: a zero-scale term may come back weakly typed, and a state whose leaf types
-        # change between reset and step would make jit compile step twice
-        terms = {name: v.astype(f) for name, v in r["terms"].items()}
-        reward = total_reward(terms)
-        obs = self._observe(k["pos"], k["vel"], k["R"], k["omega"], goals, rnd, k["dist"], omap)
-        done = steps >= cfg.episode_steps
+        s, consts, physics, ops = self._step_inputs(state.data, info, rnd)
+        k, c, r = control_step(cfg, self.scenario, s, action, consts, physics, ops)
+        data = state.data if c["aux"] is None else c["aux"]  # mjx.step's data, else the state's
+        q, v = jnp.concatenate([k["pos"], k["quat"]], -1), jnp.concatenate([k["vel"], k["omega"]], -1)
+        data = self._write(data, q, v)
+        if c["aux"] is None:
+            data = data.replace(time=data.time + cfg.control_dt)
+        steps, total_steps, t, done = r["steps"], r["total_steps"], r["t"], r["done"]
+        sstate, goals, goal_vel, acc, terms, obs = (r[k2] for k2 in ("sstate", "goals", "goal_vel", "metrics_acc",
+                                                                      "terms", "obs"))
         new_info = {
             "state": {"pos": k["pos"], "vel": k["vel"], "rot": k["R"], "omega": k["omega"], "thrust": k["f_norm"]},
             "params": info["params"],
@@ -542,7 +483,7 @@ class MjxQuadSwarmEnv:
             new_info.update({"obstacle_contact": k["obst_contact"], "obstacle_metrics": om,
                              "episode_metrics": self._episode_metrics(acc, om, t)})
         metrics = {f"reward/{name}": terms[name] for name in self._terms}
-        return State(data=data, obs=obs, reward=reward, done=done, metrics=metrics, info=new_info)
+        return State(data=data, obs=obs, reward=r["reward"], done=done, metrics=metrics, info=new_info)
 
 
 # ---------------------------------------------------------------------------------- benchmark

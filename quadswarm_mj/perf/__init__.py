@@ -9,6 +9,9 @@ in the model or the engines (a same-values test checks it), only faster on some 
   ``kernel_boundary``, integer sort keys), same values as the plain JAX forms.
 * :mod:`quadswarm_mj.perf.fused_draws`: all random numbers of a JAX reset or step from one unrolled
   threefry hash (``FusedJaxSampler``), the same distributions as ``jax.random``.
+* :mod:`quadswarm_mj.perf.jax_substeps`: the JAX engine's whole sub-step loop of the default
+  configuration on components (``ComponentLoop``, a ``physics`` of the control step), the same
+  formulas as the general loop.
 * :mod:`quadswarm_mj.perf.packing`: the JAX engine's state and outputs packed into a few buffers at
   the host boundary (fewer transfers per step), unpacked to the same pytree bit for bit.
 

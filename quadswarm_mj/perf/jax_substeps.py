@@ -20,17 +20,39 @@ from quadswarm_mj import components
 from quadswarm_mj.collisions import expand_per_quad
 from quadswarm_mj.freebody import freebody_step_components
 from quadswarm_mj.perf.xla_cpu import kernel_boundary
+from quadswarm_mj.physics.freebody import WorldLocal
 from quadswarm_mj.spatial import quat_to_rotmat_components
 
 
-def component_substeps(cfg: Any, fb_constants: Any, mix: np.ndarray, q: Any, v: Any, info: dict[str, Any],
-                       params: dict[str, Any], cmd: Any, eps: Any, torque_spin: Any, yaw: Any) -> tuple[Any, ...]:
+class ComponentLoop(WorldLocal):
+    """The free-body physics of the default configuration as a whole sub-step loop on components, for
+    :func:`quadswarm_mj.core.substeps.substep_loop` (its ``fused_loop``; the same formulas as the general
+    loop with :class:`quadswarm_mj.physics.mjx.JaxSubstep` and :class:`quadswarm_mj.core.ops.JaxOps`).
+    ``fb_constants``: :func:`quadswarm_mj.freebody.freebody_constants`; ``mix`` (3, 4) NumPy."""
+
+    def __init__(self, fb_constants: Any, mix: np.ndarray) -> None:
+        self.k, self.mix = fb_constants, mix
+
+    def fused_loop(self, cfg: Any, carry: dict[str, Any], inp: dict[str, Any], consts: dict[str, Any],
+                   ops: Any) -> dict[str, Any]:
+        """:func:`~quadswarm_mj.core.substeps.substep_loop` (``carry["hit_floor"]`` all False, as there)."""
+        c = carry
+        q, v, R, u, f_norm, on_floor, hit_floor = component_substeps(
+            cfg, self.k, self.mix, c["q"], c["v"], c["R"], c["u"], c["f_norm"], c["on_floor"], inp["params"],
+            inp["cmd"], inp["eps"], consts["torque_spin"], ops.rnd["floor/yaw"])
+        return {"q": q, "v": v, "R": R, "u": u, "f_norm": f_norm, "on_floor": on_floor,
+                "hit_floor": hit_floor, "aux": c["aux"], "ctrl": c["ctrl"]}
+
+
+def component_substeps(cfg: Any, fb_constants: Any, mix: np.ndarray, q: Any, v: Any, R: Any, u: Any, f_norm: Any,
+                       on_floor: Any, params: dict[str, Any], cmd: Any, eps: Any, torque_spin: Any,
+                       yaw: Any) -> tuple[Any, ...]:
     """The sub-step loop of the default configuration (rotor control, the paper's floor, free-body
     physics) with the vectors carried as tuples of components (:mod:`quadswarm_mj.components`):
-    the same formulas as the JAX engine's general loop (``MjxQuadSwarmEnv._physics``), in contiguous (W, N) arrays under
-    vmap. Takes q (N, 7), v (N, 6) and ``yaw`` (substeps, slots), the floor landings' yaw draws (rad);
-    returns (q, v, R (N, 3, 3), u, f_norm (N, 4), on_floor, hit_floor (N,)) after ``cfg.substeps``
-    sub-steps."""
+    the same formulas as the general loop (:func:`quadswarm_mj.core.substeps.substep_loop`), in
+    contiguous (W, N) arrays under vmap. Takes q (N, 7), v (N, 6), R (N, 3, 3), u and f_norm (N, 4),
+    on_floor (N,) and ``yaw`` (substeps, slots), the floor landings' yaw draws (rad); returns (q, v, R,
+    u, f_norm, on_floor, hit_floor (N,)) after ``cfg.substeps`` sub-steps."""
     n, f = q.shape[0], q.dtype
     k = fb_constants
     split = components.split
@@ -67,9 +89,9 @@ def component_substeps(cfg: Any, fb_constants: Any, mix: np.ndarray, q: Any, v: 
     qc, vc = split(q), split(v)
     # every sub-step sets f_norm before reading it: zeros, not the slices of the previous step's
     zeros = jnp.zeros((n,), f)
-    f_norm0 = (zeros,) * 4 if cfg.substeps >= 1 else split(info["state"]["thrust"])
-    carry0 = (qc[:3], qc[3:], vc[:3], vc[3:], split(info["state"]["rot"].reshape(n, 9)), split(info["motor_u"]),
-              f_norm0, info["on_floor"], jnp.zeros((n,), bool))
+    f_norm0 = (zeros,) * 4 if cfg.substeps >= 1 else split(f_norm)
+    carry0 = (qc[:3], qc[3:], vc[:3], vc[3:], split(R.reshape(n, 9)), split(u), f_norm0, on_floor,
+              jnp.zeros((n,), bool))
     pos, quat, vel, omega, R, u, f_norm, on_floor, hit_floor = jax.lax.fori_loop(0, cfg.substeps, substep, carry0)
     stack = components.stack
     return (stack(pos + quat), stack(vel + omega), stack(R).reshape(n, 3, 3), stack(u), stack(f_norm),

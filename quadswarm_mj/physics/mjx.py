@@ -11,6 +11,8 @@ import jax
 import jax.numpy as jnp
 from mujoco import mjx
 
+from quadswarm_mj.physics.freebody import WorldLocal
+
 
 class MjxPhysics:
     """The quads' rows of an MJX model of one world (``arena``: :func:`quadswarm_mj.arena.build_arena`
@@ -81,3 +83,29 @@ class MjxPhysics:
 
         return integrate_mjx
 
+    def substep_physics(self, physics: str, params: dict[str, Any], max_omega: float,
+                        obstacle_radius: Any = None) -> Any:
+        """The ``physics`` of :func:`quadswarm_mj.core.substeps.substep_loop`: :class:`~quadswarm_mj.physics.
+        freebody.FreeBodyPhysics` for "freebody", :class:`JaxSubstep` around ``mjx.step`` for "mjx"."""
+        if physics == "freebody":
+            from quadswarm_mj.freebody import freebody_constants
+            from quadswarm_mj.physics.freebody import FreeBodyPhysics
+
+            c = freebody_constants(self.arena.model, self.arena)
+            return FreeBodyPhysics(params["mass"], params["inertia"], c.gravity, c.dt, max_omega, c.ipos, c.iquat)
+        return JaxSubstep(self.integrator(physics, params, obstacle_radius), max_omega)
+
+
+
+class JaxSubstep(WorldLocal):
+    """The sub-step interface of :func:`quadswarm_mj.core.substeps.substep_loop` around an integrator
+    ``integrate(q, v, wrench, aux) -> (q, v, aux)`` (:meth:`MjxPhysics.integrator`), with the angular
+    velocity clipped to +-``max_omega`` (rad/s) per body axis after it. Positions are world-local."""
+
+    def __init__(self, integrate: Any, max_omega: float) -> None:
+        self.integrate, self.max_omega = integrate, max_omega
+
+    def substep(self, q: Any, v: Any, force: Any, torque: Any, aux: Any) -> tuple[Any, Any, Any]:
+        q, v, aux = self.integrate(q, v, jnp.concatenate([force, torque], axis=-1), aux)
+        w = self.max_omega
+        return q, jnp.concatenate([v[..., :3], jnp.clip(v[..., 3:], -w, w)], -1), aux

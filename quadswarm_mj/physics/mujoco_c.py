@@ -83,11 +83,42 @@ def _check_simple_bodies(model: mujoco.MjModel, arena: Any) -> None:
                            "must coincide with the body frame")
 
 
-class MjDataPhysics:
+class _SubstepAdapter:
+    """The sub-step interface of :func:`quadswarm_mj.core.substeps.substep_loop` on the (B, N, .) views
+    ``qpos``/``qvel``/``xfrc`` (MuJoCo's frame: positions include the world offsets)."""
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+    xfrc: np.ndarray
+    offsets: np.ndarray
+    max_omega: float
+    _any_offset: bool
+
+    def substep(self, q: np.ndarray, v: np.ndarray, force: np.ndarray, torque: np.ndarray, aux: Any) -> tuple:
+        """Write the world wrench into ``xfrc_applied``, step once (angular velocity clipped); the state
+        arrays are MuJoCo's own (returned as they are: ``q``/``v`` are ``qpos``/``qvel``)."""
+        self.xfrc[..., :3] = force
+        self.xfrc[..., 3:] = torque
+        self.step(self.max_omega)
+        return self.qpos, self.qvel, aux
+
+    def local_pos(self, q: np.ndarray) -> np.ndarray:
+        """World-local positions (m) of ``q`` (B, N, 7) (a fresh array; x - 0.0 is x, signed zeros included,
+        so with all offsets zero a copy gives the same bits)."""
+        return q[..., :3] - self.offsets if self._any_offset else q[..., :3].copy()
+
+    @staticmethod
+    def velocities(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(vel m/s world, omega rad/s body) copies (``v`` is MuJoCo's, overwritten by the next sub-step)."""
+        return v[..., :3].copy(), v[..., 3:].copy()
+
+
+class MjDataPhysics(_SubstepAdapter):
     """All B worlds in one MjModel/MjData; qpos/qvel/xfrc are views into it (no copies)."""
 
     def __init__(self, cfg: EnvConfig, num_worlds: int, visual: bool = True):
         B, N = num_worlds, cfg.num_quads
+        self.max_omega = cfg.quad.max_omega
         self.arena = build_arena(cfg, num_worlds) if visual else build_arena(cfg, num_worlds, visual=False)
         self.model = self.arena.model
         _no_autoreset(self.model)
@@ -101,6 +132,7 @@ class MjDataPhysics:
         self.xfrc = self.data.xfrc_applied[fb:fb + B * N].reshape(B, N, 6)
         assert np.shares_memory(self.qpos, self.data.qpos) and np.shares_memory(self.xfrc, self.data.xfrc_applied)
         self.offsets = self.arena.world_offsets[:, None, :]
+        self._any_offset = bool(np.any(self.offsets))
         _check_simple_bodies(self.model, self.arena)
         self._M0 = self.model.dof_M0[vs:vs + 6 * B * N].reshape(B * N, 6)  # a view
 
@@ -161,7 +193,7 @@ class MjDataPhysics:
 _CHUNK_MODELS: dict[Any, Any] = {}  # (cfg, worlds) -> lean arena, compiled once per process
 
 
-class BatchPhysics:
+class BatchPhysics(_SubstepAdapter):
     """B worlds as K = ceil(B / C) simulations of a C-world model (no visual geoms) in one
     ``mujoco.batch.Batch``: one call steps them all. The engine's qpos/qvel/xfrc are (B, N, .)
     arrays copied into the simulations' state rows before each step and back after it.
@@ -176,6 +208,7 @@ class BatchPhysics:
         import mujoco.batch
 
         B, N = num_worlds, cfg.num_quads
+        self.max_omega = cfg.quad.max_omega
         C = max(1, min(int(chunk_worlds), B))
         K = -(-B // C)
         key = (cfg, C)
@@ -209,6 +242,7 @@ class BatchPhysics:
         self._pad_qpos = self._qpos[B:].copy()
         self.qpos, self.qvel, self.xfrc = self._qpos[:B], self._qvel[:B], self._xfrc[:B]
         self.offsets = np.tile(self.arena.world_offsets, (K, 1))[:B, None, :]
+        self._any_offset = bool(np.any(self.offsets))
 
     def __getstate__(self) -> dict[str, Any]:
         raise TypeError("a CpuSwarm on the 'batch' back end (mujoco.batch) cannot be copied or pickled; use "
