@@ -448,8 +448,10 @@ def test_encoder_validation_errors(tmp_path):
         validate_arch(SMALL_ARCHS["attention_sim2real"], {**LAYOUT_SWARM, "num_neighbors": 0})
     with pytest.raises(ValueError, match="self_dim"):
         validate_layout({**LAYOUT_OBST, "self_dim": 20})
-    with pytest.raises(ValueError, match="obstacle_dim"):
-        validate_layout({**LAYOUT_OBST, "obstacle_dim": 4})
+    for bad in (-1, 4.0, 5000):  # any tail width 0..MAX_TAIL_DIM (column features and/or deck readings)
+        with pytest.raises(ValueError, match="obstacle_dim"):
+            validate_layout({**LAYOUT_OBST, "obstacle_dim": bad})
+    assert validate_layout({**LAYOUT_OBST, "obstacle_dim": 10})["obstacle_dim"] == 10
     with pytest.raises(ValueError, match="head_layers"):
         validate_arch({**SMALL_ARCHS["deepsets"], "head_layers": [0]}, LAYOUT_OBST)
     pol = random_encoder_policy(SMALL_ARCHS["deepsets"], LAYOUT_OBST)
