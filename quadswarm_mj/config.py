@@ -542,10 +542,10 @@ class EnvConfig:
 
     @property
     def obs_dim(self) -> int:
-        """Self block + 6 per neighbour (+ 9 obstacle distance features when obstacles are on) (+ the deck
-        sensors' ``sensors.obs_dim`` readings, last)."""
-        return (self.self_obs_dim + 6 * self.neighbors + (9 if self.obstacles is not None else 0)
-                + self.sensors.obs_dim)
+        """Self block + 6 per neighbour (+ 9 obstacle distance features when obstacles are on and
+        ``obstacles.observe_features``) (+ the deck sensors' ``sensors.obs_dim`` readings, last)."""
+        features = self.obstacles.feature_dim if self.obstacles is not None else 0
+        return self.self_obs_dim + 6 * self.neighbors + features + self.sensors.obs_dim
 
     @property
     def hitbox(self) -> float:

@@ -22,6 +22,8 @@ ENCODER_FORMAT = "quadswarm_mj.policy/2"
 ENCODER_TYPES = ("deepsets", "attention")
 NEIGHBOR_DIM = 6
 OBSTACLE_DIM = 9
+#: the widest observation tail after the neighbours (9 column features + every deck sensor, 32 x 32 depth)
+MAX_TAIL_DIM = 2048
 LN_EPS = 1e-6
 SELF_DIMS = {"base": 18, "floor": 19, "wall": 24}
 
@@ -54,7 +56,11 @@ def _pos_int_list(arch: dict[str, Any], key: str, allow_empty: bool = False) -> 
 
 
 def validate_layout(layout: dict[str, Any]) -> dict[str, int]:
-    """Check an observation layout ``{self_dim, num_neighbors, neighbor_dim, obstacle_dim}``; returns it as ints."""
+    """Check an observation layout ``{self_dim, num_neighbors, neighbor_dim, obstacle_dim}``; returns it as ints.
+
+    ``obstacle_dim`` is the width of the observation's tail after the neighbours, which the obstacle
+    branch reads: the 9 column features (obstacles on, ``observe_features``), then the deck readings
+    (``EnvConfig.sensors``); 0 without either."""
     if not isinstance(layout, dict):
         raise ValueError(f"obs_layout must be a mapping, got {layout!r}")
     out = {k: layout.get(k, d) for k, d in (("self_dim", None), ("num_neighbors", 0), ("neighbor_dim", NEIGHBOR_DIM),
@@ -65,8 +71,10 @@ def validate_layout(layout: dict[str, Any]) -> dict[str, int]:
         raise ValueError(f"obs_layout num_neighbors must be an int in [0, 64], got {out['num_neighbors']!r}")
     if out["neighbor_dim"] != NEIGHBOR_DIM:
         raise ValueError(f"obs_layout neighbor_dim must be {NEIGHBOR_DIM}, got {out['neighbor_dim']!r}")
-    if out["obstacle_dim"] not in (0, OBSTACLE_DIM):
-        raise ValueError(f"obs_layout obstacle_dim must be 0 or {OBSTACLE_DIM}, got {out['obstacle_dim']!r}")
+    od = out["obstacle_dim"]
+    if not isinstance(od, int) or isinstance(od, bool) or not 0 <= od <= MAX_TAIL_DIM:
+        raise ValueError(f"obs_layout obstacle_dim (the tail after the neighbours: {OBSTACLE_DIM} column features "
+                         f"and/or the deck readings) must be an int in [0, {MAX_TAIL_DIM}], got {od!r}")
     return {k: int(v) for k, v in out.items()}
 
 
@@ -79,7 +87,8 @@ def layout_obs_dim(layout: dict[str, Any]) -> int:
 def layout_from_env(env: dict[str, Any], obs_dim: int | None = None) -> dict[str, int] | None:
     """The observation layout implied by a policy's ``meta["env"]`` (None if it does not fix it).
 
-    The obstacle block (9) is inferred from ``obs_dim`` when given.
+    The tail after the neighbours (9 column features and/or deck readings) is inferred from ``obs_dim``
+    when given.
     """
     obs_self = env.get("obs_self", "base")
     if obs_self not in SELF_DIMS or "num_quads" not in env:
@@ -90,7 +99,7 @@ def layout_from_env(env: dict[str, Any], obs_dim: int | None = None) -> dict[str
     lay = {"self_dim": SELF_DIMS[obs_self], "num_neighbors": k, "neighbor_dim": NEIGHBOR_DIM, "obstacle_dim": 0}
     if obs_dim is not None:
         rest = int(obs_dim) - lay["self_dim"] - NEIGHBOR_DIM * k
-        if rest not in (0, OBSTACLE_DIM):
+        if not 0 <= rest <= MAX_TAIL_DIM:
             return None
         lay["obstacle_dim"] = rest
     return lay
@@ -100,7 +109,8 @@ def validate_arch(arch: dict[str, Any], layout: dict[str, Any]) -> dict[str, Any
     """Check an encoder architecture against an observation layout; returns a normalized copy.
 
     ``deepsets``: ``self_layers``, ``neighbor_layers`` (per-neighbour MLP on the 6 features, then the
-    mean over the K neighbours), ``obstacle_layers`` (on the 9 SDF features; used iff obstacle_dim 9),
+    mean over the K neighbours), ``obstacle_layers`` (on the tail: the 9 SDF features and/or deck readings; used iff
+    obstacle_dim > 0),
     ``head_layers`` (on the concatenation), all hidden layers followed by ``activation``.
     ``attention``: ``hidden`` H, ``embed_layers`` (fc-act layers of width H for the self, neighbour
     (on the concatenated 6K vector) and obstacle embeddings; 1 = the Sim2Real model), ``num_heads``,
@@ -138,14 +148,14 @@ def validate_arch(arch: dict[str, Any], layout: dict[str, Any]) -> dict[str, Any
                 raise ValueError(f"arch {key} must be a positive int, got {v!r}")
         if lay["num_neighbors"] == 0 and lay["obstacle_dim"] == 0:
             raise ValueError("an attention encoder needs a neighbour or an obstacle token (num_neighbors >= 1 or "
-                             "obstacle_dim 9)")
+                             "obstacle_dim >= 1)")
         out.update(hidden=h, embed_layers=el, num_heads=nh, attn_dim=ad,
                    head_layers=_pos_int_list(arch, "head_layers", allow_empty=True))
     return out
 
 
 def num_tokens(layout: dict[str, Any]) -> int:
-    """Attention tokens: one for the neighbours (if K >= 1), one for the obstacles (if obstacle_dim 9)."""
+    """Attention tokens: one for the neighbours (if K >= 1), one for the tail (if obstacle_dim >= 1)."""
     lay = validate_layout(layout)
     return int(lay["num_neighbors"] > 0) + int(lay["obstacle_dim"] > 0)
 

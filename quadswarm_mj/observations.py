@@ -12,7 +12,8 @@ slice                  size  content (units; frame)
 18 ("floor" only)      1     z (m)
 18:24 ("wall" only)    6     distances to the walls -x, +x, -y, +y, floor, ceiling (m, <= 5)
 then, per neighbour    6     p_j - p_i (m), v_j - v_i (m/s), nearest first
-then (obstacles on)    9     obstacle distance features (m; SPEC_obstacles A.2, true positions)
+then (obstacles on)    9     obstacle distance features (m; SPEC_obstacles A.2, true positions;
+                             none when ``obstacles.observe_features`` is False)
 last (sensors on)      S     deck readings (``sensors.deck_layout``: multi-ranger 5 ranges m + 5
                              flags, flow deck range m, flow x, y px/frame + 2 flags, depth H W m)
 ====================== ===== ==========================================================
@@ -62,7 +63,7 @@ def obs_bounds(cfg: EnvConfig) -> tuple[np.ndarray, np.ndarray]:
     nb_hi = [L, W, H] + [MAX_NEIGHBOR_VEL] * 3
     lo += [-x for x in nb_hi] * cfg.neighbors
     hi += nb_hi * cfg.neighbors
-    if cfg.obstacles is not None:  # the 9 obstacle distance features, last (SPEC_obstacles A.2)
+    if cfg.obstacles is not None and cfg.obstacles.observe_features:  # the 9 features (SPEC_obstacles A.2)
         from quadswarm_mj.obstacles import feature_bounds
 
         f_lo, f_hi = feature_bounds(cfg)
@@ -267,7 +268,7 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
                                       cfg.obs_dim - cfg.self_obs_dim - 6 * cfg.neighbors)
         low = xp.maximum(xp.asarray(low), xp.asarray(nb_lo, dtype=pos.dtype))
         high = xp.minimum(xp.asarray(high), xp.asarray(nb_hi, dtype=pos.dtype))
-    if obstacles is not None:
+    if obstacles is not None and cfg.obstacles.observe_features:
         from quadswarm_mj.obstacles import obstacle_features
 
         parts.append(obstacle_feats if obstacle_feats is not None else obstacle_features(pos, *obstacles))

@@ -22,6 +22,10 @@ class ObstacleConfig:
     from ``density_values`` / ``size_values``. ``max_columns`` (None: the most any reset can
     place) fixes the number of column slots per world (static shapes). ``collision_reward`` is
     the penalty per new obstacle contact (not scaled by dt; SPEC_obstacles A.4).
+    ``observe_features`` (default True) appends the 9 privileged column-distance features
+    (SPEC_obstacles A.2, from the true column map) to every observation; False keeps the columns in
+    the world (physics, collisions, the deck sensors' rays) but leaves these 9 features out of the
+    observation, so a policy must sense the columns, e.g. with ``SensorConfig(multiranger=True)``.
     """
 
     density: float = 0.2
@@ -34,6 +38,7 @@ class ObstacleConfig:
     size_values: tuple[float, ...] = OBSTACLE_SIZE_VALUES
     max_columns: int | None = None
     collision_reward: float = 5.0
+    observe_features: bool = True
 
     def __post_init__(self) -> None:
         _check_range("obstacles.density", self.density, 0.0, 1.0)
@@ -66,7 +71,7 @@ class ObstacleConfig:
             if not d < self.cell:
                 raise ValueError(f"obstacles.size_values[{i}] must be smaller than obstacles.cell = {self.cell}, "
                                  f"got {d!r}")
-        for n in ("density_random", "size_random"):
+        for n in ("density_random", "size_random", "observe_features"):
             if not isinstance(getattr(self, n), bool):
                 raise ValueError(f"obstacles.{n} must be a bool, got {getattr(self, n)!r}")
         _check_range("obstacles.collision_reward", self.collision_reward, 0.0, MAX_REWARD_SCALE)
@@ -104,6 +109,11 @@ class ObstacleConfig:
     def slots(self) -> int:
         """M_max: column slots per world (>= 1 so arrays never have a zero-size axis)."""
         return self.max_columns if self.max_columns is not None else max(self.columns_needed, 1)
+
+    @property
+    def feature_dim(self) -> int:
+        """Observation components of the column features: 9 when ``observe_features``, else 0."""
+        return 9 if self.observe_features else 0
 
     @property
     def max_size(self) -> float:

@@ -33,7 +33,8 @@ key                dtype        content
 ``meta``           unicode 0-d  JSON: ``format``, ``arch`` (see :func:`validate_arch`: ``type``
                                 ``"deepsets"`` or ``"attention"``, layer sizes, ``activation``,
                                 heads), ``obs_layout`` (``self_dim`` 18/19/24, ``num_neighbors``
-                                K, ``neighbor_dim`` 6, ``obstacle_dim`` 9 or 0), ``obs_dim``,
+                                K, ``neighbor_dim`` 6, ``obstacle_dim``: the tail, 9 column
+                                features and/or deck readings, or 0), ``obs_dim``,
                                 ``action_dim``, ``env``, ``train``
 ``actor/<name>``   float32      the actor's parameters, named as the flax modules of
                                 ``quadswarm_mj.training.networks`` (e.g. ``actor/self_0/kernel``,
@@ -42,7 +43,8 @@ key                dtype        content
 ``obs_std``        float32      (obs_dim,)
 ================== ============ ===============================================================
 
-The observation is ``[self (self_dim) | K x (rel_pos 3, rel_vel 3) | obstacle SDF (obstacle_dim)]``;
+The observation is ``[self (self_dim) | K x (rel_pos 3, rel_vel 3) | tail (obstacle_dim)]``, the tail being
+the 9 obstacle SDF features and/or the deck readings;
 MLP files written now also record ``arch`` (``{"type": "mlp", "layers": [...]}``) and, when the
 ``env`` entry fixes it, ``obs_layout`` in their ``meta`` (older files load unchanged).
 

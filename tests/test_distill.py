@@ -88,6 +88,28 @@ def test_controller_teacher_with_obstacles_labels_the_true_state_and_estimates_a
 
 
 @pytest.mark.slow
+def test_student_of_the_multiranger_without_column_features():
+    """The sensed-columns env (issue 36): the teacher reads the column map, the student's tail is the
+    multi-ranger's 10 readings, and the student file rebuilds that env."""
+    from quadswarm_mj.config import ObstacleConfig
+    from quadswarm_mj.sensor_config import SensorConfig
+
+    env = {"num_quads": 3, "obstacles": ObstacleConfig(observe_features=False), "downwash": True,
+           "sensors": SensorConfig(multiranger=True)}
+    d = Distiller("controller", "deepsets_deployable", "o_random",
+                  DistillConfig(num_worlds=2, unroll_length=8, buffer_size=512, sgd_steps=2, batch_size=32,
+                                beta_iterations=1000), seed=0, env=env)
+    assert d.layout["obstacle_dim"] == 10 and d.env_cfg.obs_dim == 18 + 12 + 10
+    d.step()
+    student = d.policy()
+    assert student.obs_layout["obstacle_dim"] == 10
+    assert student.env_kwargs["obstacles"]["observe_features"] is False
+    assert student.env_kwargs["sensors"]["multiranger"] is True
+    rebuilt = EnvConfig(**{**student.env_kwargs, "scenario": "o_random"})
+    assert rebuilt.obs_dim == student.obs_dim == d.env_cfg.obs_dim
+
+
+@pytest.mark.slow
 def test_cli_run_resumes_with_optimizer_normalizer_and_counters(tmp_path):
     import json
 

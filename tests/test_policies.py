@@ -303,6 +303,7 @@ def test_pretrained_swarm8_deployable_reproduces_recorded_metrics():
 def test_pretrained_obstacle_policies_reproduce_recorded_metrics():
     _check_recorded("swarm8_obstacles", ["o_random"])
     _check_recorded("swarm8_obstacles_deployable", ["o_random"])
+    _check_recorded("swarm8_sensors", ["o_random"])
 
 
 def test_shipped_swarm_policies_are_what_the_manifest_says():
@@ -321,6 +322,12 @@ def test_shipped_swarm_policies_are_what_the_manifest_says():
         else:
             assert cfg.obstacles is None
         assert (pol.num_params <= 2000) == name.endswith("deployable")
+    # the multi-ranger student: the columns in the world, their 9 features not observed, the 10 deck readings instead
+    pol = load_policy("pretrained:swarm8_sensors")
+    cfg = EnvConfig(**pol.env_kwargs)
+    assert cfg.obs_dim == pol.obs_dim == 18 + 36 + 10 and pol.obs_layout["obstacle_dim"] == 10
+    assert not cfg.obstacles.observe_features and cfg.sensors.multiranger and not cfg.sensors.flow
+    assert cfg.obstacles.density == 0.2 and cfg.obstacles.size == 0.6 and cfg.downwash
 
 
 # ---------------------------------------------------------------------------- encoder policies (deep sets, attention)
@@ -448,8 +455,10 @@ def test_encoder_validation_errors(tmp_path):
         validate_arch(SMALL_ARCHS["attention_sim2real"], {**LAYOUT_SWARM, "num_neighbors": 0})
     with pytest.raises(ValueError, match="self_dim"):
         validate_layout({**LAYOUT_OBST, "self_dim": 20})
-    with pytest.raises(ValueError, match="obstacle_dim"):
-        validate_layout({**LAYOUT_OBST, "obstacle_dim": 4})
+    for bad in (-1, 4.0, 5000):  # any tail width 0..MAX_TAIL_DIM (column features and/or deck readings)
+        with pytest.raises(ValueError, match="obstacle_dim"):
+            validate_layout({**LAYOUT_OBST, "obstacle_dim": bad})
+    assert validate_layout({**LAYOUT_OBST, "obstacle_dim": 10})["obstacle_dim"] == 10
     with pytest.raises(ValueError, match="head_layers"):
         validate_arch({**SMALL_ARCHS["deepsets"], "head_layers": [0]}, LAYOUT_OBST)
     pol = random_encoder_policy(SMALL_ARCHS["deepsets"], LAYOUT_OBST)

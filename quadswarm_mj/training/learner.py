@@ -66,9 +66,10 @@ def _to_tree(layers: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
 
 
 def obs_layout(cfg: EnvConfig) -> dict[str, int]:
-    """The observation layout of ``cfg`` (``quadswarm_mj.policies.validate_layout`` keys)."""
+    """The observation layout of ``cfg`` (``quadswarm_mj.policies.validate_layout`` keys); ``obstacle_dim``
+    is the tail after the neighbours: the 9 column features (if observed) and the deck readings."""
     return {"self_dim": cfg.self_obs_dim, "num_neighbors": cfg.neighbors, "neighbor_dim": 6,
-            "obstacle_dim": 9 if cfg.obstacles is not None else 0}
+            "obstacle_dim": cfg.obs_dim - cfg.self_obs_dim - 6 * cfg.neighbors}
 
 
 def env_meta(cfg: EnvConfig) -> dict[str, Any]:
@@ -81,6 +82,9 @@ def env_meta(cfg: EnvConfig) -> dict[str, Any]:
     if cfg.obstacles is not None:
         env["obstacles"] = {k: (list(v) if isinstance(v, tuple) else v)
                             for k, v in dataclasses.asdict(cfg.obstacles).items()}
+    if cfg.sensors.any:  # the deck sensors the policy reads (their readings end its observation)
+        env["sensors"] = {k: (list(v) if isinstance(v, tuple) else v)
+                          for k, v in dataclasses.asdict(cfg.sensors).items()}
     return env
 
 
