@@ -209,6 +209,12 @@ def _random_state(rng, n, lead=()):
     return pos, vel, R, omega
 
 
+def _random_deck_draws(rng: np.random.Generator, c, B: int) -> dict[str, np.ndarray]:
+    """Standard normals for every deck draw of ``c`` (uniforms for ``range_u``), leading dim B."""
+    return {k: (rng.normal(size=(B,) + d.shape) if k != "range_u" else rng.uniform(size=(B,) + d.shape))
+            for k, d in deck_draw_spec(c).items()}
+
+
 def test_numpy_equals_jax_jit():
     jax = pytest.importorskip("jax")
     jnp = jax.numpy
@@ -217,9 +223,7 @@ def test_numpy_equals_jax_jit():
     B = 4
     pos, vel, R, omega = _random_state(rng, 6, (B,))
     omap = (rng.uniform(-2.5, 2.5, (B, 5, 2)), rng.uniform(size=(B, 5)) < 0.7, np.full(B, 0.25))
-    spec = deck_draw_spec(c)
-    draws = {k: (rng.normal(size=(B,) + d.shape) if k != "range_u" else rng.uniform(size=(B,) + d.shape))
-             for k, d in spec.items()}
+    draws = _random_deck_draws(rng, c, B)
     ref = deck_readings(c, pos, vel, R, omega, omap, draws)
 
     @jax.jit
@@ -246,8 +250,7 @@ def test_deck_part_numpy_equals_vmapped_jit_and_the_named_readings():
     pos, vel, R, omega = _random_state(rng, 5, (B,))
     pos[0, 1] = pos[0, 0] + [0.05, 0.0, 0.0]  # quad 0 inside quad 1's hitbox: its ranges are 0
     omap = (rng.uniform(-2.5, 2.5, (B, 4, 2)), rng.uniform(size=(B, 4)) < 0.7, np.full(B, 0.3))
-    draws = {k: (rng.normal(size=(B,) + d.shape) if k != "range_u" else rng.uniform(size=(B,) + d.shape))
-             for k, d in deck_draw_spec(c).items()}
+    draws = _random_deck_draws(rng, c, B)
     ref = deck_part(c, pos, vel, R, omega, omap, draws)
     assert ref.shape == (B, 5, c.sensors.obs_dim)
     np.testing.assert_array_equal(ref, deck_obs(c, deck_readings(c, pos, vel, R, omega, omap, draws)))
