@@ -33,6 +33,4 @@ def safe_normalize(xp: ModuleType, v: Any, eps: float = 1e-5) -> Any:
     return v / (n + eps)
 
 
-from quadswarm_mj.perf.xla_cpu import worlds_last  # noqa: E402  re-export: its home is perf/ (speed code)
-
-__all__ = ["array_namespace", "is_jax_array", "safe_normalize", "worlds_last"]
+__all__ = ["array_namespace", "is_jax_array", "safe_normalize"]

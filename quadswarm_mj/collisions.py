@@ -20,7 +20,6 @@ import numpy as np
 from quadswarm_mj import components as C
 from quadswarm_mj._xp import array_namespace, is_jax_array, safe_normalize
 from quadswarm_mj.constants import FLOOR_TOL
-from quadswarm_mj.perf.xla_cpu import worlds_last
 from quadswarm_mj.random_draws import DrawSpec, Normal, Uniform
 from quadswarm_mj.spatial import norm_last
 
@@ -208,10 +207,12 @@ def coincident_normals(n: int) -> np.ndarray:
     return out
 
 
-def pairwise_contacts(pos: Any, hitbox: float) -> tuple[Any, Any]:
-    """(..., N, N) contact mask (||p_i - p_j|| <= hitbox, i != j) and distances."""
-    if is_jax_array(pos) and pos.ndim == 2:  # one world under JAX: vmapped with the worlds axis last
-        dist = _pair_distances_jax()(pos)
+def pairwise_contacts(pos: Any, hitbox: float, pair_dist: Any = None) -> tuple[Any, Any]:
+    """(..., N, N) contact mask (||p_i - p_j|| <= hitbox, i != j) and distances. ``pair_dist``: an
+    optional kernel for one world's (N, 3) JAX ``pos`` computing :func:`_pair_distances_rows_first`'s
+    values (the JAX engine's ops pass a faster layout with the same values)."""
+    if is_jax_array(pos) and pos.ndim == 2:  # one world under JAX: differentiable on the diagonal
+        dist = _pair_distances_jax(pair_dist)(pos)
     else:
         rel = pos[..., :, None, :] - pos[..., None, :, :]
         dist = norm_last(rel)
@@ -224,15 +225,15 @@ def _pair_distances_rows_first(xp: Any, pos: Any) -> Any:
     return xp.sqrt(rel[:, :, 0] * rel[:, :, 0] + rel[:, :, 1] * rel[:, :, 1] + rel[:, :, 2] * rel[:, :, 2])
 
 
-@functools.cache
-def _pair_distances_jax() -> Any:
-    """:func:`_pair_distances_rows_first` for one world's (N, 3) ``pos``; vmapped, the worlds axis is
-    last (:func:`quadswarm_mj.perf.xla_cpu.worlds_last`: the 3-component sums run along contiguous worlds).
-    Differentiable: d||r|| = r . dr / ||r|| (0 on the diagonal, where autodiff of the norm gives NaN)."""
+@functools.lru_cache(maxsize=8)
+def _pair_distances_jax(kernel: Any = None) -> Any:
+    """:func:`_pair_distances_rows_first` for one world's (N, 3) ``pos`` (computed by ``kernel`` when
+    given). Differentiable: d||r|| = r . dr / ||r|| (0 on the diagonal, where autodiff of the norm
+    gives NaN)."""
     import jax
     import jax.numpy as jnp
 
-    primal = worlds_last(functools.partial(_pair_distances_rows_first, jnp))
+    primal = kernel if kernel is not None else functools.partial(_pair_distances_rows_first, jnp)
 
     @jax.custom_jvp
     def dist(pos: Any) -> Any:
@@ -419,7 +420,7 @@ def expand_per_quad(mask: Any, slots: dict[str, Any]) -> dict[str, Any]:
 
 
 def quad_collisions_budgeted(pos: Any, vel: Any, omega: Any, prev_contact: Any, hitbox: float,
-                             slots: dict[str, Any]) -> dict[str, Any]:
+                             slots: dict[str, Any], pair_dist: Any = None, pair_events: Any = None) -> dict[str, Any]:
     """:func:`quad_collisions` of ONE world (``pos`` (N, 3)) computed only on the budgeted pairs (the
     JAX engine's path; O(S) response work instead of (T, N, N, 3) tensors).
 
@@ -429,19 +430,20 @@ def quad_collisions_budgeted(pos: Any, vel: Any, omega: Any, prev_contact: Any, 
     per pair, summed per quad). New pairs beyond the budget are *deferred*: they get no response
     this step and are left out of the returned ``contact`` (and ``new_contact``), so they are new
     pairs again at the next control step. Returns ``vel, omega, contact, new_contact`` as
-    :func:`quad_collisions` (``new_contact``: the resolved pairs, symmetric).
+    :func:`quad_collisions` (``new_contact``: the resolved pairs, symmetric). ``pair_dist``, ``pair_events``:
+    optional JAX kernels with the values of :func:`pairwise_contacts`' distances and of
+    :func:`_pair_events_rows_first` (``pair_events(pos, prev_contact, hitbox, slots)``, one world).
     """
     xp = array_namespace(pos, vel)
     S = slots["kick_mag"].shape[-1]
-    dist = pairwise_contacts(pos, hitbox)[1]
-    if xp is np:
-        events = _pair_events_rows_first(np, pos[..., None], prev_contact[..., None], hitbox, S)
+    dist = pairwise_contacts(pos, hitbox, pair_dist)[1]
+    if xp is np or pair_events is None:
+        events = _pair_events_rows_first(xp, pos[..., None], prev_contact[..., None], hitbox, S)
         contact, res, hi, hj = (e[..., 0] for e in events)
     else:
         import jax
 
-        contact, res, hi, hj = _pair_events_jax(S)(jax.lax.stop_gradient(pos), prev_contact,
-                                                   xp.asarray(hitbox, pos.dtype))
+        contact, res, hi, hj = pair_events(jax.lax.stop_gradient(pos), prev_contact, xp.asarray(hitbox, pos.dtype), S)
 
     def gather(x: Any, h: Any) -> Any:  # (N, D) rows of the slots' quads -> (S, D)
         return xp.sum(xp.where(h[:, :, None], x[:, None, :], 0.0), axis=0)
@@ -517,13 +519,3 @@ def _pair_events_rows_first(xp: Any, pos: Any, prev_contact: Any, hitbox: Any, s
     deferred = new_u & ~resolved
     drop = deferred | xp.swapaxes(deferred, 0, 1)
     return contact & ~drop, resolved | xp.swapaxes(resolved, 0, 1), xp.any(hot3, axis=1), xp.any(hot3, axis=0)
-
-
-@functools.lru_cache(maxsize=16)
-def _pair_events_jax(slots: int) -> Any:
-    """:func:`_pair_events_rows_first` for one world's (N, 3) ``pos``, (N, N) ``prev_contact`` and the
-    hitbox (a scalar array, m) under JAX, vmapped with the worlds axis last
-    (:func:`quadswarm_mj.perf.xla_cpu.worlds_last`)."""
-    import jax.numpy as jnp
-
-    return worlds_last(lambda pos, prev, hitbox: _pair_events_rows_first(jnp, pos, prev, hitbox, slots))

@@ -23,7 +23,6 @@ import numpy as np
 
 from quadswarm_mj._xp import array_namespace
 from quadswarm_mj.constants import FLOOR_TOL
-from quadswarm_mj.perf.xla_cpu import kernel_boundary  # noqa: F401  re-exported (its home is perf/)
 from quadswarm_mj.spatial import yaw_cos_sin_components, yaw_half_cos_sin
 
 Vec3 = tuple[Any, Any, Any]

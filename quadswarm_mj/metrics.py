@@ -12,10 +12,7 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-
 from quadswarm_mj._xp import array_namespace
-from quadswarm_mj.perf import one_quad
 from quadswarm_mj.spatial import norm_last
 
 SUCCESS_DISTANCE = 0.5  # m, mean over the last LAST_STEPS steps
@@ -56,10 +53,6 @@ def update(m: dict[str, Any], t: Any, dist_to_goal: Any, new_contact: Any, hit_f
            hit_ceiling: Any, goal_jump: Any, grace_s: float) -> dict[str, Any]:
     """Accumulate one control step at time ``t`` (s, after the step). ``goal_jump`` (..., N) marks
     quads whose goal jumped this step (a new goal segment starts at ``t``)."""
-    if (type(dist_to_goal) is np.ndarray and dist_to_goal.shape == (1, 1) and dist_to_goal.dtype == np.float64
-            and m["steps"].shape == (1,) and one_quad.ENABLED):  # one quad: the same values on floats
-        return one_quad.metrics_update(m, t, dist_to_goal, new_contact, hit_floor, hit_wall, hit_ceiling, goal_jump,
-                                       grace_s, MIN_SEGMENT_S, REACH_DISTANCE)
     xp = array_namespace(dist_to_goal)
     f = dist_to_goal.dtype
     after_grace = (t >= grace_s)

@@ -35,8 +35,6 @@ import numpy as np
 from quadswarm_mj._xp import array_namespace
 from quadswarm_mj.collisions import off_diagonal
 from quadswarm_mj.config import EnvConfig
-from quadswarm_mj.perf import one_quad
-from quadswarm_mj.perf.xla_cpu import worlds_last
 from quadswarm_mj.random_draws import DrawSpec, Normal
 from quadswarm_mj.spatial import norm_last, sum_last
 
@@ -131,41 +129,12 @@ def _sorted_position_rows_first(xp: Any, key: Any) -> Any:
     return xp.sum(less.astype(xp.int32), axis=2)
 
 
-def _sorted_position_bits(key: Any) -> Any:
-    """:func:`_sorted_position_rows_first` (the same integers) for a float ``key`` under JAX, on integer
-    sort keys: the float bits mapped to integers of the same order (negative floats' magnitude bits
-    flipped, then moved up by one so that -0.0 and +0.0 are both 0), every NaN to one value just above
-    +inf. A stable sort's "l before j" is then ``key[l] < key[j] + (l < j)`` (an add and a compare per
-    pair, no NaN logic)."""
-    import jax
-    import jax.numpy as jnp
-
-    n = key.shape[0]
-    itype = jnp.int32 if key.dtype == jnp.float32 else jnp.int64
-    bits = jax.lax.bitcast_convert_type(key, itype)
-    negative = bits >> (8 * jnp.dtype(itype).itemsize - 1)  # -1 where the sign bit is set, else 0
-    inf_bits = jax.lax.bitcast_convert_type(jnp.asarray(np.inf, key.dtype), itype)
-    order = jnp.where(jnp.isnan(key), inf_bits + 1, (bits ^ (negative & jnp.iinfo(itype).max)) - negative)
-    tail = (1,) * (key.ndim - 2)
-    before = (np.arange(n)[None, :] < np.arange(n)[:, None]).reshape((1, n, n) + tail)  # [j, l] = l < j
-    kl, kj = order[:, None, :], order[:, :, None]  # [i, j, l] = key[i, l], key[i, j]
-    return jnp.sum((kl < kj + before.astype(itype)).astype(jnp.int32), axis=2)
-
-
-@functools.cache
-def _sorted_position_jax() -> Any:
-    """:func:`_sorted_position_rows_first` for one (N, N) ``key`` under JAX, vmapped with the worlds
-    axis last (:func:`quadswarm_mj.perf.xla_cpu.worlds_last`): the N^3 comparisons and the sum then run along
-    contiguous worlds (the rank kernel of a 512-world step 318 -> ~55 us, BENCHMARKS.md; the same
-    integers), on integer sort keys (:func:`_sorted_position_bits`)."""
-    return worlds_last(_sorted_position_bits)
-
-
-def _nearest_one_hot(xp: Any, key: Any, k: int) -> Any:
+def _nearest_one_hot(xp: Any, key: Any, k: int, rank_fn: Any = None) -> Any:
     """(..., N, K, N) bool: [i, r, j] = j is the r-th smallest ``key[..., i, :]``, exactly as a stable
     argsort (``jnp.argsort``) orders them: ascending, NaNs last, ties by index. A sort-free form for
-    small N (an (N, N, N) comparison count), which XLA fuses and vectorizes."""
-    if xp is np or key.ndim != 2:
+    small N (an (N, N, N) comparison count), which XLA fuses and vectorizes. ``rank_fn``: an optional
+    JAX kernel with :func:`_sorted_position_rows_first`'s integers for one world's (N, N) ``key``."""
+    if xp is np or key.ndim != 2 or rank_fn is None:
         lead = key.ndim - 2
         moved = xp.moveaxis(xp.moveaxis(key, -1, 0), -1, 0) if lead else key  # (N, N, ...)
         rank = _sorted_position_rows_first(xp, moved)
@@ -173,7 +142,7 @@ def _nearest_one_hot(xp: Any, key: Any, k: int) -> Any:
     else:
         import jax
 
-        rank = _sorted_position_jax()(jax.lax.stop_gradient(key))  # (N, N); vmapped: worlds axis last
+        rank = rank_fn(jax.lax.stop_gradient(key))  # (N, N)
     return rank[..., :, None, :] == np.arange(k)[:, None]
 
 
@@ -181,12 +150,15 @@ def _neighbor_bounds(cfg: EnvConfig) -> np.ndarray:
     return np.asarray(tuple(cfg.room_size) + (cfg.neighbor_vel_clip,) * 3, dtype=np.float64)
 
 
-def neighbor_obs(cfg: EnvConfig, pos: Any, vel: Any, dist: Any | None = None, clip: bool = True) -> Any:
+def neighbor_obs(cfg: EnvConfig, pos: Any, vel: Any, dist: Any | None = None, clip: bool = True,
+                 rank_fn: Any = None) -> Any:
     """(..., N, 6 K): relative position and velocity of the K nearest other quads, clipped to
     +-room size (position) and +-``neighbor_vel_clip`` (velocity) unless ``clip`` is False.
 
     ``dist`` optionally passes the (..., N, N) distances between the ``pos`` already computed by
-    :func:`quadswarm_mj.collisions.pairwise_contacts` (the same values), to save recomputing them.
+    :func:`quadswarm_mj.collisions.pairwise_contacts` (the same values), to save recomputing them;
+    ``rank_fn`` the JAX rank kernel of :func:`_nearest_one_hot` (the JAX engine's ops pass a faster
+    layout with the same integers).
     """
     xp = array_namespace(pos, vel)
     k, n = cfg.neighbors, pos.shape[-2]
@@ -205,7 +177,7 @@ def neighbor_obs(cfg: EnvConfig, pos: Any, vel: Any, dist: Any | None = None, cl
     key = xp.where(off_diagonal(n), key, xp.inf)
     if xp is not np:
         # jax: rank by comparison + one-hot selection (a stable argsort's first K, same order and ties)
-        hot = _nearest_one_hot(xp, key, k)  # (..., N, K, N)
+        hot = _nearest_one_hot(xp, key, k, rank_fn)  # (..., N, K, N)
         idx = xp.sum(xp.where(hot, np.arange(n, dtype=np.int32), 0), axis=-1)  # (..., N, K)
         g = xp.take_along_axis(pv[..., None, :, :], idx[..., None], axis=-2) - pv[..., :, None, :]
         if clip:
@@ -238,7 +210,7 @@ def _obs_neighbor_bounds(self_dim: int, k: int, bound: tuple[float, ...],
 def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any,
               noise: dict[str, Any] | None, low: Any, high: Any, scale: Any | None = None,
               dist: Any | None = None, obstacles: Any | None = None, obstacle_feats: Any | None = None,
-              deck_draws: dict[str, Any] | None = None) -> Any:
+              deck_draws: dict[str, Any] | None = None, rank_fn: Any = None) -> Any:
     """Full observation (..., N, obs_dim): noisy own state + neighbours (+ the 9 obstacle features
     of the true ``pos`` when ``obstacles`` = (centres, valid, radius) of the map is given), clipped
     into [low, high] and divided by ``scale`` when normalization is on. ``dist``: optional
@@ -246,13 +218,10 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
     optional (..., N, 9) features of these ``pos`` already computed (the CPU engine's obstacle stage).
     With ``cfg.sensors`` on, the deck readings of the true state (:func:`quadswarm_mj.sensors.deck_part`,
     noise from ``deck_draws`` = draws of ``sensors.deck_draw_spec``, None: noise-free) come last.
+    ``rank_fn``: see :func:`neighbor_obs`.
 
     The neighbour clip of :func:`neighbor_obs` is folded into the final clip: clipping into one
     interval and then into another equals clipping into their intersection."""
-    if (type(pos) is np.ndarray and pos.shape == (1, 1, 3) and pos.dtype == np.float64 and cfg.neighbors == 0
-            and obstacles is None and not cfg.sensors.any and cfg.obs_self != "wall" and np.shape(low) == (cfg.obs_dim,)
-            and one_quad.ENABLED):  # one quad: the same values on floats
-        return one_quad.build_obs(pos, vel, R, omega, goals, noise, low, high, scale, cfg.obs_self == "floor")
     xp = array_namespace(pos, vel)
     if noise is not None:
         m_pos, m_vel, m_omega = pos + noise["pos"], vel + noise["vel"], omega + noise["omega"]
@@ -261,9 +230,9 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
     parts = _self_parts(xp, cfg, m_pos, m_vel, R, m_omega, goals)
     if cfg.neighbors > 0:
         if cfg.noise.neighbor_obs_noise:
-            parts.append(neighbor_obs(cfg, m_pos, m_vel, clip=False))
+            parts.append(neighbor_obs(cfg, m_pos, m_vel, clip=False, rank_fn=rank_fn))
         else:
-            parts.append(neighbor_obs(cfg, pos, vel, dist, clip=False))
+            parts.append(neighbor_obs(cfg, pos, vel, dist, clip=False, rank_fn=rank_fn))
         nb_lo, nb_hi = _obs_neighbor_bounds(cfg.self_obs_dim, cfg.neighbors, tuple(_neighbor_bounds(cfg)),
                                       cfg.obs_dim - cfg.self_obs_dim - 6 * cfg.neighbors)
         low = xp.maximum(xp.asarray(low), xp.asarray(nb_lo, dtype=pos.dtype))

@@ -195,7 +195,7 @@ def initial_flags(cfg: Any, pos: Any, xp: Any) -> tuple[Any, Any, Any]:
 def task_stage(cfg: Any, scenario: Any, sstate: Any, t: Any, kin: dict[str, Any], effort: Any, f_norm: Any,
                prev_f_norm: Any, on_floor: Any, anneal: Any, scenario_u: Any, metrics_acc: dict[str, Any],
                omap: Any = None, obst_metrics: dict[str, Any] | None = None,
-               obst_threshold: Any = None) -> dict[str, Any]:
+               obst_threshold: Any = None, ops: Any = None) -> dict[str, Any]:
     """Stage 4 of a control step, after the physics (both engines call this one function).
 
     ``t`` (...,) s after the step (worlds' batch shape: (B,) on the CPU engine, () per world on the
@@ -207,7 +207,8 @@ def task_stage(cfg: Any, scenario: Any, sstate: Any, t: Any, kin: dict[str, Any]
     collision-penalty factor; ``scenario_u`` the scenario's uniforms. With ``omap`` (columns):
     obstacle-aware scenario step, the ``obstacle_collision`` term and the obstacle metrics
     (``obst_metrics`` updated with the scenario's approach distance ``obst_threshold``, m; None:
-    computed from the new scenario state).
+    computed from the new scenario state). ``ops``: the engine's forms of ``reward_terms`` and
+    ``metrics_update`` (:class:`quadswarm_mj.core.ops.ModelForms`; None: the model's own).
 
     Returns ``sstate``, ``goals``, ``goal_vel``, ``dist_goal`` (..., N) m, ``terms`` (reward terms,
     per quad), ``metrics_acc`` and ``obst_metrics`` (None without obstacles)."""
@@ -224,16 +225,18 @@ def task_stage(cfg: Any, scenario: Any, sstate: Any, t: Any, kin: dict[str, Any]
     else:
         jump = metrics_lib.goal_jump(prev_goals, goals, goal_vel, cfg.control_dt)
     dist_goal = norm_last(goals - kin["pos"])
-    terms = reward_terms(cfg, kin["pos"], kin["vel"], kin["R"], kin["omega"], goals, effort, f_norm, prev_f_norm,
-                         on_floor, kin["hit_floor"], kin["hit_wall"], kin["hit_ceiling"], kin["new_contact"],
-                         kin["dist"], anneal, goal_dist=dist_goal)
+    reward_fn = reward_terms if ops is None else ops.reward_terms
+    terms = reward_fn(cfg, kin["pos"], kin["vel"], kin["R"], kin["omega"], goals, effort, f_norm, prev_f_norm, on_floor,
+                      kin["hit_floor"], kin["hit_wall"], kin["hit_ceiling"], kin["new_contact"], kin["dist"], anneal,
+                      goal_dist=dist_goal)
     if omap is not None:
         from quadswarm_mj.obstacles import obstacle_penalty
 
         terms["obstacle_collision"] = obstacle_penalty(kin["obst_new"], cfg.obstacles.collision_reward, anneal)
     t_q = t[..., None]  # per-quad broadcast of the worlds' time
-    metrics_acc = metrics_lib.update(metrics_acc, t_q, dist_goal, kin["new_contact"], kin["hit_floor"],
-                                     kin["hit_wall"], kin["hit_ceiling"], jump, cfg.grace_period_s)
+    metrics_acc = (metrics_lib.update if ops is None else ops.metrics_update)(
+        metrics_acc, t_q, dist_goal, kin["new_contact"], kin["hit_floor"], kin["hit_wall"], kin["hit_ceiling"], jump,
+        cfg.grace_period_s)
     if omap is not None:
         from quadswarm_mj.obstacles import metrics_update
         from quadswarm_mj.scenarios.obstacle_scenarios import approach_threshold

@@ -32,12 +32,9 @@ from __future__ import annotations
 import functools
 from typing import Any
 
-import numpy as np
-
 from quadswarm_mj._xp import array_namespace
 from quadswarm_mj.collisions import off_diagonal
 from quadswarm_mj.config import EnvConfig, RewardScales
-from quadswarm_mj.perf import one_quad
 from quadswarm_mj.spatial import norm_last
 
 TERMS = RewardScales.TERMS
@@ -83,11 +80,6 @@ def reward_terms(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: 
     whose cost cannot be negative is -0.0 (= -dt * 0 * cost) without computing the cost: all such
     terms are one shared (..., N) array of -0.0 (read-only by convention, as every term)."""
     s = cfg.rewards
-    if (type(pos) is np.ndarray and pos.shape == (1, 1, 3) and pos.dtype == np.float64
-            and getattr(action, "dtype", None) == np.float64 and one_quad.ENABLED):
-        return one_quad.reward_terms(_term_factors(s, cfg.sim_dt, cfg.control_dt), ANNEALED, pos, vel, R, omega,
-                                     goals, action, f_norm, prev_f_norm, on_floor, hit_floor, hit_wall, hit_ceiling,
-                                     new_contact, anneal, goal_dist)  # one quad: the same values on floats
     xp = array_namespace(pos, vel)
     n = pos.shape[-2]
     falloff = s.proximity_falloff_arms * cfg.quad.arm
@@ -147,8 +139,6 @@ def total_reward(terms: dict[str, Any], skip: tuple[str, ...] = ()) -> Any:
     adding -0.0 changes nothing."""
     keys = [k for k in TERMS if k not in skip] + [k for k in OBSTACLE_TERMS if k in terms]
     total = terms[keys[0]]
-    if type(total) is np.ndarray and total.shape == (1, 1) and total.dtype == np.float64 and one_quad.ENABLED:
-        return one_quad.total_reward(terms, keys)  # one quad: the same sum on floats
     for k in keys[1:]:
         total = total + terms[k]
     return total

@@ -9,6 +9,7 @@ import pytest
 
 from quadswarm_mj import actuation, collisions
 from quadswarm_mj.config import EnvConfig
+from quadswarm_mj.core.ops import NumpyOps
 from quadswarm_mj.envs.cpu_core import CpuSwarm
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv
 from quadswarm_mj.perf import numpy_small as small
@@ -174,11 +175,13 @@ def test_single_env_episodes_are_the_array_forms_bitwise(kw):
 
 
 def _rewards_and_metrics(enabled: bool, scales, seed: int) -> list:
-    """reward_terms, total_reward and metrics.update on random one-quad inputs (events, goal jumps)."""
+    """reward_terms, total_reward and metrics.update on random one-quad inputs (events, goal jumps), as the
+    CPU engine's ops give them (``NumpyOps``: perf.one_quad's forms when enabled)."""
     from quadswarm_mj import metrics as metrics_lib
     from quadswarm_mj import rewards
 
     cfg = EnvConfig(num_quads=1, rewards=scales)
+    ops = NumpyOps(CpuSwarm(cfg, visual=False))
     rng = np.random.default_rng(seed)
     _, Rs = _rotations(rng, 100)
     m = metrics_lib.init(np.zeros((1, 1)), (1,), 1)
@@ -194,12 +197,12 @@ def _rewards_and_metrics(enabled: bool, scales, seed: int) -> list:
             dist = np.zeros((1, 1, 1))
             gd = None if i % 2 else np.sqrt(((goals - pos) ** 2).sum(-1))
             anneal = min(1.0, i / 50) if i % 3 else np.minimum(1.0, i / 70)
-            terms = rewards.reward_terms(cfg, pos, vel, Rs[i], omega, goals, action, f, pf, flags[0], *flags[1:],
-                                         contact, dist, anneal, goal_dist=gd)
-            out += [*terms.values(), rewards.total_reward(terms, rewards.zero_terms(cfg))]
+            terms = ops.reward_terms(cfg, pos, vel, Rs[i], omega, goals, action, f, pf, flags[0], *flags[1:],
+                                     contact, dist, anneal, goal_dist=gd)
+            out += [*terms.values(), ops.total_reward(terms, rewards.zero_terms(cfg))]
             t = np.full((1, 1), 0.01 * i + (3.0 if i > 50 else 0.0))
             d = np.abs(rng.normal(0, 0.4, (1, 1)))
-            m = metrics_lib.update(m, t, d, contact, *flags[1:], rng.uniform(size=(1, 1)) < 0.2, 0.3)
+            m = ops.metrics_update(m, t, d, contact, *flags[1:], rng.uniform(size=(1, 1)) < 0.2, 0.3)
             out += list(m.values())
         out += list(metrics_lib.finalize(m, np.array([[2.0]])).values())
     finally:
@@ -222,9 +225,10 @@ def test_reward_terms_and_metrics_are_the_array_forms_bitwise(which):
 @pytest.mark.parametrize("obs_self", ["base", "floor"])
 @pytest.mark.parametrize("normalize", [False, True])
 def test_build_obs_is_the_array_form_bitwise(obs_self, normalize):
-    from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale
+    from quadswarm_mj.observations import obs_bounds, obs_scale
 
     cfg = EnvConfig(num_quads=1, obs_self=obs_self, normalize_obs=normalize)
+    build_obs = NumpyOps(CpuSwarm(cfg, visual=False)).obs  # perf.one_quad's form when enabled
     low, high = obs_bounds(cfg)
     low, high = low.astype(np.float64), high.astype(np.float64)
     scale = obs_scale(cfg) if normalize else None
@@ -241,3 +245,18 @@ def test_build_obs_is_the_array_form_bitwise(obs_self, normalize):
         finally:
             one_quad.ENABLED = True
         _same(got, ref)
+
+
+def test_numpy_ops_route_one_quad_only_to_the_float_forms(monkeypatch):
+    """The CPU engine's ops call perf.one_quad's task forms for one quad in one world, the model's own
+    functions otherwise (the model modules themselves know nothing of perf)."""
+    calls = []
+    for name in ("reward_terms", "total_reward", "metrics_update", "build_obs"):
+        real = getattr(one_quad, name)
+        monkeypatch.setattr(one_quad, name, lambda *a, _n=name, _r=real, **k: calls.append(_n) or _r(*a, **k))
+    for n, want in ((1, {"reward_terms", "total_reward", "metrics_update", "build_obs"}), (2, set())):
+        calls.clear()
+        env = QuadSwarmEnv(EnvConfig(num_quads=n, num_neighbors=0))
+        env.reset(seed=0)
+        env.step(env.action_space.sample())
+        assert set(calls) == want, (n, calls)

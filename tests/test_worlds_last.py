@@ -1,16 +1,17 @@
 """quadswarm_mj.perf.xla_cpu.worlds_last: JAX-only layouts (the vmapped worlds axis moved last) for the neighbour
-ranks and the pair distances give the same values as the plain forms, also under nested vmap and
-autodiff."""
+ranks and the pair distances (the kernels the JAX engine's ops hand to the model) give the same values as
+the model's plain forms, also under nested vmap and autodiff."""
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from quadswarm_mj.collisions import pairwise_contacts
-from quadswarm_mj.observations import _nearest_one_hot, _sorted_position_bits, _sorted_position_rows_first
-from quadswarm_mj.perf.xla_cpu import worlds_last
+from quadswarm_mj.observations import _nearest_one_hot, _sorted_position_rows_first
+from quadswarm_mj.perf.xla_cpu import _sorted_position_bits, neighbor_rank, pair_distances, worlds_last
 from quadswarm_mj.spatial import norm_last
 
 
@@ -31,11 +32,14 @@ def _keys() -> np.ndarray:
     return key
 
 
-def test_ranks_match_a_stable_argsort_everywhere():
+@pytest.mark.parametrize("kernel", [False, True])
+def test_ranks_match_a_stable_argsort_everywhere(kernel):
+    """The model's plain ranks and the JAX engine's worlds-last kernel (``rank_fn``)."""
     key = _keys()
     want = _stable_ranks(key, 6)
     k = jnp.asarray(key)
-    one = jax.jit(lambda x: _nearest_one_hot(jnp, x, 6))
+    rank_fn = neighbor_rank() if kernel else None
+    one = jax.jit(lambda x: _nearest_one_hot(jnp, x, 6, rank_fn))
     np.testing.assert_array_equal(np.asarray(one(k[1, 2])), want[1, 2])  # one world, no vmap
     np.testing.assert_array_equal(np.asarray(jax.jit(jax.vmap(one))(k[0])), want[0])  # worlds last
     np.testing.assert_array_equal(np.asarray(jax.jit(jax.vmap(jax.vmap(one)))(k)), want)  # nested
@@ -60,15 +64,21 @@ def test_integer_sort_keys_give_the_float_comparisons_ranks():
     np.testing.assert_array_equal(np.sort(want, axis=1), np.broadcast_to(np.arange(8)[None, :, None], want.shape))
 
 
-def test_pair_distances_values_and_gradient():
+@pytest.mark.parametrize("kernel", [False, True])
+def test_pair_distances_values_and_gradient(kernel):
+    """The model's plain distances and the JAX engine's worlds-last kernel (``pair_dist``): the same
+    values (bits, against each other), and a finite gradient."""
     pos = jnp.asarray(np.random.default_rng(1).normal(size=(6, 8, 3)).astype(np.float32))
+    pair_dist = pair_distances() if kernel else None
     want = np.asarray(norm_last(pos[..., :, None, :] - pos[..., None, :, :]))
-    got = jax.jit(jax.vmap(lambda p: pairwise_contacts(p, 0.5)[1]))(pos)
+    got = jax.jit(jax.vmap(lambda p: pairwise_contacts(p, 0.5, pair_dist)[1]))(pos)
     np.testing.assert_allclose(np.asarray(got), want, rtol=1e-6)
-    np.testing.assert_allclose(np.asarray(pairwise_contacts(pos[0], 0.5)[1]), want[0], rtol=1e-6)
+    other = jax.jit(jax.vmap(lambda p: pairwise_contacts(p, 0.5, None if kernel else pair_distances())[1]))(pos)
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(other))
+    np.testing.assert_allclose(np.asarray(pairwise_contacts(pos[0], 0.5, pair_dist)[1]), want[0], rtol=1e-6)
 
     def loss(p: jax.Array) -> jax.Array:
-        return jnp.sum(jax.vmap(lambda q: pairwise_contacts(q, 0.5)[1] ** 2)(p))
+        return jnp.sum(jax.vmap(lambda q: pairwise_contacts(q, 0.5, pair_dist)[1] ** 2)(p))
 
     g = np.asarray(jax.grad(loss)(pos))
     rel = np.asarray(pos)[:, :, None, :] - np.asarray(pos)[:, None, :, :]

@@ -14,9 +14,8 @@ from typing import Any
 
 from quadswarm_mj.core.step import velocity_stages
 from quadswarm_mj.core.substeps import step_inputs, substep_loop
-from quadswarm_mj.observations import build_obs
 from quadswarm_mj.pipeline import effort_action, task_stage
-from quadswarm_mj.rewards import anneal_factor, total_reward
+from quadswarm_mj.rewards import anneal_factor
 
 #: the fields of ``s`` that :func:`physics_stage` reads (``aux``: the back end's own carry or None;
 #: ``ctrl``: (last rotor command, controller state) of the extended actuation chain, or None)
@@ -68,14 +67,14 @@ def task_step(cfg: Any, scenario: Any, s: dict[str, Any], k: dict[str, Any], act
     omap = s.get("omap")
     r = task_stage(cfg, scenario, s["sstate"], t, k, effort, k["f_norm"], s["f_norm"], k["on_floor"],
                    anneal_factor(cfg, total_steps), ops.draws("scenario", None, None), s["metrics_acc"], omap,
-                   s.get("obst_metrics"), s.get("obst_threshold"))
+                   s.get("obst_metrics"), s.get("obst_threshold"), ops)
     terms = ops.terms(r["terms"])
-    obs = build_obs(cfg, k["pos"], k["vel"], k["R"], k["omega"], r["goals"], ops.draws("sensor", None, None),
+    obs = ops.obs(cfg, k["pos"], k["vel"], k["R"], k["omega"], r["goals"], ops.draws("sensor", None, None),
                     consts["obs_low"], consts["obs_high"], consts["obs_scale"], dist=k["dist"],
                     obstacles=None if omap is None else tuple(omap), obstacle_feats=k.get("obst_feats"),
                     deck_draws=ops.draws("deck", None, None))
     return {"steps": steps, "total_steps": total_steps, "t": t, "sstate": r["sstate"], "goals": r["goals"],
-            "goal_vel": r["goal_vel"], "terms": terms, "reward": total_reward(terms, consts["zero_terms"]),
+            "goal_vel": r["goal_vel"], "terms": terms, "reward": ops.total_reward(terms, consts["zero_terms"]),
             "metrics_acc": r["metrics_acc"], "obst_metrics": r["obst_metrics"], "obs": obs,
             "done": steps >= cfg.episode_steps}
 

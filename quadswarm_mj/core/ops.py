@@ -14,10 +14,12 @@ Both offer, for the sub-steps (:mod:`quadswarm_mj.core.substeps`): ``loop(body, 
 ``wrench`` (``substep_wrench``), ``rotmat`` (``quat_to_rotmat``), ``floor_wrench`` and ``floor_impact``
 (the paper's floor, event-gated on the CPU engine); for the stages after them (:mod:`quadswarm_mj.core.
 step`): ``room`` (room_low, room_high), ``gate(mask_fn)``, ``wall_gate``, ``put(arr, w, value)``,
-``zeros_like``, ``draws(kind, mask_fn, w)`` (kind: "motor", "wall", "yaw", "down"), ``quad_quad`` and
-``obstacles``; ``mask_fn`` is called only where the engine needs the mask; for the task step
-(:func:`quadswarm_mj.core.control.task_step`): ``dtype`` (the float dtype), ``terms`` and the draws
-"scenario", "sensor", "deck".
+``zeros_like``, ``draws(kind, mask_fn, w)`` (kind: "motor", "wall", "yaw", "down"), ``pairwise_contacts``,
+``quad_quad`` and ``obstacles``; ``mask_fn`` is called only where the engine needs the mask; for the task
+step (:func:`quadswarm_mj.core.control.task_step`): ``dtype`` (the float dtype), ``terms``, the draws
+"scenario", "sensor", "deck", and the model's task functions ``reward_terms``, ``total_reward``,
+``metrics_update``, ``obs`` (:class:`ModelForms`: the model's own; the engines' same-values speed
+forms of :mod:`quadswarm_mj.perf` are reached only here).
 """
 
 from __future__ import annotations
@@ -26,9 +28,10 @@ from typing import Any
 
 import numpy as np
 
-from quadswarm_mj import actuation, collisions, spatial
+from quadswarm_mj import actuation, collisions, observations, rewards, spatial
+from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj.collisions import expand_per_quad, quad_collisions, quad_collisions_budgeted
-from quadswarm_mj.perf import numpy_small
+from quadswarm_mj.perf import numpy_small, one_quad, xla_cpu
 
 ALL = slice(None)
 
@@ -52,9 +55,23 @@ def put(arr: np.ndarray, idx: Any, value: Any) -> np.ndarray:
     return out
 
 
-class NumpyOps:
+class ModelForms:
+    """The model's functions of the control step as the model defines them (any namespace, any batch
+    dims): ``pairwise_contacts``, ``reward_terms``, ``total_reward``, ``metrics_update``, ``obs``
+    (:func:`quadswarm_mj.observations.build_obs`). An engine's ops override them with same-values forms."""
+
+    pairwise_contacts = staticmethod(collisions.pairwise_contacts)
+    reward_terms = staticmethod(rewards.reward_terms)
+    total_reward = staticmethod(rewards.total_reward)
+    metrics_update = staticmethod(metrics_lib.update)
+    obs = staticmethod(observations.build_obs)
+
+
+class NumpyOps(ModelForms):
     """Eager event gating with per-event NumPy draws, for a :class:`~quadswarm_mj.envs.cpu_core.CpuSwarm`
-    (its generator, draw specs and world bookkeeping)."""
+    (its generator, draw specs and world bookkeeping). With one quad in one world (B N = 1) the task
+    functions are :mod:`quadswarm_mj.perf.one_quad`'s float forms (the same bits; ``one_quad.ENABLED``
+    False: the model's)."""
 
     wrench = staticmethod(numpy_small.substep_wrench)
     rotmat = staticmethod(numpy_small.quat_to_rotmat)
@@ -68,6 +85,48 @@ class NumpyOps:
     def __init__(self, swarm: Any) -> None:
         self.s = swarm
         self.room = (swarm.room_low, swarm.room_high)
+        cfg = swarm.cfg
+        self._one = swarm.B * swarm.N == 1  # one quad in one world: the float forms
+        # the observation's float form covers the own-state layouts without neighbours, obstacles, decks
+        self._one_obs = (self._one and cfg.neighbors == 0 and cfg.obstacles is None and not cfg.sensors.any
+                         and cfg.obs_self != "wall")
+        self._obs_floor = cfg.obs_self == "floor"
+
+    def reward_terms(self, cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, action: Any, f_norm: Any,
+                     prev_f_norm: Any, on_floor: Any, hit_floor: Any, hit_wall: Any, hit_ceiling: Any,
+                     new_contact: Any, dist: Any, anneal: Any = 1.0, goal_dist: Any | None = None) -> dict[str, Any]:
+        """:func:`quadswarm_mj.rewards.reward_terms` (one quad: ``perf.one_quad.reward_terms``, same bits)."""
+        if self._one and one_quad.ENABLED and action.dtype == np.float64:
+            return one_quad.reward_terms(rewards._term_factors(cfg.rewards, cfg.sim_dt, cfg.control_dt),
+                                         rewards.ANNEALED, pos, vel, R, omega, goals, action, f_norm, prev_f_norm,
+                                         on_floor, hit_floor, hit_wall, hit_ceiling, new_contact, anneal, goal_dist)
+        return rewards.reward_terms(cfg, pos, vel, R, omega, goals, action, f_norm, prev_f_norm, on_floor, hit_floor,
+                                    hit_wall, hit_ceiling, new_contact, dist, anneal, goal_dist)
+
+    def total_reward(self, terms: dict[str, Any], skip: tuple[str, ...] = ()) -> Any:
+        """:func:`quadswarm_mj.rewards.total_reward` (one quad: the same sum on floats)."""
+        if self._one and one_quad.ENABLED:
+            keys = [k for k in rewards.TERMS if k not in skip] + [k for k in rewards.OBSTACLE_TERMS if k in terms]
+            return one_quad.total_reward(terms, keys)
+        return rewards.total_reward(terms, skip)
+
+    def metrics_update(self, m: dict[str, Any], t: Any, dist_to_goal: Any, new_contact: Any, hit_floor: Any,
+                       hit_wall: Any, hit_ceiling: Any, goal_jump: Any, grace_s: float) -> dict[str, Any]:
+        """:func:`quadswarm_mj.metrics.update` (one quad: ``perf.one_quad.metrics_update``, same values)."""
+        if self._one and one_quad.ENABLED:
+            return one_quad.metrics_update(m, t, dist_to_goal, new_contact, hit_floor, hit_wall, hit_ceiling, goal_jump,
+                                           grace_s, metrics_lib.MIN_SEGMENT_S, metrics_lib.REACH_DISTANCE)
+        return metrics_lib.update(m, t, dist_to_goal, new_contact, hit_floor, hit_wall, hit_ceiling, goal_jump, grace_s)
+
+    def obs(self, cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, noise: dict[str, Any] | None,
+            low: Any, high: Any, scale: Any | None = None, dist: Any | None = None, obstacles: Any | None = None,
+            obstacle_feats: Any | None = None, deck_draws: dict[str, Any] | None = None) -> Any:
+        """:func:`quadswarm_mj.observations.build_obs` (one quad without neighbours, obstacles or decks:
+        ``perf.one_quad.build_obs``, same values)."""
+        if self._one_obs and one_quad.ENABLED and pos.shape == (1, 1, 3):
+            return one_quad.build_obs(pos, vel, R, omega, goals, noise, low, high, scale, self._obs_floor)
+        return observations.build_obs(cfg, pos, vel, R, omega, goals, noise, low, high, scale, dist, obstacles,
+                                      obstacle_feats, deck_draws)
 
     @staticmethod
     def loop(body: Any, carry: Any, n: int) -> Any:
@@ -100,10 +159,28 @@ class NumpyOps:
         if s._any_on_floor:
             grounded |= on_floor
         if np.count_nonzero(grounded):  # (faster than .any() on tiny masks)
-            s.u, s.on_floor = u, on_floor
-            s._floor_impact(s._worlds(grounded), hit_floor)
-            u, on_floor = s.u, s.on_floor
+            if self._one and one_quad.ENABLED:  # one quad: perf.one_quad's float form (same draw, same bits)
+                u, on_floor = self._floor_impact_one(q, v, u, on_floor, hit_floor)
+            else:
+                s.u, s.on_floor = u, on_floor
+                s._floor_impact(s._worlds(grounded), hit_floor)
+                u, on_floor = s.u, s.on_floor
         return q, v, u, on_floor, hit_floor, numpy_small.quat_to_rotmat(q[..., 3:7])
+
+    def _floor_impact_one(self, q: np.ndarray, v: np.ndarray, u: np.ndarray, on_floor: np.ndarray,
+                          hit_floor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``CpuSwarm._floor_impact`` of the one quad (its yaw drawn as there): written into the physics'
+        qpos/qvel (``q``, ``v``) and ``hit_floor`` in place; returns (u, on_floor)."""
+        s = self.s
+        d = s._spec_floor["yaw"]
+        yaw = s.rng.uniform(d.low, d.high) if s.cfg.noise.stochastic_collisions else float(d.mean)
+        grounded, hit, u = one_quad.floor_impact_inplace(s.qpos[0, 0], s.qvel[0, 0], u, bool(on_floor[0, 0]), s.floor_z,
+                                                         s.offsets[0, 0], yaw)
+        if hit:
+            hit_floor[0, 0] = True
+        s.phys.touch()
+        s._any_on_floor = grounded
+        return u, np.array([[grounded]])
 
     def wall_gate(self, pos: np.ndarray, at_wall: np.ndarray, at_ceiling: np.ndarray) -> Any:
         """The worlds with a quad at or beyond a wall or the ceiling (one compare of all three axes) or
@@ -168,7 +245,7 @@ class NumpyOps:
         return {"vel": vel, "omega": omega, "obst_new": new, "obst_feats": self.s._obst_feats, "changed": changed}
 
 
-class AlwaysOn:
+class AlwaysOn(ModelForms):
     """The gating of engines that run every stage on every quad (a model function leaves unaffected quads
     unchanged): every world, always; a stage's result replaces the whole array."""
 
@@ -197,6 +274,14 @@ class JaxOps(AlwaysOn):
         self.cfg, self.rnd, self.jnp, self.dtype = cfg, rnd, jnp, dtype
         self.room = (jnp.asarray(cfg.room_low, dtype), jnp.asarray(cfg.room_high, dtype))
         self._obstacle_stage = obstacle_stage
+        self._k = xla_cpu.jax_kernels()  # the model's kernels, worlds axis last (same values)
+
+    def pairwise_contacts(self, pos: Any, hitbox: float) -> tuple[Any, Any]:
+        return collisions.pairwise_contacts(pos, hitbox, self._k["pair_dist"])
+
+    def obs(self, *args: Any, **kw: Any) -> Any:
+        """:func:`quadswarm_mj.observations.build_obs` with the worlds-last neighbour ranks."""
+        return observations.build_obs(*args, rank_fn=self._k["rank_fn"], **kw)
 
     def loop(self, body: Any, carry: Any, n: int) -> Any:
         """``lax.scan`` over the sub-steps, each given its floor-landing yaw slots (cos, sin) (n, slots)."""
@@ -254,7 +339,8 @@ class JaxOps(AlwaysOn):
 
     def quad_quad(self, pos: Any, vel: Any, omega: Any, prev: Any, contact: Any, new: Any) -> dict[str, Any]:
         """The budgeted response: new pairs beyond ``QUAD_PAIR_BUDGET`` wait for the next step."""
-        return quad_collisions_budgeted(pos, vel, omega, prev, self.cfg.hitbox, sub(self.rnd, "quad"))
+        return quad_collisions_budgeted(pos, vel, omega, prev, self.cfg.hitbox, sub(self.rnd, "quad"),
+                                        self._k["pair_dist"], self._k["pair_events"])
 
     def obstacles(self, pos: Any, vel: Any, omega: Any) -> dict[str, Any]:
         return self._obstacle_stage(pos, vel, omega)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from quadswarm_mj.collisions import outside_room, pairwise_contacts, room_guard, wall_bounces, wall_collisions
+from quadswarm_mj.collisions import outside_room, room_guard, wall_bounces, wall_collisions
 from quadswarm_mj.downwash import apply_downwash, downwash_mask
 
 
@@ -67,7 +67,7 @@ def velocity_stages(cfg: Any, k: dict[str, Any], prev: dict[str, Any], ops: Any)
         on_floor, at_wall, at_ceiling = surface_flags(cfg, k["pos"], lo, hi)
         k.update(on_floor=on_floor, at_wall=at_wall, at_ceiling=at_ceiling, hit_floor=on_floor & ~prev["on_floor"],
                  hit_wall=at_wall & ~prev["at_wall"], hit_ceiling=at_ceiling & ~prev["at_ceiling"])
-    contact, dist = pairwise_contacts(k["pos"], cfg.hitbox)
+    contact, dist = ops.pairwise_contacts(k["pos"], cfg.hitbox)
     k.update(contact=contact, new_contact=contact & ~prev["contact"], dist=dist)
     if cfg.collision_model in ("paper", "blend"):  # the paper's quad-quad response
         q = ops.quad_quad(k["pos"], k["vel"], k["omega"], prev["contact"], contact, k["new_contact"])

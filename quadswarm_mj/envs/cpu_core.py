@@ -49,10 +49,8 @@ from quadswarm_mj.core.ops import NumpyOps
 from quadswarm_mj.core.ops import put as _put
 from quadswarm_mj.core.reset import start_accumulators, start_flags, start_state
 from quadswarm_mj.downwash import downwash_draw_spec
-from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
-from quadswarm_mj.perf import one_quad
-from quadswarm_mj.perf.numpy_small import quat_to_rotmat, substep_wrench, yaw_entries
-from quadswarm_mj.perf.one_quad import floor_impact_inplace as floor_impact_one
+from quadswarm_mj.observations import obs_bounds, obs_scale, sensor_noise_spec
+from quadswarm_mj.perf.numpy_small import yaw_entries
 from quadswarm_mj.physics.mujoco_c import (  # noqa: F401  re-exported
     BACKENDS,
     BatchPhysics,
@@ -122,7 +120,7 @@ class CpuSwarm:
         self._n_scn = scenario_num_uniforms(self.scenario, cfg)
         zeros = np.zeros((B, N))
         self.params = pipeline.dynamics_params(cfg, nominal_draws(cfg, zeros, (B,)))
-        self._act = pipeline.make_substep_actuation(cfg, substep_wrench)  # None: the paper's chain (no extra work)
+        self._act = pipeline.make_substep_actuation(cfg, NumpyOps.wrench)  # None: the paper's chain (no extra work)
         self._modes = cfg.control_mode != "rotor"
         self.ctrl_state = np.zeros((B, N, 6)) if self._modes else None  # control-mode integrators
         self.cmd_s = np.zeros((B, N, 4))  # rotor command of the last sub-step (with self._act only)
@@ -245,7 +243,7 @@ class CpuSwarm:
     # ------------------------------------------------------------------ state access
     def _rotations(self) -> np.ndarray:
         if self._R is None:
-            self._R = quat_to_rotmat(self.qpos[..., 3:7])
+            self._R = NumpyOps.rotmat(self.qpos[..., 3:7])
         return self._R
 
     def kinematics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -377,19 +375,8 @@ class CpuSwarm:
     def _floor_impact(self, w: Any, hit_floor: np.ndarray) -> None:
         """The paper's floor model after a sub-step, on worlds ``w`` (those with a quad at or below
         the floor height or grounded; elsewhere it changes nothing): ``perf.numpy_small.floor_impact``
-        (same bits, signs of zero included) as masked writes into qpos/qvel."""
+        (same bits, signs of zero included) as masked writes into qpos/qvel (one quad: ``NumpyOps``)."""
         cfg, fz = self.cfg, self.floor_z
-        if self.B * self.N == 1 and one_quad.ENABLED:  # one quad: perf.one_quad's float form (same draw, same bits)
-            d = self._spec_floor["yaw"]
-            yaw1 = self.rng.uniform(d.low, d.high) if cfg.noise.stochastic_collisions else float(d.mean)
-            grounded1, hit1, self.u = floor_impact_one(self.qpos[0, 0], self.qvel[0, 0], self.u,
-                                                       bool(self.on_floor[0, 0]), fz, self.offsets[0, 0], yaw1)
-            if hit1:
-                hit_floor[0, 0] = True
-            self.phys.touch()
-            self.on_floor = np.array([[grounded1]])
-            self._any_on_floor = grounded1
-            return
         rows = isinstance(w, slice)  # views: write in place; else copies written back
         q, v = self.qpos[w], self.qvel[w]
         offsets = self.offsets if self.offsets.shape[0] == 1 else self.offsets[w]
@@ -470,8 +457,8 @@ class CpuSwarm:
             from quadswarm_mj.sensors import deck_draw_spec
 
             deck = NumpySampler(self.rng).draw(deck_draw_spec(self.cfg), pos.shape[:1])
-        return build_obs(self.cfg, pos, vel, R, omega, goals, noise, self.obs_low, self.obs_high,
-                         self.obs_scale, dist=dist, obstacles=obst, obstacle_feats=feats, deck_draws=deck)
+        return self._ops.obs(self.cfg, pos, vel, R, omega, goals, noise, self.obs_low, self.obs_high,
+                             self.obs_scale, dist=dist, obstacles=obst, obstacle_feats=feats, deck_draws=deck)
 
     def state_into(self, out: dict[str, np.ndarray]) -> None:
         """Write :meth:`state_dict`'s arrays into ``out`` (preallocated (B, N, ...) arrays)."""

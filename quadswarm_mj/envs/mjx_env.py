@@ -74,6 +74,7 @@ from quadswarm_mj.downwash import DOWNWASH_BUDGET, downwash_slot_spec
 from quadswarm_mj.envs.autoreset import AutoResetWrapper, _run_if, _select  # noqa: F401  re-exported
 from quadswarm_mj.envs.validation import check_obstacles, check_state
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
+from quadswarm_mj.perf import xla_cpu
 from quadswarm_mj.perf.fused_draws import (  # noqa: F401  re-exported (their home is perf/)
     FusedJaxSampler,
     erf_inv_f32,
@@ -294,7 +295,8 @@ class MjxQuadSwarmEnv:
         deck = _sub(draws, "deck") or None  # deck sensor noise (quadswarm_mj.sensors), None: noise-free
         return build_obs(self.cfg, pos, vel, R, omega, goals, noise, jnp.asarray(self._obs_low, f),
                          jnp.asarray(self._obs_high, f), scale, dist=dist,
-                         obstacles=None if omap is None else tuple(omap), deck_draws=deck)
+                         obstacles=None if omap is None else tuple(omap), deck_draws=deck,
+                         rank_fn=xla_cpu.neighbor_rank())
 
     def _deck_info(self, obs: jax.Array) -> dict[str, jax.Array]:
         """``multiranger``, ``flow``, ``depth`` (and their ``*_valid`` flags) from the observation's deck
@@ -365,7 +367,7 @@ class MjxQuadSwarmEnv:
         pos, vel, omega = q[:, :3].astype(f), v[:, :3].astype(f), v[:, 3:].astype(f)
         R = quat_to_rotmat(q[:, 3:7]).astype(f)
         flags = start_flags(cfg, pos, jnp, omap)
-        _, dist = pairwise_contacts(pos, cfg.hitbox)
+        _, dist = pairwise_contacts(pos, cfg.hitbox, xla_cpu.pair_distances())
         fresh = start_accumulators(cfg, jnp.zeros((n,), f), (), n)
         acc, f_norm = fresh["metrics_acc"], init["f_norm"]
         obs = self._observe(pos, vel, R, omega, goals, rnd, dist, omap)
