@@ -31,8 +31,6 @@ import math
 from dataclasses import dataclass, fields
 from typing import Any
 
-import numpy as np
-
 from quadswarm_mj._xp import array_namespace
 from quadswarm_mj.actuation import SPIN, inverse_thrust_map, rotor_positions
 from quadswarm_mj.config import EnvConfig, QuadParams
@@ -329,9 +327,3 @@ class PositionController:
         # paper's linear map) -> raw action (steady state f_norm = cmd)
         q = self.quad.thrust_map_quadratic
         return 2.0 * (f if q == 0.0 else inverse_thrust_map(f, q)) - 1.0
-
-
-def hover_actions(cfg: EnvConfig, num_quads: int | None = None) -> np.ndarray:
-    """(N, 4) constant actions whose steady-state thrust balances gravity (nominal airframe)."""
-    n = cfg.num_quads if num_quads is None else num_quads
-    return np.full((n, 4), cfg.quad.hover_action)

@@ -189,15 +189,6 @@ def _dist2d(xp: Any, a: Any, b: Any) -> Any:
 # ------------------------------------------------------------------------------- features
 
 
-@functools.lru_cache(maxsize=4)
-def _sample_offsets(res: float) -> np.ndarray:
-    """(9, 2) offsets of the sample points, x-major: index 3 i + j <-> (dx_i, dy_j)."""
-    d = (-res, 0.0, res)
-    out = np.array([(dx, dy) for dx in d for dy in d])
-    out.setflags(write=False)
-    return out
-
-
 def obstacle_grid(pos: Any, centres: Any, valid: Any) -> Any:
     """(..., N, 3, 3, M) squared xy distances (m^2) from the 3 x 3 sample points ``p + (dx, dy)`` of
     each quad (A.2; dx, dy in (-0.1, 0, 0.1) m, x-major) to the valid column axes (inf for unused

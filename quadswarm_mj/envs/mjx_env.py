@@ -90,7 +90,6 @@ from quadswarm_mj.scenarios import get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
 from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
 
-INIT_STATE_KEYS = ("pos", "vel", "rot", "omega", "motors", "goals")
 PHYSICS = ("freebody", "mjx")
 DRAWS = ("fused", "jax")
 
@@ -152,7 +151,6 @@ class MjxQuadSwarmEnv:
                              f"{cfg.collision_model!r}; use physics='mjx' for 'mujoco'/'blend'")
         # which events the paper's model handles (the others are MuJoCo contacts, as in CpuSwarm)
         self._paper_floor = cfg.collision_model == "paper"
-        self._paper_quads = cfg.collision_model in ("paper", "blend")
         self.physics = physics
         self.cfg = cfg
         self.N = n = cfg.num_quads

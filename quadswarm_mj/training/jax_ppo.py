@@ -122,7 +122,7 @@ class JaxPPOTrainer:
         self.networks, self.arch = make_networks(ppo, self.layout)
         self.optimizer = make_optimizer(ppo)
         key = jax.random.PRNGKey(seed)
-        self.key, kinit, kenv = jax.random.split(key, 3)
+        self.key, kinit, _ = jax.random.split(key, 3)
         params = init_params(self.networks, ppo, self.arch, kinit)
         normalizer = running_statistics.init_state(jax.ShapeDtypeStruct((d,), jnp.float32))
         if init_from is not None:
@@ -135,7 +135,6 @@ class JaxPPOTrainer:
                                       axis_name=AXIS if self.num_devices > 1 else None)
         self._reset = [jax.jit(jax.vmap(e.reset)) for e in self.envs]
         self._iteration = self._jit_iteration()
-        self._env_key = kenv
         self.env_steps = 0
         self.iteration = 0
         self.lr_start = 1.0

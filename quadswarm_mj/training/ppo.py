@@ -110,14 +110,6 @@ class PPOTrainer:
         """Warm start from a policy file (:func:`~quadswarm_mj.training.checkpoints.load_init`)."""
         return load_init(path, params, normalizer, self.arch, self.layout, self.obs_dim)
 
-    # ------------------------------------------------------------------ export
-    def export_arrays(self) -> dict[str, Any]:
-        """Policy layers (MLP only), value layers and normalizer statistics as NumPy arrays."""
-        mean, std, count = normalizer_stats(self.state.normalizer, self.ppo, self.obs_dim)
-        pol = _dense_layers(self.state.params.policy) if self.arch is None else None
-        return {"policy": pol, "value": _dense_layers(self.state.params.value), "obs_mean": mean, "obs_std": std,
-                "norm_count": count}
-
     def train_meta(self, extra_meta: dict[str, Any] | None = None) -> dict[str, Any]:
         return {"engine": "mujoco", "scenarios": [c.scenario for c in self.cfgs], "env_steps": int(self.env_steps),
                 "iterations": int(self.iteration), "seed": self.seed, "ppo": ppo_meta(self.ppo), **(extra_meta or {})}
