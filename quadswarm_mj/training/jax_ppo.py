@@ -1,28 +1,13 @@
 """PPO on the JAX engine: rollouts and updates in ONE jitted function per iteration.
 
-``JaxPPOTrainer`` runs the project's PPO (Brax's loss ``compute_ppo_loss``, Brax's networks or the
-encoders of :mod:`quadswarm_mj.training.networks`, Brax's running observation normalizer: the very pieces
-of :mod:`quadswarm_mj.training.ppo`) on :class:`~quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv` through
-``AutoResetWrapper.vstep``. One call of the jitted ``iteration`` = ``lax.scan`` over ``unroll_length``
-control steps (policy sampling for all agents, ``vstep`` of every scenario's batch of worlds, the
-first-episode desynchronization, the collision replay of :mod:`quadswarm_mj.training.replay`, episode
-metric sums) followed by the PPO update. No host callback and no NumPy inside: the same code runs on a
-GPU/TPU; the host sees one small dict of losses and metric sums per iteration.
-
-Why the project's trainer and not Brax's ``ppo.train`` on ``BraxQuadSwarmEnv`` (measured, TRAINING.md
-"Training on the JAX engine"): both jit the same kind of loop (``lax.scan`` of env steps, then
-minibatch SGD on the same loss), so their agent-steps/s are within noise of each other on this machine
-(both are dominated by the MJX step), but Brax's ``ppo.train`` cannot host what the swarm training needs:
-restarting worlds from a buffer of saved collision states (SPEC_obstacles C.2), the encoder networks with
-the project's policy-file export, per-scenario SPEC §8 episode metrics, a split of the worlds over several
-scenario configs (``mix`` + ``run_away``), the first-episode desynchronization and resuming with optimizer
-and normalizer state from a pickle-free file. Learning per sample is the same (same loss, same
-networks); learning per wall-clock minute then follows the agent-steps/s.
-
-Every quad is an agent (parameter sharing, as the CPU trainer); agent order is scenario by scenario,
-world by world, quad by quad. Reward annealing (``cfg.rewards.anneal_steps``, in control steps of a
-world: ``info["total_steps"]``, which ``AutoResetWrapper`` and the replay carry over episodes) runs inside
-the env; :func:`anneal_steps_for` converts a budget in agent-steps.
+``JaxPPOTrainer`` runs the project's PPO (the pieces of :mod:`quadswarm_mj.training.ppo`: Brax's loss,
+networks or the encoders of :mod:`quadswarm_mj.training.networks`, Brax's normalizer) on
+:class:`~quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv` through ``AutoResetWrapper.vstep``. One ``iteration`` is
+a ``lax.scan`` over ``unroll_length`` control steps (policy sampling, ``vstep`` of every scenario's worlds,
+first-episode desynchronization, collision replay of :mod:`quadswarm_mj.training.replay`, metric sums),
+then the PPO update: no host callback, so it runs unchanged on a GPU. Agent order: scenario, world, quad.
+Reward annealing runs inside the env (``info["total_steps"]``); :func:`anneal_steps_for` converts a budget
+in agent-steps. Why not Brax's ``ppo.train``: docs/training.md ("Which trainer is faster here, and why").
 """
 
 from __future__ import annotations

@@ -1,24 +1,12 @@
 """PPO for quadswarm_mj: Brax's PPO (loss, networks, observation normalizer) on the batched CPU engine.
 
-Why this split (measurements in TRAINING.md): on this 2-core CPU the MuJoCo C engine stepping B
-worlds together (``quadswarm_mj.envs.cpu_core.CpuSwarm``) is several times faster than
-MJX on CPU, so rollouts run there (NumPy + MuJoCo, no Python loop over worlds or quads), while
-everything learned runs in JAX: the policy's action sampling (one jitted call per control step
-for all agents) and the PPO update (one jitted call per iteration: normalizer update, then
-``num_epochs`` passes of ``num_minibatches`` Adam steps on
-``brax.training.agents.ppo.losses.compute_ppo_loss``). The networks are Brax's
-``make_ppo_networks`` (tanh-normal policy, MLPs) with Brax's running observation normalizer, or
-(``PPOConfig.arch``) a deep-sets / attention encoder of :mod:`quadswarm_mj.training.networks` saved in
-the encoder policy format. The pieces live in their own modules and are shared with the JAX-engine trainer
-(:mod:`quadswarm_mj.training.jax_ppo`): :mod:`~quadswarm_mj.training.ppo_config` (``PPOConfig``, the schedule),
-:mod:`~quadswarm_mj.training.learner` (networks, optimizer, update), :mod:`~quadswarm_mj.training.checkpoints`
-(policy files, the resumable train state, warm starts), :mod:`~quadswarm_mj.training.run_logs` (logs, curves)
-and :mod:`~quadswarm_mj.training.cpu_rollout` (``AgentBatch``); their names are importable from here too.
-
-Every quad is an agent and all agents share one policy (parameter sharing, as in QuadSwarm):
-the PPO batch has ``num_worlds * num_quads`` agents, each with its own reward (the per-quad
-reward of SPEC §8). Several scenarios can be trained at once: the worlds are split evenly among
-one engine per scenario (e.g. static_same_goal + dynamic_same_goal for the single-quad policy).
+Rollouts run on :class:`~quadswarm_mj.envs.cpu_core.CpuSwarm` (NumPy + MuJoCo); the action sampling (one
+jitted call per control step for all agents) and the update (one jitted call per iteration) run in JAX.
+Every quad is an agent sharing one policy; several scenarios train at once, the worlds split evenly among
+one engine per scenario. The pieces, shared with :mod:`quadswarm_mj.training.jax_ppo` and importable from
+here too: :mod:`~quadswarm_mj.training.ppo_config`, :mod:`~quadswarm_mj.training.learner`,
+:mod:`~quadswarm_mj.training.checkpoints`, :mod:`~quadswarm_mj.training.run_logs`,
+:mod:`~quadswarm_mj.training.cpu_rollout`. Guide: docs/training.md.
 """
 
 from __future__ import annotations
