@@ -13,11 +13,9 @@ mode         action (units, frame)
 "velocity"   vx, vy, vz m/s (world frame), yaw rate rad/s (body z)
 ============ ===================================================================================
 
-Signs: roll > 0 lowers the right side, pitch > 0 the nose, yaw > 0 counter-clockwise from above.
-Bounds (:func:`control_action_bounds`, actions clipped into them): thrust [0, 4 thrust_max], rates
-+-``max_omega``, roll/pitch +-pi/2, velocity +-``MAX_SPEED`` per axis. Each mode is a cascade run every
-physics sub-step (:func:`mode_command`, NumPy or ``jax.numpy``, any leading batch dims) ending in the
-motor command ``cmd`` in [0, 1], which replaces ``action_to_command(action)`` before the motor model;
+Roll > 0 lowers the right side, pitch > 0 the nose, yaw > 0 is counter-clockwise from above; actions are
+clipped into :func:`control_action_bounds`. Each mode is a cascade run every physics sub-step
+(:func:`mode_command`, NumPy or ``jax.numpy``, any batch dims) ending in the motor command in [0, 1];
 ``ctrl_state`` (..., N, 6) holds the rate and velocity integrals (:func:`init_control_state`). The
 cascade and the sources of the bounds: docs/model.md ("Beyond the paper").
 """
