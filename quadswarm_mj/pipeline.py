@@ -34,7 +34,7 @@ def _no_jump(shape: tuple[int, ...]) -> np.ndarray:
 def make_substep_actuation(cfg: Any, wrench: Any = None) -> Any:
     """The sub-step actuation chain beyond the paper for ``cfg``, or None when there is nothing beyond
     it (``control_mode == "rotor"``, linear thrust map, aerodynamics off: the engines then call
-    ``substep_wrench`` exactly as before, no extra work). Static Python switches, decided once.
+    ``substep_wrench``, no extra work). Static Python switches, decided once.
 
     Returns ``act(u, action, cmd, eps, params, pos, vel, R, omega, cs, rotor_pos, mix, torque_spin)
     -> (u, f_norm, force, torque, cmd_s, cs)``, one physics sub-step (any leading dims, NumPy or

@@ -25,7 +25,7 @@ from brax.training.acme import running_statistics
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.metrics import METRIC_KEYS
 
-# the pieces, importable from here as before the split (quadswarm_mj.training.ppo.<name>)
+# the pieces, re-exported (quadswarm_mj.training.ppo.<name>)
 from quadswarm_mj.training.checkpoints import (  # noqa: F401
     TRAIN_STATE_FILE,
     _key_data,
