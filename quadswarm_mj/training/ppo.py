@@ -28,8 +28,6 @@ from quadswarm_mj.metrics import METRIC_KEYS
 # the pieces, re-exported (quadswarm_mj.training.ppo.<name>)
 from quadswarm_mj.training.checkpoints import (  # noqa: F401
     TRAIN_STATE_FILE,
-    _key_data,
-    _value_layers,
     load_init,
     load_train_state,
     save_policy_file,
@@ -39,11 +37,7 @@ from quadswarm_mj.training.cpu_rollout import AgentBatch
 from quadswarm_mj.training.learner import (  # noqa: F401
     DrawnEntropyNormals,
     TrainState,
-    _count,
     _dense_layers,
-    _MeanKL,
-    _to_tree,
-    _uint64,
     encoder_arch,
     env_meta,
     init_params,
@@ -57,7 +51,7 @@ from quadswarm_mj.training.learner import (  # noqa: F401
     set_learning_rate,
 )
 from quadswarm_mj.training.ppo_config import ACTIVATIONS, ARCH_NAMES, PPOConfig, linear_lr_scale, ppo_meta  # noqa: F401
-from quadswarm_mj.training.run_logs import _smooth_metric, plot_curves, start_run, write_logs  # noqa: F401
+from quadswarm_mj.training.run_logs import plot_curves, start_run, write_logs  # noqa: F401
 
 
 class PPOTrainer:
