@@ -126,16 +126,6 @@ def _thrust_torque(xp: Any, f_norm: Any, thrust_max: Any, torque_spin: Any, mix:
     return s[..., :1], xp.concatenate([s[..., 1:], tz[..., None]], axis=-1)
 
 
-def world_wrench(R: Any, force_b: Any, torque_b: Any) -> tuple[Any, Any]:
-    """Rotate body-frame force and torque to the world frame with ``R`` (body to world)."""
-    return _rotate_wrench(R, force_b[..., 2:3], torque_b)
-
-
-def _rotate_wrench(R: Any, fz: Any, torque_b: Any) -> tuple[Any, Any]:
-    """World force (thrust ``fz`` (..., N, 1) along body z) and world torque."""
-    return fz * R[..., :, 2], sum_last(R * torque_b[..., None, :])
-
-
 def hover_motor_state(params: dict[str, Any]) -> Any:
     """Per-rotor normalized speed u (..., N, 4) whose thrust balances gravity."""
     xp = array_namespace(params["thrust_max"])

@@ -1,41 +1,17 @@
 """Aerodynamic effects beyond the paper: ground effect and rotor (blade) drag (``EnvConfig.aero``).
 
-Both are pure functions of arrays with leading batch dims (..., N), NumPy or ``jax.numpy``, run at
-the physics rate inside the sub-step loop, and are off by default (the paper has neither).
+Pure functions of arrays with leading batch dims (..., N), NumPy or ``jax.numpy``, run at the physics rate
+inside the sub-step loop; off by default (static switches: the stages return None).
 
-* Ground effect (Cheeseman & Bennett 1955, "The effect of the ground on a helicopter rotor in
-  forward flight", ARC R&M 3021): a rotor at height h above the ground gives
-  T_IGE / T_OGE = 1 / (1 - (r / 4h)^2), r the rotor radius. The Crazyflie's 46.2 mm propellers give
-  r = 0.0231 m (gym-pybullet-drones ``cf2x.urdf`` prop_radius 2.31348e-2 m). The form diverges at
-  h = r / 4 and is only validated for h >~ r / 2, so the gain is clipped at
-  ``AeroConfig.ground_effect_max_gain`` = 4/3 (its value at h = r / 2). A Crazyflie resting on the
-  floor has its rotors ~0.043 m up (h / r = 1.8): gain 1.019. The gain multiplies each rotor's
-  thrust (and its reaction torque) after the motor model and the thrust map:
-  :func:`ground_effect_stage` runs before the wrench and its gain goes in as
-  ``substep_wrench(..., rotor_gain=gain)``.
-* Rotor drag (induced / blade-flapping drag, linear in the body velocity and the rotor speed):
-  F_body = -diag(c) * (sum_i w_i) * v_body with w_i the rotor speeds in rad/s and
-  c = (9.1785e-7, 9.1785e-7, 10.311e-7) N / (m/s) / (rad/s), the values of gym-pybullet-drones
-  (``cf2x.urdf`` drag_coeff_xy, drag_coeff_z; Panerati et al. 2021), derived from the drag matrix
-  identified by Förster 2015, "System identification of the Crazyflie 2.0 nano quadrocopter",
-  ETH Zurich BSc thesis. The rotor speeds follow from the rotor thrusts by F_i = k_f w_i^2 with
-  k_f = 3.16e-10 N/rpm^2 (the same source). At hover (sum w ~ 6200 rad/s) this is about
-  5.7e-3 N per m/s in x, y: 2 % of the weight at 1 m/s. :func:`drag_stage` runs after the motor
-  model (it needs this sub-step's rotor thrusts); its world force is added to the force written
-  to ``xfrc_applied``.
+* Ground effect (Cheeseman & Bennett 1955): T_IGE / T_OGE = 1 / (1 - (r / 4h)^2) per rotor at height h (m),
+  clipped at ``AeroConfig.ground_effect_max_gain``; :func:`ground_effect_stage` gives the per-rotor gain,
+  applied by ``substep_wrench(..., rotor_gain=gain)``.
+* Rotor drag: F_body = -diag(c) (sum_i w_i) v_body (N), w_i rotor speeds (rad/s) from F_i = k_f w_i^2;
+  :func:`drag_stage` gives the world force added to ``xfrc_applied``.
 
-Both stages return None when their switch is off (static Python switches), so the default
-configuration evaluates nothing. The order inside one sub-step (see tests/closed_loop.py)::
-
-    gain = ground_effect_stage(cfg, params, pos, R, rotor_pos)
-    u, f_norm, force, torque = substep_wrench(u, cmd, eps, params, R, rotor_pos,
-                                              thrust_quadratic=q, rotor_gain=gain)
-    drag = drag_stage(cfg, params, R, vel, f_norm, gain)
-    xfrc_applied <- (force if drag is None else force + drag, torque)
-
-Per-quad parameters (:func:`aero_params_from_draws`): ``rotor_radius`` (..., N) m and
-``drag_coeff`` (..., N, 3), nominal or scaled by per-reset draws (:func:`aero_draw_spec`,
-ranges ``AeroConfig.rotor_radius_scale`` and ``drag_scale``).
+Per-quad parameters (:func:`aero_params_from_draws`): ``rotor_radius`` (..., N) m and ``drag_coeff``
+(..., N, 3), nominal or scaled by per-reset draws (:func:`aero_draw_spec`). Constants, sources and the
+order inside a sub-step: docs/model.md ("Beyond the paper").
 """
 
 from __future__ import annotations

@@ -64,9 +64,6 @@ class Arena:
     obstacle_mocap_ids: np.ndarray | None = None  # (B, M_max) mocap ids (rows of data.mocap_pos) of the columns
     obstacle_park: np.ndarray | None = None  # (3,) world-local position (m) of unused columns (below the floor)
 
-    def quad_name(self, world: int, quad: int) -> str:
-        return f"q{quad}" if self.num_worlds == 1 else f"w{world}q{quad}"
-
     def obstacle_name(self, world: int, k: int) -> str:
         return obstacle_geom_name(self.num_worlds, world, k)
 

@@ -20,7 +20,7 @@ MIN_ROOM_SIDE = 2 * SPAWN_MARGIN  # 1.0 m
 CONTROL_MODES = ("rotor", "ctbr", "attitude", "velocity")
 QUAD_PRESETS = ("quadswarm", "crazyflie21_identified")
 
-# ---- physical bounds (issue 32): every accepted state and airframe stays finite and stable in float32
+# ---- physical bounds: every accepted state and airframe stays finite and stable in float32
 #: m/s, the largest speed a reset state may give a quad (|v|). Racing quadrotors top out near 50 m/s
 #: (180 km/h); a Crazyflie reaches ~20 m/s at full thrust across the default room. At 50 m/s a quad
 #: moves 0.25 m per 200 Hz physics sub-step, already 5.4 arms: beyond that no contact or collision

@@ -13,31 +13,11 @@ mode         action (units, frame)
 "velocity"   vx, vy, vz m/s (world frame), yaw rate rad/s (body z)
 ============ ===================================================================================
 
-Sign conventions: roll > 0 rotates about body x (right side down: thrust tilts toward -y),
-pitch > 0 rotates about body y (nose down: thrust tilts toward +x), yaw > 0 counter-clockwise
-seen from above. Action bounds (:func:`control_action_bounds`) are the physical limits of the
-airframe: collective thrust [0, 4 thrust_max] (all rotors at full thrust), body rates and yaw
-rate +-``QuadParams.max_omega`` (the simulator clips the angular velocity there), roll and
-pitch +-pi/2 (beyond, the thrust points down), velocity +-``MAX_SPEED`` = 30 km/h per axis
-(gym-pybullet-drones ``cf2x.urdf`` max_speed_kmh). Actions are clipped into the bounds.
-
-Each mode is a cascade run at the physics rate (every sub-step, on the current state), written
-once for NumPy and ``jax.numpy``: velocity -> (thrust, attitude) -> attitude -> body rates ->
-rate loop -> body torque -> the inverse rotor mixing of
-:meth:`quadswarm_mj.controllers.PositionController.allocate` (attitude priority, rotor limits)
--> normalized rotor thrust f in [0, 1] -> through the inverse of the static thrust map
-(:func:`quadswarm_mj.actuation.inverse_thrust_map`) -> the motor command ``cmd`` in [0, 1]. The
-command then goes through the unchanged motor model (lag, noise, randomized constants), so in
-the sub-step loop it takes the place of ``action_to_command(action)``::
-
-    for s in range(substeps):
-        cmd, ctrl_state = mode_command(mode, action, state_s, params, ctrl_state, sim_dt, quad=cfg.quad)
-        u, f_norm, force, torque = substep_wrench(u, cmd, noise, params, R_s, rotor_pos, ...)
-        xfrc_applied <- force, torque; mj_step
-
-``ctrl_state`` is a fixed-shape (..., N, 6) array: the integrals of the body-rate error (3) and
-of the world velocity error (3); :func:`init_control_state` gives zeros (reset it with the
-episode). Everything takes any leading batch dims (``(N, ...)``, ``(B, N, ...)``).
+Roll > 0 lowers the right side, pitch > 0 the nose, yaw > 0 is counter-clockwise from above; actions are
+clipped into :func:`control_action_bounds`. Each mode is a cascade run every physics sub-step
+(:func:`mode_command`, NumPy or ``jax.numpy``, any batch dims) ending in the motor command in [0, 1];
+``ctrl_state`` (..., N, 6) holds the rate and velocity integrals (:func:`init_control_state`). The
+cascade and the sources of the bounds: docs/model.md ("Beyond the paper").
 """
 
 from __future__ import annotations

@@ -1,28 +1,11 @@
 """Baseline geometric position controller: goals -> normalized per-rotor actions.
 
-:class:`PositionController` is a Lee / Mellinger style controller on SE(3):
-
-1. position loop (world frame): desired acceleration
-   ``a_d = a_ff - kp * sat(p - goal) - kv * (v - goal_vel) + g e_z`` with the position error
-   saturated in norm (so far goals give a bounded approach speed), the vertical acceleration
-   limited and the horizontal acceleration limited to the tilt ``max_tilt``;
-2. collective thrust ``T = m a_d . b3`` (the body z axis, as in Lee et al. 2010), clipped to what
-   the four rotors can give;
-3. attitude loop: ``R_d`` with body z along ``a_d`` and the heading of the current yaw (or a
-   given yaw); ``e_R = vee(R_d^T R - R^T R_d) / 2``, ``e_w = omega`` (body frame) and the body
-   torque ``tau = J (-kR e_R - kw e_w) + omega x J omega``;
-4. mixing: the wrench ``(T, tau)`` -> normalized rotor thrusts ``f`` in [0, 1] through the
-   inverse of the rotor mixing of :func:`quadswarm_mj.actuation.body_wrench` (per-rotor
-   ``thrust_max`` and ``torque_max``, so randomized airframes are handled when their parameters
-   are given). Saturation keeps attitude first: the roll/pitch part is scaled down only if it
-   does not fit in [0, 1] on its own, the yaw part then takes what room is left, and the
-   collective is moved into the remaining feasible interval;
-5. action ``a = 2 f - 1`` (the motor model's steady state is ``f_norm = cmd``, SPEC §2).
-
-Everything is vectorized: state arrays are (..., N, ...) with any leading batch dims (``(N, 3)``
-for one world, ``(B, N, 3)`` for B worlds), NumPy or ``jax.numpy``. The controller is stateless
-(no integrator), so it can be called on any world at any time. Units SI; ``pos``/``vel``/goals in
-the world frame (m, m/s), ``rot`` maps body to world, ``omega`` is in the body frame (rad/s).
+:class:`PositionController` is a Lee / Mellinger style controller on SE(3): a saturated position loop
+(world frame) -> collective thrust along body z -> geometric attitude loop -> the inverse rotor mixing of
+:func:`quadswarm_mj.actuation.body_wrench` (attitude first) -> actions ``2 f - 1`` in [-1, 1]. Stateless and
+vectorized: arrays (..., N, ...) with any leading batch dims, NumPy or ``jax.numpy``. Units SI;
+``pos``/``vel``/goals in the world frame (m, m/s), ``rot`` body to world, ``omega`` body frame (rad/s).
+The loop equations: docs/model.md ("The baseline controller").
 """
 
 from __future__ import annotations
@@ -30,8 +13,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 from typing import Any
-
-import numpy as np
 
 from quadswarm_mj._xp import array_namespace
 from quadswarm_mj.actuation import SPIN, inverse_thrust_map, rotor_positions
@@ -125,7 +106,7 @@ def _max_scale(a: Any, b: Any, g: Any) -> Any:
 
 
 class PositionController:
-    """Geometric position + attitude controller for N quads (see the module docstring).
+    """Geometric position + attitude controller for N quads (equations: docs/model.md).
 
     ``PositionController(cfg)`` with an :class:`EnvConfig` (or a :class:`QuadParams`) and optional
     :class:`ControllerGains`; call it as ``ctrl(state, goals, goal_vel=None, params=None)``:
@@ -329,9 +310,3 @@ class PositionController:
         # paper's linear map) -> raw action (steady state f_norm = cmd)
         q = self.quad.thrust_map_quadratic
         return 2.0 * (f if q == 0.0 else inverse_thrust_map(f, q)) - 1.0
-
-
-def hover_actions(cfg: EnvConfig, num_quads: int | None = None) -> np.ndarray:
-    """(N, 4) constant actions whose steady-state thrust balances gravity (nominal airframe)."""
-    n = cfg.num_quads if num_quads is None else num_quads
-    return np.full((n, 4), cfg.quad.hover_action)

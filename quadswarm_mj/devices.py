@@ -1,23 +1,10 @@
-"""JAX on the CPU for the JAX engine: one device per core (the engine shards worlds over the cores),
-XLA:CPU options for its small programs (:func:`tune_jax_cpu`, :func:`loop_once`) and glibc's
-allocator (:func:`reuse_freed_memory`). All of them change the whole process, so the package never
-calls them on import or use: they are the user's explicit opt-in (the console commands call them).
+"""JAX on the CPU for the JAX engine: one device per core (:func:`use_cpu_cores`), XLA:CPU options for its
+small programs (:func:`tune_jax_cpu`, :func:`loop_once`) and glibc's allocator (:func:`reuse_freed_memory`).
 
-JAX exposes a single CPU device by default and parallelizes each XLA kernel over the cores
-itself. For the JAX engine's many small kernels (arrays of a few hundred to a few thousand
-numbers) that intra-op split costs more than it gains; giving each core its own device and
-sharding the worlds over the devices (``quadswarm_mj.envs.sharding``: every device steps its own
-worlds, no communication) gives 1.6-1.9x the samples/s of one device on the 2-core machine
-(512 and 2048 worlds x 8 quads in the standard run of BENCHMARKS.md). The vector env
-(``engine="jax"``), ``benchmark_mjx`` and the JAX-engine trainer use every device whose count divides
-their number of worlds.
-
-The device count is fixed when JAX creates its CPU client, i.e. at the first JAX operation of the
-process, so call this first (or set the environment variable ``JAX_NUM_CPU_DEVICES``)::
-
-    import quadswarm_mj
-    quadswarm_mj.use_cpu_cores()          # before anything runs on JAX
-    env = quadswarm_mj.QuadSwarmVectorEnv(cfg, num_envs=1024, engine="jax")
+All of them change the whole process, so the package never calls them on import or use: they are the
+user's explicit opt-in (the console commands call them). The device count is fixed at the first JAX
+operation of the process, so call :func:`use_cpu_cores` first (or set ``JAX_NUM_CPU_DEVICES``). Why one
+device per core pays and what the XLA:CPU settings do: docs/engines.md ("Cores", "XLA:CPU settings").
 """
 
 from __future__ import annotations
@@ -100,13 +87,11 @@ def tune_jax_cpu(allocator: bool = True) -> dict[str, bool]:
     variable, JAX config value or allocator setting); the package's console commands
     (``quadswarm-train``, ``quadswarm-benchmark``, ...) and scripts call it. It sets:
 
-    * small loops as single kernels (``XLA_FLAGS`` += :data:`LOOP_KERNEL_FLAG`): XLA:CPU's runtime
-      otherwise launches each of the ~160 fused kernels of a one-world step as its own task and hands
-      them between its pool threads (~25 us per wake-up); the JAX engine's one-world step runs in a
-      one-trip loop (:func:`loop_once`) and becomes one kernel: ~185 -> ~40 us per call.
+    * small loops as single kernels (``XLA_FLAGS`` += :data:`LOOP_KERNEL_FLAG`): the JAX engine's
+      one-world step runs in a one-trip loop (:func:`loop_once`) and becomes one kernel instead of
+      ~160 kernels handed between XLA:CPU's pool threads;
     * synchronous dispatch on CPU (``jax_cpu_enable_async_dispatch = False``): a single-device
-      program then runs in the calling thread instead of being handed to a worker thread, which a
-      ``step()`` that returns NumPy results waits for anyway (~60 us less per call, BENCHMARKS.md).
+      program runs in the calling thread, which a ``step()`` returning NumPy waits for anyway;
     * with ``allocator=True``, glibc's allocator keeps freed large blocks (:func:`reuse_freed_memory`).
 
     Both XLA options are set only before JAX has started (else nothing changes); a value you set

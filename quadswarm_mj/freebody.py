@@ -1,58 +1,17 @@
 """MuJoCo's ``mj_step`` specialised to contact-free free bodies, as plain array code (NumPy or jax.numpy).
 
-For a model whose only dynamics are free bodies under gravity and ``xfrc_applied`` (MuJoCo's Euler
-integrator, contacts disabled, no damping, armature, fluid forces, actuators or constraints), one call of
-:func:`freebody_step` computes, per body, the ``qpos``/``qvel`` that ``mj_step`` computes. It is an exact
-specialisation (same physics, different round-off), not a new model: ``tests/test_freebody.py`` checks it
-against ``mujoco.mj_step`` in float64 to 1e-9 over 200 sub-steps and against ``mjx.step`` in float32.
+An exact specialisation (same physics, different round-off): ``tests/test_freebody.py`` checks it against
+``mujoco.mj_step`` in float64 to 1e-9 over 200 sub-steps and against ``mjx.step`` in float32. Conventions
+(MuJoCo's free joint):
 
-Conventions (MuJoCo's free joint):
+- ``qpos`` (..., N, 7): body origin (m, world), then the quaternion (w, x, y, z) body to world;
+- ``qvel`` (..., N, 6): linear velocity (m/s, world), then angular velocity (rad/s, BODY frame);
+- ``xfrc`` (..., N, 6): ``xfrc_applied`` rows, force (N, world) at the COM, then torque (N m, world);
+- ``mass`` (..., N) kg, ``inertia`` (..., N, 3) kg m^2 (principal moments about the COM), randomisable;
+- ``ipos`` (N, 3) m / ``iquat`` (N, 4): the inertial frame in the body frame; ``None`` means zero /
+  identity (the Crazyflie's case, the cheap path, a static choice at trace time).
 
-- ``qpos`` (..., N, 7): position of the body frame origin (m, world), then the quaternion (w, x, y, z)
-  rotating body to world.
-- ``qvel`` (..., N, 6): linear velocity of the body frame origin (m/s, world), then the angular velocity
-  (rad/s) in the BODY frame.
-- ``xfrc`` (..., N, 6): the bodies' ``MjData.xfrc_applied`` rows: force (N, world) acting at the centre of
-  mass, then torque (N m, world); ``mj_xfrcAccumulate`` applies them exactly so.
-- ``mass`` (..., N) kg and ``inertia`` (..., N, 3) kg m^2: ``body_mass`` and ``body_inertia`` (principal
-  moments about the COM, in the inertial frame); both may be randomised per world.
-- ``ipos`` (N, 3) m and ``iquat`` (N, 4): ``body_ipos`` / ``body_iquat``, the inertial frame (COM and
-  principal axes) in the body frame. ``None`` means zero / identity (the Crazyflie's case), the cheap
-  path: a static choice made at trace time, never a branch on array values.
-
-What one step does (``mj_step`` with ``mjINT_EULER``): normalise the quaternion (``mj_kinematics``);
-Newton-Euler about the COM with the free body's exact mass matrix and bias force (gravity at the COM,
-the gyroscopic term ``w x I w``, the centripetal and angular-acceleration terms of an offset COM), solved
-in closed form in the principal frame instead of factoring a 6x6 matrix; semi-implicit Euler: ``qvel +=
-dt * qacc``, then ``mj_integratePos`` with the NEW velocity (``pos += dt * v``; the quaternion is rotated
-by the body-frame angular velocity as ``mju_quatIntegrate`` does, ``q <- q * quat(axis, dt |w|)``) and
-normalised (``mj_normalizeQuat``). Only ``qpos``/``qvel`` are produced; a caller that keeps an
-``MjData``/``mjx.Data`` as its state writes them back (and advances ``time`` by ``dt`` if it reads it).
-
-``max_omega`` (optional) clips the new body-frame angular velocity per axis to [-max_omega, max_omega]
-after the step, as the simulator does after every sub-step; positions use the unclipped velocity.
-
-Array code is component-wise on (..., N) arrays (static slices and element-wise ops, no gathers, no matrix
-inverse), so XLA fuses a step into a few loops. :func:`freebody_constants` reads ``ipos``, ``iquat``,
-``mass``, ``inertia``, ``gravity`` and ``dt`` of the quads of a :class:`quadswarm_mj.arena.Arena` once
-and checks that the model satisfies the assumptions above.
-
-Use in an engine that keeps ``mjx.Data`` as its state (``qs``/``vs`` = ``arena.qpos_start``/``qvel_start``)::
-
-    k = freebody_constants(arena.model, arena)  # once, NumPy constants (closed over by jit)
-    q = data.qpos[qs:qs + 7 * n].reshape(n, 7)
-    v = data.qvel[vs:vs + 6 * n].reshape(n, 6)
-    q, v = freebody_step(q, v, wrench, mass, inertia, k.ipos, k.iquat, k.gravity, k.dt, max_omega=max_w)
-    data = data.replace(qpos=data.qpos.at[qs:qs + 7 * n].set(q.ravel()),
-                        qvel=data.qvel.at[vs:vs + 6 * n].set(v.ravel()), time=data.time + k.dt)
-
-``wrench`` (n, 6) is what would be written into ``xfrc_applied``; ``mass``/``inertia`` are read directly
-(no ``model.replace``). The derived ``Data`` fields (``xpos``, ``xquat``, ...) are not recomputed: a renderer
-going through ``mjx.get_data`` must run ``mj_forward``/``mj_kinematics`` on the copy. Note for the MuJoCo
-side: ``mj_step`` takes the mass matrix of a "simple" body (COM at the origin, principal axes = body axes,
-as the Crazyflie) from ``dof_M0``, computed at compile time; after writing ``body_mass``/``body_inertia``
-into an ``MjModel``, call ``mujoco.mj_setConst`` or ``mj_step`` mixes new bias forces with the old mass
-matrix (MuJoCo 4.0.0; ``tests/test_freebody.py`` shows it).
+What a step does, how an engine uses it, and the ``mj_setConst`` caveat: docs/model.md ("The free-body step").
 """
 
 from __future__ import annotations

@@ -1,42 +1,12 @@
 """Obstacles (SPEC_obstacles A.1-A.4): column maps, distance features, contacts, response, metrics.
 
-Columns are vertical cylinders from floor to ceiling; everything here is 2D (x, y), world frame,
-SI units. A world holds a fixed number ``M_max = ObstacleConfig.slots`` of column slots with a
-validity mask, so shapes are static under ``jax.jit``: an :class:`ObstacleMap` is
-
-* ``centres`` (..., M_max, 2) m, column axes (x, y); invalid slots hold any finite value,
-* ``valid`` (..., M_max) bool,
-* ``radius`` (...,) m, column radius (= ObstacleConfig.size / 2; per world under size randomization).
-
-Pure functions over NumPy or ``jax.numpy`` (leading batch dims allowed); random draws come in as
-arrays (draw specs :func:`map_draw_spec`, :func:`response_draw_spec`). The control-step stage
-functions for the engines are :func:`obstacle_step` and :func:`obstacle_features` (see their
-docstrings for where they plug into the pipeline).
-
-Cell indexing (A.1): the area is ``gx x gy`` cells (x, y); flat cell id ``k`` is row
-``r = k // gx`` and column ``c = k % gx``; its centre is ``x = (c + 0.5 - gx / 2) cell``,
-``y = (gy - 1 - r + 0.5 - gy / 2) cell`` (row <-> -y, column <-> x), so on 8 x 8 cells of 1 m,
-cell (r, c) <-> (c - 3.5, 3.5 - r). (The original uses ``gx // 2``: the same for the even grids
-of every run; an odd grid is centred here.)
-
-Wiring into an engine (per world; ``o = cfg.obstacles``, nothing changes when it is None):
-
-* reset: ``omap = reset_map(o, NumpySampler(rng).draw(map_draw_spec(o), (M,)), given)`` (``given``
-  = ``options["obstacles"]`` / ``init_state["obstacles"]`` (M, 2), else None); keep ``omap`` and
-  ``prev_contact = detect(pos, ...)[0]`` (or zeros) per world; move the columns:
-  ``arena.place_obstacles(arena, data.mocap_pos, omap.centres, omap.valid, H)`` (+
-  ``set_obstacle_radius`` under size randomization) on CPU, ``arena.obstacle_mocap_pos`` on MJX;
-  scenario goals and spawns through ``scenarios.obstacle_scenarios.scenario_init`` /
-  ``scenario_spawn`` with ``obstacles=omap``;
-* step, after the quad-quad response (paper model; ``respond=False`` with MuJoCo contacts):
-  ``r = obstacle_step(pos, vel, omega, prev_contact, *omap, cfg.quad.arm, draws)`` with
-  ``draws = sampler(noise.stochastic_collisions).draw(response_draw_spec(N), (B,))``;
-  write ``r["vel"]``, ``r["omega"]`` back, ``prev_contact = r["contact"]``;
-* observation: ``concatenate([obs, obstacle_features(true_pos, *omap)], -1)`` (last 9), bounds
-  ``feature_bounds(cfg)`` appended to ``observations.obs_bounds``;
-* reward: ``terms["obstacle_collision"] = obstacle_penalty(r["new_contact"], o.collision_reward,
-  anneal)`` added to the total; metrics: :func:`metrics_update` / :func:`metrics_finalize`
-  (threshold ``obstacle_scenarios.approach_threshold``); ``info["obstacles"] = active_centres(omap)``.
+Columns are vertical cylinders from floor to ceiling; everything here is 2D (x, y), world frame, SI units.
+A world holds ``M_max = ObstacleConfig.slots`` column slots with a validity mask (static shapes under
+``jax.jit``); an :class:`ObstacleMap` is ``centres`` (..., M_max, 2) m, ``valid`` (..., M_max) bool and
+``radius`` (...,) m. Pure functions over NumPy or ``jax.numpy`` (leading batch dims allowed); random draws
+come in as arrays (:func:`map_draw_spec`, :func:`response_draw_spec`). The engines' stage functions are
+:func:`obstacle_step` and :func:`obstacle_features`. Cell indexing and how the engines wire these in:
+docs/model.md ("Obstacles").
 """
 
 from __future__ import annotations
@@ -187,15 +157,6 @@ def _dist2d(xp: Any, a: Any, b: Any) -> Any:
 
 
 # ------------------------------------------------------------------------------- features
-
-
-@functools.lru_cache(maxsize=4)
-def _sample_offsets(res: float) -> np.ndarray:
-    """(9, 2) offsets of the sample points, x-major: index 3 i + j <-> (dx_i, dy_j)."""
-    d = (-res, 0.0, res)
-    out = np.array([(dx, dy) for dx in d for dy in d])
-    out.setflags(write=False)
-    return out
 
 
 def obstacle_grid(pos: Any, centres: Any, valid: Any) -> Any:
@@ -372,12 +333,7 @@ def obstacle_step(pos: Any, vel: Any, omega: Any, prev_contact: Any, centres: An
                   arm: float, draws: dict[str, Any] | None, respond: bool = True) -> dict[str, Any]:
     """The obstacle stage of a control step (paper model, SPEC_obstacles A.3).
 
-    Where it goes: once per control step, after the physics sub-steps, with the velocity-level
-    models, in the original's order downwash -> quad-quad -> **obstacles** -> walls/ceiling
-    (a wall hit in the same step overwrites the velocity; omega kicks add up). The current engines
-    apply walls before quad-quad; call this right after quad-quad (so after walls, a difference
-    only for a quad touching a column and a wall in one step, which cannot happen geometrically
-    with the area inside the room and more than a column's radius from the walls).
+    Once per control step, right after the quad-quad response (order: docs/model.md, "Obstacles").
 
     Per world state: ``centres`` (M_max, 2), ``valid`` (M_max,), ``radius`` () of the map in force
     and ``prev_contact`` (N,) bool (False at reset, or the contacts of the start state), all with

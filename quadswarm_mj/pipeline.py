@@ -1,27 +1,12 @@
 """The stages of one control step, and the extension points between them.
 
-Order of a control step, spelled once by :func:`quadswarm_mj.core.control.control_step` (which
-``CpuSwarm.step`` and ``MjxQuadSwarmEnv.step`` call; the reset math :func:`initial_state` and
-:func:`initial_flags` is also one function each, called by both engines):
-
-1. draws: one fused draw of everything the step can use (motor and sensor noise per quad, the
-   event models' budgeted slots: :mod:`quadswarm_mj.collisions`, :mod:`quadswarm_mj.downwash`).
-2. sub-steps (:func:`quadswarm_mj.core.substeps.substep_loop`): :func:`make_substep_actuation` (control mode:
-   action -> rotor command at the physics rate -> ground-effect gain -> motor lag and noise -> thrust
-   map -> rotor thrusts -> body wrench -> rotor drag; just ``substep_wrench`` in the default
-   configuration) -> floor normal and friction ->
-   rigid-body integrator (passed in, :mod:`quadswarm_mj.physics`: MuJoCo C, ``freebody_step`` or
-   ``mjx.step``) -> omega clip -> floor landing.
-3. once per control step (:func:`quadswarm_mj.core.step.velocity_stages`, one function for both
-   engines, their differences in :mod:`quadswarm_mj.core.ops`): walls and ceiling (or the room guard
-   and the surface flags with MuJoCo contacts) -> quad-quad -> :func:`obstacle_stage` (with
-   ``cfg.obstacles``) -> downwash.
-4. :func:`task_stage` (in :func:`quadswarm_mj.core.control.task_step`): scenario (goals) -> goal jumps
-   -> reward terms (obstacle penalty) -> episode metrics (obstacle metrics); then observations.
-
-The stages are pure (any leading dims, ``jax.numpy`` or NumPy); their draws are in the step's and
-the reset's specs. :func:`obstacle_stage` is the obstacle stage of the JAX engine (the CPU engine
-runs the same functions event-gated).
+:func:`quadswarm_mj.core.control.control_step` spells the order once for both engines: draws -> sub-steps
+(:func:`make_substep_actuation` -> floor -> the rigid-body integrator of :mod:`quadswarm_mj.physics` ->
+omega clip -> floor landing) -> :func:`quadswarm_mj.core.step.velocity_stages` (walls and ceiling ->
+quad-quad -> :func:`obstacle_stage` -> downwash) -> :func:`task_stage` (scenario -> reward terms -> episode
+metrics) -> observations. The reset math is :func:`initial_state` and :func:`initial_flags`. The stages are
+pure (any leading dims, NumPy or ``jax.numpy``); their draws are in the step's and the reset's specs.
+Design: docs/engines.md ("One control step").
 """
 
 from __future__ import annotations
@@ -49,11 +34,11 @@ def _no_jump(shape: tuple[int, ...]) -> np.ndarray:
 def make_substep_actuation(cfg: Any, wrench: Any = None) -> Any:
     """The sub-step actuation chain beyond the paper for ``cfg``, or None when there is nothing beyond
     it (``control_mode == "rotor"``, linear thrust map, aerodynamics off: the engines then call
-    ``substep_wrench`` exactly as before, no extra work). Static Python switches, decided once.
+    ``substep_wrench``, no extra work). Static Python switches, decided once.
 
     Returns ``act(u, action, cmd, eps, params, pos, vel, R, omega, cs, rotor_pos, mix, torque_spin)
     -> (u, f_norm, force, torque, cmd_s, cs)``, one physics sub-step (any leading dims, NumPy or
-    ``jax.numpy``), in the order of docs (README "Beyond the paper"):
+    ``jax.numpy``), in the order of docs/model.md ("Beyond the paper"):
 
     1. control stage: ``cmd_s`` = the mode controller's rotor command (``control_modes.mode_command``
        on the current state, updating the controller state ``cs`` (..., N, 6)), or ``cmd`` (the raw

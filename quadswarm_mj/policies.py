@@ -1,56 +1,12 @@
 """Policies that fly the quads: trained MLP, deep-sets and attention networks (NumPy inference), the baseline
 controller, random.
 
-Everything here needs NumPy only; JAX is never imported (the trainer in
-``quadswarm_mj.training`` is the only JAX user), so the CPU env, ``scripts/evaluate.py`` and
-``scripts/render_rollout.py --policy pretrained:<name>`` run without JAX.
-
-Policy file format (``.npz``, read with ``allow_pickle=False``, so loading cannot run code):
-
-================== ============ ===============================================================
-key                dtype        content
-================== ============ ===============================================================
-``meta``           unicode 0-d  JSON: ``format`` (``"quadswarm_mj.mlp_policy/1"``), ``activation``
-                                (``"tanh"``, ``"relu"``, ``"swish"`` or ``"elu"``), ``obs_dim``,
-                                ``action_dim`` (4), ``env`` (the EnvConfig fields the observation
-                                layout depends on, e.g. ``num_quads``, ``num_neighbors``), and
-                                free-form ``train`` information
-``layer_i/kernel`` float32      (in_i, out_i), i = 0 .. L-1; hidden layers use the activation,
-``layer_i/bias``   float32      (out_i,); the last layer is linear with 2 * action_dim outputs:
-                                [mean (pre-tanh), std parameters]
-``obs_mean``       float32      (obs_dim,) observation normalization: x' = (x - mean) / std
-``obs_std``        float32      (obs_dim,)
-================== ============ ===============================================================
-
-Other keys (``value/...``: the trainer's critic, used to resume training) are ignored here.
-The deterministic action is ``clip(tanh(mean), -1, 1)``: the mode of Brax's tanh-normal policy.
-
-Encoder policies (deep sets, attention; SPEC_obstacles C.1) use format ``"quadswarm_mj.policy/2"``:
-
-================== ============ ===============================================================
-key                dtype        content
-================== ============ ===============================================================
-``meta``           unicode 0-d  JSON: ``format``, ``arch`` (see :func:`validate_arch`: ``type``
-                                ``"deepsets"`` or ``"attention"``, layer sizes, ``activation``,
-                                heads), ``obs_layout`` (``self_dim`` 18/19/24, ``num_neighbors``
-                                K, ``neighbor_dim`` 6, ``obstacle_dim``: the tail, 9 column
-                                features and/or deck readings, or 0), ``obs_dim``,
-                                ``action_dim``, ``env``, ``train``
-``actor/<name>``   float32      the actor's parameters, named as the flax modules of
-                                ``quadswarm_mj.training.networks`` (e.g. ``actor/self_0/kernel``,
-                                ``actor/attn/w_q/kernel``); shapes in :func:`param_shapes`
-``obs_mean``       float32      (obs_dim,) observation normalization: x' = (x - mean) / std
-``obs_std``        float32      (obs_dim,)
-================== ============ ===============================================================
-
-The observation is ``[self (self_dim) | K x (rel_pos 3, rel_vel 3) | tail (obstacle_dim)]``, the tail being
-the 9 obstacle SDF features and/or the deck readings;
-MLP files written now also record ``arch`` (``{"type": "mlp", "layers": [...]}``) and, when the
-``env`` entry fixes it, ``obs_layout`` in their ``meta`` (older files load unchanged).
-
-Shipped policies live in ``quadswarm_mj/pretrained/`` and are listed in ``manifest.json`` with
-their SHA-256 and size; :func:`load_policy` (``"pretrained:<name>"``) refuses a file whose hash
-or size differs (tampered, truncated or replaced) with a ``ValueError``.
+NumPy only: JAX is never imported here, so the CPU env, ``scripts/evaluate.py`` and
+``scripts/render_rollout.py --policy pretrained:<name>`` run without JAX. A policy file is one ``.npz``
+read with ``allow_pickle=False`` (formats ``quadswarm_mj.mlp_policy/1`` and, for encoders,
+``quadswarm_mj.policy/2``); the deterministic action is ``clip(tanh(mean), -1, 1)``. :func:`load_policy`
+(``"pretrained:<name>"``) checks a shipped file's SHA-256 and size against ``pretrained/manifest.json``.
+The file formats, key by key: docs/training.md ("Policy files").
 """
 
 from __future__ import annotations

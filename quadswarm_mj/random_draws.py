@@ -106,9 +106,6 @@ class JaxSampler:
         return out
 
 
-Sampler = NumpySampler | MeanSampler | JaxSampler
-
-
 # ------------------------------------------------------------------------------- draw budgets
 # The JAX engine draws the noise of rare events (a new contact, a wall hit) for a fixed number of
 # *slots* per step instead of for every possible event. The events of one step are ranked in a fixed

@@ -1,40 +1,11 @@
 """Offscreen frames of a swarm with MuJoCo's renderer (EGL or OSMesa, no display needed).
 
-:class:`SwarmRenderer` draws world ``world`` of a CPU engine (:class:`quadswarm_mj.envs.cpu_core.CpuSwarm`,
-or anything with ``model``, ``data``, ``sstate.goals`` (B, N, 3), ``arena``) and returns RGB
-frames (H, W, 3) uint8:
-
-* each quad gets a colour (:func:`quad_colors`): its body plate and propellers are tinted with it,
-  and its goal is drawn as a small unlit sphere of the same colour (a user geom added to the scene
-  with ``mjv_initGeom``; no body is added to the model);
-* optional trails: a polyline of each quad's last ``trail_length`` rendered positions;
-* optional deck sensors (``sensors=SensorConfig``, readings passed to :meth:`~SwarmRenderer.render`):
-  each range beam of the multi-ranger and the flow deck is a line in the quad's colour from the quad
-  to its reading, ending in a small sphere where the reading is valid (a hit); the depth camera is
-  drawn as its frustum (the four edge rays, ``FRUSTUM_LENGTH`` long, and the far rectangle) and the
-  hit points of its pixels;
-* several worlds: :meth:`~SwarmRenderer.set_world` switches the drawn world (trails and camera
-  smoothing are kept per world), :class:`TiledRenderer` puts R x C worlds side by side in one frame
-  with one offscreen context;
-* cameras: ``"overview"`` (default) is a free camera that frames every quad and goal of the world
-  (look-at the centre of their bounding sphere, distance from the field of view, smoothed over
-  frames: it widens at once and narrows slowly), ``"chase"`` follows quad ``chase_quad`` from
-  behind, and any fixed camera of the room by name (``"top"``; ``"fixed:overview"`` is the room's
-  own fixed overview camera) or index.
-
-Rendering never changes the simulation: the renderer keeps its own copy of the model (the tints
-live there) and its own ``MjData``; every frame copies ``qpos`` into it and runs
-``mj_kinematics`` + ``mj_camlight`` there (``data.xpos`` of the simulation is from before the last
-integration after ``mj_step``; the copy is always current). No random numbers are drawn.
-
-GL context: headless by default, without touching ``MUJOCO_GL``. With ``MUJOCO_GL`` unset (mujoco's
-default would be GLFW, which needs a display), each renderer of this package is created with
-MuJoCo's EGL context class (:func:`start_renderer`; mujoco's own choice is restored right after, so
-your own ``mujoco.Renderer`` or viewer is unaffected). Loading EGL sets ``PYOPENGL_PLATFORM=egl``
-when it is unset (mujoco.egl does that at its import, at the package's first render): PyOpenGL
-fixes its platform once per process. Set ``MUJOCO_GL`` yourself (``egl``, ``osmesa``, ``glfw``) to
-choose; if mujoco was imported before you set it, the renderer switches to the backend it now asks
-for when no OpenGL was loaded yet. If the renderer cannot start, a ``RuntimeError`` names the fix.
+:class:`SwarmRenderer` draws one world of a CPU engine (:class:`quadswarm_mj.envs.cpu_core.CpuSwarm`) as
+RGB frames (H, W, 3) uint8: tinted quads, goal markers, trails, deck-sensor rays, overview / chase / room
+cameras; :class:`TiledRenderer` puts R x C worlds in one frame. Rendering never changes the simulation (own
+model copy and ``MjData``, no random numbers). With ``MUJOCO_GL`` unset the renderer makes its own EGL
+context (:func:`start_renderer`), leaving mujoco's choice for your own renderers. Details: docs/api.md
+("Rendering").
 """
 
 from __future__ import annotations

@@ -147,9 +147,3 @@ def yaw_half_cos_sin(c: Any, s: Any) -> tuple[Any, Any]:
     ch = xp.where(pos_branch, ch_a, s / xp.where(pos_branch, 1.0, 2.0 * sh_b))
     sh = xp.where(pos_branch, s / xp.where(pos_branch, 2.0 * ch_a, 1.0), sh_b)
     return ch, sh
-
-
-def rotate(R: Any, v: Any) -> Any:
-    """Apply (..., 3, 3) rotations to (..., 3) vectors."""
-    xp = array_namespace(R, v)
-    return xp.sum(R * v[..., None, :], axis=-1)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from quadswarm_mj.bench import peers
@@ -103,13 +105,14 @@ def test_first_step_code_runs_in_a_fresh_process() -> None:
 
 
 @pytest.mark.slow
-def test_worker_probe_runs_and_leaves_the_callers_jax_untouched() -> None:
-    """bench.worker_probe: the JAX engine stepped in a spawned worker that tunes itself; the caller gets
+def test_worker_probe_runs_and_leaves_the_callers_jax_untouched(monkeypatch: pytest.MonkeyPatch) -> None:
+    """scripts/worker_probe.py: the JAX engine stepped in a spawned worker that tunes itself; the caller gets
     steps and figures, and its own process has no XLA_FLAGS entry or JAX config change from it."""
     import os
     import sys
 
-    from quadswarm_mj.bench.worker_probe import probe
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))  # spawned worker too
+    from worker_probe import probe
 
     flags = os.environ.get("XLA_FLAGS")
     out = probe(num_quads=1, steps=30, rounds=1)

@@ -1,4 +1,4 @@
-"""The deck sensors' cost (issue 36): samples/s with and without them, on both engines, in alternating rounds.
+"""The deck sensors' cost: samples/s with and without them, on both engines, in alternating rounds.
 
 * JAX engine: ``worlds`` x 8 quads, a jitted ``lax.scan`` of ``AutoResetWrapper.vstep`` with hover
   actions, worlds sharded over the JAX devices as ``benchmark_mjx`` does; compiled once per sensor set,

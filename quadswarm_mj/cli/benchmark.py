@@ -26,40 +26,24 @@ import argparse
 import datetime
 import sys
 
-from quadswarm_mj import EnvConfig, QuadSwarmEnv, QuadSwarmVectorEnv  # noqa: F401  (re-exported)
-from quadswarm_mj.bench.ceiling import bare_model, ceiling, ceiling_one_core, ceiling_rollout  # noqa: F401
-from quadswarm_mj.bench.common import WORKLOADS, fmt, hover_like, load, machine, num_devices, timed  # noqa: F401
-from quadswarm_mj.bench.envs import (  # noqa: F401  (re-exported)
-    _bench_single_cfg,
-    bench_jax_batch,
-    bench_single,
-    bench_single_jax,
-    bench_vector,
-    obstacle_cost,
-)
+from quadswarm_mj import EnvConfig  # noqa: F401  (re-exported)
+from quadswarm_mj.bench.ceiling import ceiling
+from quadswarm_mj.bench.common import WORKLOADS, load, machine, num_devices
+from quadswarm_mj.bench.envs import bench_single, bench_vector
 from quadswarm_mj.bench.gym_rows import first_step_code
 from quadswarm_mj.bench.jax_rows import jax_rows
-from quadswarm_mj.bench.peers import (  # noqa: F401  (re-exported)
+from quadswarm_mj.bench.peers import (  # noqa: F401  (the ratios re-exported)
     _fresh_process,
     _jax_defaults_env,
-    _peer_tag,
     alternating_floor_ratio,
     alternating_peer_ratio,
-    crazyflow_best,
-    crazyflow_rates,
 )
-from quadswarm_mj.bench.profile import (  # noqa: F401  (re-exported)
-    PROFILE_GROUPS,
-    compare_engines,
-    profile_breakdown,
-    run_profile,
-)
-from quadswarm_mj.bench.report import (  # noqa: F401  (re-exported)
+from quadswarm_mj.bench.profile import compare_engines, run_profile
+from quadswarm_mj.bench.report import (  # noqa: F401  (NOTES_MARKER re-exported)
     NOTES_MARKER,
     check_report_target,
     document,
     env_table,
-    existing_report,
     gym_table,
     vector_summary,
     write_report,

@@ -40,10 +40,8 @@ OBSTACLE_ENV: dict[str, Any] = {"num_neighbors": 2, "downwash": True, "obs_self"
 SWARM_ANNEAL = 5e7
 
 PRESETS: dict[str, dict[str, Any]] = {
-    # single quad flying to a goal from scratch in under a minute (TRAINING.md "One-minute single quad"): the JAX
-    # engine end to end (one scenario: half the compile of two), learning rate 2e-3 decaying linearly over a fixed
-    # budget of 4e6 agent-steps (the budget, not the wall clock, sets the schedule: the run is reproducible from its
-    # seed; --minutes caps it), the position term at 3x the paper's scale (hover precision)
+    # every preset is described in docs/training.md (the presets table); one quad from scratch in under a minute: the
+    # 4e6-agent-step budget, not the wall clock, sets the learning-rate schedule (reproducible from its seed)
     "single": {"scenarios": ["static_same_goal"], "num_quads": 1, "env": {}, "rewards": {"pos": 3.0}, "engine": "jax",
                "timesteps": 4e6, "ppo": {"num_worlds": 1024, "unroll_length": 32, "learning_rate": 2e-3}},
     # the recipe of the shipped pretrained:single (static and jumping goals, MuJoCo engine, 30 min)
@@ -52,22 +50,16 @@ PRESETS: dict[str, dict[str, Any]] = {
     # the recipe of the shipped pretrained:swarm8_v1 (CPU engine, two scenarios, MLP over the sorted neighbours)
     "swarm8_v1": {"scenarios": ["static_diff_goal", "swap_goals"], "num_quads": 8, "env": {}, "rewards": {},
                   "ppo": {"num_worlds": 128, "unroll_length": 32}},
-    # 8 quads on the paper scenarios: `mix` (nine scenarios drawn per reset) plus run_away on a tenth of the
-    # worlds (so it weighs as much as each scenario of the mix), K = 6, deep-sets encoder (27,012 actor
-    # parameters), collision penalties annealed over SWARM_ANNEAL agent-steps, collision replay, JAX engine
+    # the paper scenarios: mix (nine scenarios) + run_away on a tenth of the worlds (as much as each of the nine)
     "swarm8": {"scenarios": ["mix", "run_away"], "weights": [9, 1], "num_quads": 8, "env": {}, "rewards": {},
                "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": SWARM_ANNEAL,
                "ppo": {"num_worlds": 128, "unroll_length": 32, "arch": "deepsets_large", "arch_width": 64}},
-    # the swarm by PPO alone (no teacher, no imitation loss): a warm start from pretrained:swarm8_v1 (itself PPO
-    # from pretrained:single, MLP over the 6 nearest neighbours), then PPO on the paper scenarios (mix + run_away)
-    # with collision replay, the paper's reward and time scaling, the position term at 2x (hover precision) and a
-    # low learning rate (the start already flies; TRAINING.md "Swarm policies by PPO alone")
+    # the swarm by PPO alone from pretrained:swarm8_v1 (TRAINING.md "Swarm policies by PPO alone")
     "swarm8_rl": {"scenarios": ["mix", "run_away"], "weights": [9, 1], "num_quads": 8, "env": {},
                   "rewards": {"pos": 2.0}, "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": 0,
                   "init_from": "pretrained:swarm8_v1",
                   "ppo": {"num_worlds": 128, "unroll_length": 32, "learning_rate": 1e-4}},
-    # 8 quads among columns by PPO alone: the same warm start with the 9 column features added at zero input
-    # weight (K = 6 and the base self observation: swarm8_v1's layout), the obstacle mix, collision replay
+    # among columns by PPO alone: the same warm start, the 9 column features added at zero input weight
     "swarm8_obstacles_rl": {"scenarios": ["mix"], "num_quads": 8,
                             "env": {**OBSTACLE_ENV, "num_neighbors": 6, "obs_self": "base"}, "rewards": {"pos": 2.0},
                             "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": 0,
@@ -77,8 +69,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     "swarm8_deployable": {"scenarios": ["mix", "run_away"], "weights": [9, 1], "num_quads": 8, "env": {},
                           "rewards": {}, "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": SWARM_ANNEAL,
                           "ppo": {"num_worlds": 128, "unroll_length": 32, "arch": "deepsets_deployable"}},
-    # 8 quads among columns (the original's final obstacle run): the obstacle mix, attention over a neighbour
-    # token and an obstacle token (4 heads, width 32: 27,460 actor parameters), replay 0.75, annealing
+    # the original's final obstacle run: attention over a neighbour and an obstacle token (27,460 parameters)
     "swarm8_obstacles": {"scenarios": ["mix"], "num_quads": 8, "env": OBSTACLE_ENV, "rewards": {}, "engine": "jax",
                          "replay_prob": 0.75, "anneal_agent_steps": SWARM_ANNEAL,
                          "ppo": {"num_worlds": 128, "unroll_length": 32, "arch": "attention_large",
@@ -88,15 +79,12 @@ PRESETS: dict[str, dict[str, Any]] = {
                                     "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": SWARM_ANNEAL,
                                     "ppo": {"num_worlds": 128, "unroll_length": 32,
                                             "arch": "attention_deployable"}},
-    # --- the recipes of the shipped policies (2-core budget): warm starts from pretrained:swarm8_v1 (the MLP
-    # over the 6 nearest neighbours of the earlier release), PPO fine-tuning on the JAX engine with collision
-    # replay and the paper's reward time scaling (no annealing: the start already avoids collisions)
+    # --- the recipes of the shipped policies: PPO fine-tuning from pretrained:swarm8_v1, no annealing
     "swarm8_finetune": {"scenarios": ["mix", "run_away"], "weights": [9, 1], "num_quads": 8, "env": {},
                         "rewards": {"pos": 2.0}, "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": 0,
                         "init_from": "pretrained:swarm8_v1",
                         "ppo": {"num_worlds": 128, "unroll_length": 32, "learning_rate": 1.5e-4}},
-    # the obstacle mix with K = 6 and the base self observation (the warm start's layout + the 9 obstacle
-    # features, whose input weights start at zero)
+    # the obstacle mix in the warm start's layout + the 9 obstacle features (input weights start at zero)
     "swarm8_obstacles_finetune": {"scenarios": ["mix"], "num_quads": 8,
                                   "env": {**OBSTACLE_ENV, "num_neighbors": 6, "obs_self": "base"}, "rewards": {},
                                   "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": 0,

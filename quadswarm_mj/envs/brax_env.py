@@ -1,46 +1,12 @@
 """Brax front end: train the MJX swarm with ``brax.training.agents.ppo.train``.
 
-Design choice: ONE POLICY SHARED BY ALL QUADS, the quad axis folded into Brax's batch axis.
-Every quad is one Brax "env" (an agent): it observes its own (obs_dim,) observation (own state
-relative to its goal and its K nearest neighbours), outputs its own 4 rotor commands and receives
-its own reward. ``num_envs`` in ``ppo.train`` therefore counts quads (agents), i.e. worlds x N,
-and ``num_timesteps`` counts quad-steps. Why this rather than a centralized policy
-(obs N*obs_dim, action N*4, team reward):
-
-* it is the QuadSwarm paper's setting: decentralized control with parameter sharing, the
-  observation built for exactly that (neighbour terms relative to the quad, nearest first);
-* it is independent of N: the same network flies 2 or 64 quads, and the learner gets N samples
-  per world-step instead of one, with per-quad credit assignment (a crash penalizes the quad that
-  crashed, not the team mean);
-* a centralized policy's input and output grow with N, it is tied to one swarm size and the
-  team-mean reward dilutes each quad's credit by 1/N.
-
-The price is that the value function sees only the quad's own observation (as in the paper).
-
-Episodes: every world is reset completely when its time limit is reached
-(:class:`~quadswarm_mj.envs.mjx_env.AutoResetWrapper`: dynamics parameters redrawn, motors,
-goals, scenario timers and metrics reset), so call ``ppo.train`` with ``wrap_env=False`` (Brax's
-own wrappers would reset only the physics data)::
-
-    from brax.training.agents.ppo import train as ppo
-    from quadswarm_mj import EnvConfig
-    from quadswarm_mj.envs.brax_env import BraxQuadSwarmEnv
-
-    env = BraxQuadSwarmEnv(EnvConfig(num_quads=8, randomize=True))
-    make_policy, params, metrics = ppo.train(
-        env, wrap_env=False, num_timesteps=10_000_000, episode_length=env.episode_length,
-        num_envs=256 * 8, num_eval_envs=32 * 8, batch_size=1024, num_minibatches=16,
-        unroll_length=32, action_repeat=1)
-
-Constraints: ``num_envs`` (per device) and ``num_eval_envs`` must be multiples of N (else
-``reset`` raises ValueError); keep ``action_repeat=1``. All episode ends are time limits, reported as
-``info["truncation"] = 1`` (and ``info["time_out"]``, for ``bootstrap_on_timeout``).
-
-Per-agent ``metrics`` are the reward terms ``"reward/<term>"``; ``info["episode_metrics"]`` holds
-Brax's ``sum_reward`` and ``length`` plus the reward-term sums and the swarm's episode metrics
-(``success``, ``collisions``, ``floor_hits``, ``wall_hits``, ``ceiling_hits``,
-``mean_distance``; per world, repeated for its quads; ``goal_reach_rate`` is left out because it
-is NaN when no goal segment was long enough), which Brax logs at episode ends.
+One policy shared by all quads: the quad axis is folded into Brax's batch axis, so every quad is one
+Brax "env" (agent) with its own observation, 4 rotor commands and reward; ``num_envs`` counts quads
+(worlds x N, a multiple of N) and ``num_timesteps`` quad-steps. Worlds are reset completely at their time
+limit (:class:`~quadswarm_mj.envs.mjx_env.AutoResetWrapper`): call ``ppo.train`` with ``wrap_env=False``
+and ``action_repeat=1``. Episode ends are time limits (``info["truncation"]``, ``info["time_out"]``);
+``info["episode_metrics"]`` carries the reward-term sums and :data:`SWARM_METRICS`. Usage, the
+rationale and the constraints: docs/training.md ("Brax's trainer").
 """
 
 from __future__ import annotations

@@ -29,7 +29,6 @@ from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.metrics import metric_keys
 from quadswarm_mj.rewards import env_terms
 
-INFO_MODES = ("nested", "flat")
 SEP = "/"
 
 

@@ -10,14 +10,9 @@
   worker processes, one single-device program per CPU core (:mod:`~quadswarm_mj.envs.jax_workers`);
 * :mod:`quadswarm_mj.perf.packing`: the state and outputs packed at the host boundary.
 
-Sharded results are bit-identical to one device when each device's worlds x quads fill XLA:CPU's
-vector loops (a multiple of 16 elements, e.g. 8 quads and an even number of worlds per device;
-otherwise XLA:CPU may contract a multiply-add into an FMA differently in a loop's scalar remainder,
-and the runs agree within float32 round-off: ``tests/test_devices.py``).
-
-Seeding: ``reset(seed=s)`` derives the JAX keys from ``np.random.SeedSequence(s)`` (any int), so
-seeded runs are bit-identical; later unseeded resets continue that stream. Random streams differ
-from the MuJoCo engine's; noise-free runs agree within the MJX parity tolerance (float32).
+Sharding (bit-identical to one device when each device's worlds x quads are a multiple of 16) and
+seeding (``reset(seed=s)`` through ``np.random.SeedSequence(s)``; later unseeded resets continue the
+stream): docs/engines.md.
 """
 
 from __future__ import annotations

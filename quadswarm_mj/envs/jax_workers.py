@@ -94,10 +94,7 @@ class WorkerWorlds:
     """B worlds split over ``num_workers`` worker processes, each a single-device JAX program pinned
     to one CPU core (worker k to the k-th core this process may run on, cyclically).
 
-    Why: on CPU one program per core in its own process measured ~1.8x the same worlds as one program
-    sharded over the cores' devices in one process (1024 x 8 in a loop: ~4 ms against ~7.4 ms per
-    step, BENCHMARKS.md): a lone call of a sharded XLA:CPU program starts its second device's work
-    late and shares the cores' threads.
+    Why (one program per core beats one sharded program on CPU): docs/engines.md ("Cores").
 
     Transport (:mod:`quadswarm_mj.envs.workers`): a control block (actions, final observations,
     episode constants, flags) and output blocks of shared memory

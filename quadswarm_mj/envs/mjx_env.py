@@ -1,33 +1,17 @@
 """``MjxQuadSwarmEnv``: the quadswarm simulator on MJX, jit-compiled and vmapped over worlds.
 
-Shaped like MuJoCo Playground's ``MjxEnv``: one env object describes ONE world of N quads with
-pure functions ``reset(key, init_state=None) -> State`` and ``step(state, action) -> State``;
-batch with ``jax.vmap`` and compile with ``jax.jit``::
+Shaped like MuJoCo Playground's ``MjxEnv``: one env object describes ONE world of N quads with pure
+``reset(key, init_state=None) -> State`` and ``step(state, action) -> State``; batch with ``jax.vmap``,
+compile with ``jax.jit``, renew finished worlds with :class:`AutoResetWrapper` (README, "JAX engine").
 
-    import jax, jax.numpy as jnp
-    from quadswarm_mj import EnvConfig
-    from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv
-
-    env = AutoResetWrapper(MjxQuadSwarmEnv(EnvConfig(num_quads=8, randomize=True)))
-    reset = jax.jit(jax.vmap(env.reset))
-    step = jax.jit(env.vstep)          # = jax.jit(jax.vmap(env.step)), resets computed only when due
-    state = reset(jax.random.split(jax.random.key(0), 64))      # 64 worlds
-    action = jnp.full((64, 8, 4), env.cfg.quad.hover_action)   # (worlds, N, 4) in [-1, 1]
-    state = step(state, action)                                  # state.obs (64, 8, obs_dim)
-
-The model is the package's single definition (the functions the CPU engine calls, on ``jax.numpy``);
-``step`` is :func:`quadswarm_mj.core.control.control_step`, the control step both engines call, with
-:class:`~quadswarm_mj.core.ops.JaxOps` (always-on stages, budgeted draws: every event's draws have the
-model's distribution, beyond the budget events reuse an earlier event's slot and new quad-quad pairs
-wait one step; ``tests/test_draw_budget.py``); the reset math is :func:`quadswarm_mj.pipeline.
-initial_state`, shared with the CPU engine. Rigid-body integration is ``physics``: the exact
-free-body step (default with the paper's collision model) or ``mjx.step`` (MJX's contacts for
-``collision_model`` "mujoco"/"blend", with the room guard as backstop). Random numbers:
-:mod:`quadswarm_mj.perf.fused_draws` (one threefry hash per reset and step); per-world domain
+``step`` is :func:`quadswarm_mj.core.control.control_step` with :class:`~quadswarm_mj.core.ops.JaxOps`
+(always-on stages, budgeted draws: ``tests/test_draw_budget.py``); the reset math is
+:func:`quadswarm_mj.pipeline.initial_state`, shared with the CPU engine. ``physics``: the exact free-body
+step or ``mjx.step`` (MuJoCo contacts). Random numbers: :mod:`quadswarm_mj.perf.fused_draws`; per-world
 randomization is redrawn at every ``reset`` into ``info["params"]`` and reaches ``mjx.step`` through
-``model.replace``. The fields of ``State`` are documented in :class:`quadswarm_mj.core.state.State`;
-docs/engines.md explains the design. Without noise, this engine (float32) and the CPU engine (float64)
-agree to well under 2 mm over 150 control steps with either physics (``tests/test_mjx_env.py``).
+``model.replace``. ``State``'s fields: :class:`quadswarm_mj.core.state.State`; design: docs/engines.md.
+Without noise this engine (float32) and the CPU engine (float64) agree to well under 2 mm over 150
+control steps (``tests/test_mjx_env.py``).
 """
 
 from __future__ import annotations
@@ -91,7 +75,6 @@ from quadswarm_mj.scenarios import get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
 from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
 
-INIT_STATE_KEYS = ("pos", "vel", "rot", "omega", "motors", "goals")
 PHYSICS = ("freebody", "mjx")
 DRAWS = ("fused", "jax")
 
@@ -153,7 +136,6 @@ class MjxQuadSwarmEnv:
                              f"{cfg.collision_model!r}; use physics='mjx' for 'mujoco'/'blend'")
         # which events the paper's model handles (the others are MuJoCo contacts, as in CpuSwarm)
         self._paper_floor = cfg.collision_model == "paper"
-        self._paper_quads = cfg.collision_model in ("paper", "blend")
         self.physics = physics
         self.cfg = cfg
         self.N = n = cfg.num_quads

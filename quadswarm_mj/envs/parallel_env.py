@@ -22,7 +22,6 @@ from quadswarm_mj.envs.gym_env import QuadSwarmEnv, make_config
 from quadswarm_mj.envs.validation import as_real_array
 from quadswarm_mj.sensors import DECK_INFO_KEYS
 
-STATE_PER_QUAD = 21
 #: the reset option key PettingZoo's ``parallel_api_test`` passes (ignored; any other unknown key raises)
 PETTINGZOO_PROBE = "options"
 

@@ -1,81 +1,17 @@
-"""``QuadSwarmVectorEnv``: B worlds of N quads as one Gymnasium ``VectorEnv`` on CPU MuJoCo.
-
-Layout (a policy shared across quads reshapes observations to (B * N, obs_dim)):
+"""``QuadSwarmVectorEnv``: B worlds of N quads as one Gymnasium ``VectorEnv`` (CPU MuJoCo or JAX engine).
 
 * observations (B, N, obs_dim) float32, actions (B, N, 4) in [-1, 1] (also for N = 1);
-* reward (B,) float64, the team mean per world; terminated (B,) always False (no early end);
-  truncated (B,) after ``episode_seconds``;
-* ``info`` has QuadSwarmEnv's keys with a leading world axis: ``rewards`` (B, N) per-quad rewards,
-  ``reward_terms`` {term: (B, N)}, ``state`` {pos, vel, rot, omega, thrust}, ``goals``, ``goal_vel``,
-  ``params``, ``on_floor``, ``new_collisions`` (B, N), ``time`` (B,) (``info_keys`` selects them);
-  in a step where worlds finish, ``episode_metrics`` {metric: (B,)} (NaN for the others) with the
-  mask ``_episode_metrics``, and ``final_obs`` (B, N, obs_dim) with the mask ``_final_obs``.
+* reward (B,) float64, the team mean per world; terminated (B,) always False; truncated (B,) after
+  ``episode_seconds``;
+* ``info``: QuadSwarmEnv's keys with a leading world axis (``rewards`` (B, N) per quad, ``state``,
+  ``goals``, ...; ``info_keys`` selects them), ``episode_metrics`` / ``final_obs`` with their masks.
 
-Auto-reset: ``AutoresetMode.SAME_STEP`` (in ``metadata["autoreset_mode"]``). A world whose episode
-ends in a step is reset at the end of that step: the step returns its last reward and
-``truncated=True``, its observation and ``info`` are those of the new episode, and the last
-observation of the old one is ``info["final_obs"]``. Every world is stepped in every call.
-``reset(options={"reset_mask": mask})`` resets only some worlds.
-
-Engine: the worlds are split into ``num_shards`` contiguous shards, each a
-:class:`~quadswarm_mj.envs.cpu_core.CpuSwarm` whose model math runs on whole (B_shard, N) arrays
-and whose worlds are stepped by one MuJoCo call per physics sub-step. Shard 0 runs in the calling
-process, the others in worker processes. Processes rather than threads: NumPy and MuJoCo release
-the GIL only inside their C loops, and the model math is many small NumPy calls: at 256 worlds two
-threads measured 1.25x one process, two processes 1.6x (BENCHMARKS.md).
-
-Transport (standard library ``multiprocessing`` only): workers are started with the ``"spawn"``
-context (a fresh interpreter: no forked MuJoCo/JAX/thread state), one
-``multiprocessing.shared_memory`` block holds every action and output array (the env writes the
-actions, each shard writes its worlds' rows of the outputs), and one ``Pipe`` per worker carries
-the commands. A step is a one-byte ``send_bytes`` to every worker and a one-byte reply; the rare
-commands (seed, reset, episode metrics) are pickled tuples. The block's name is unlinked as soon as
-every worker has mapped it, so nothing is left in ``/dev/shm`` whatever happens later. Why no
-hand-written transport: measured on the 2-core development machine under heavy load (noisy), a
-bare parent-worker round trip costs 30-40 us through a ``Connection`` (``send_bytes``/
-``recv_bytes``; 80 us with pickled objects) against 12 us through raw ``os.pipe`` reads and writes,
-while a step costs milliseconds; the whole env's CPU time per step (parent + workers, 2 shards,
-min of 5 runs, the old hand-written transport -> this one) was 2.2-2.4 -> 2.2-2.3 ms at 16 worlds
-x 1 quad, 10.3 -> 10.4-10.8 ms at 256 x 8 and 34.5-38.5 -> 35.2-35.3 ms at 1024 x 8; wall times
-agreed within the run-to-run noise (up to 30 % there).
-
-Workers (:mod:`quadswarm_mj.envs.workers`, shared with the JAX engine's worker processes) are
-spawned with the main module hidden: the "spawn" start method would otherwise import the user's
-script in every worker, running its top-level code, so a plain script without an
-``if __name__ == "__main__":`` guard works like a REPL or a notebook.
-
-Worker lifetime follows the env and its process, not the creating thread: a worker exits when its
-pipe closes (``close()``, garbage collection, or the parent's exit or death, which closes the
-parent's end), and a watchdog thread in the worker exits when the parent process is gone (its
-parent pid changes), should another process keep the pipe open. Workers are daemonic and ignore
-SIGINT (Ctrl-C interrupts the parent, which then ends them).
-
-Failures: an exception in a worker reaches the caller as a :class:`WorkerError` (a RuntimeError)
-naming the worker, its worlds and pid, with the worker's traceback text; a worker that dies (killed,
-crashed) gives a WorkerError with its exit code or signal. Any failure or exception in the middle
-of a step or a command (also one raised in the calling process, e.g. KeyboardInterrupt) leaves
-the shards out of step, so the env refuses ``step`` and other calls with a RuntimeError until
-``reset()``, which shuts every worker down and rebuilds them (then reseeds: pass ``seed`` to get
-a known stream again).
-
-Seeding: ``reset(seed=s)`` seeds shard k with ``SeedSequence(s).spawn(num_shards)[k]``; every world
-draws from its shard's generator (randomization, scenario, spawn, noise), so one seed fixes every
-world. Results depend on (seed, num_envs, num_shards, chunk_worlds); ``num_shards`` defaults to 2
-(1 for fewer than 16 worlds) whatever the machine, so seeded runs are reproducible anywhere.
-
-``engine="jax"`` runs the B worlds instead as jitted, vmapped MJX steps
-(:class:`quadswarm_mj.envs.jax_vector.JaxVectorBackend`; ``backend`` and ``chunk_worlds`` do not
-apply), with the same spaces, info, auto-reset and reset options. ``num_shards`` 1 runs them in this
-process (sharded over its JAX devices); k >= 2 in k worker processes, each a single-device JAX
-program pinned to one CPU core (:class:`~quadswarm_mj.envs.jax_workers.WorkerWorlds`, ~1.1x at 1024
-worlds on 2 cores, BENCHMARKS.md). The default is one worker per core on a CPU backend when every
-worker gets at least ``jax_workers.MIN_WORLDS_PER_WORKER`` (256) worlds, else 1. The reset keys are
-drawn in this process for every world, so a seed gives the same worlds whatever ``num_shards`` (bit
-for bit at 8 quads and an even number of worlds per part). Its arrays are the caller's: no later
-call writes into them (``copy`` does not apply; with workers they are views of shared output blocks,
-reused only once every array viewing them is gone), except ``info["params"]``: read-only arrays, new
-after every reset and episode end and shared by the infos in between (they do not change within an
-episode).
+Auto-reset is ``AutoresetMode.SAME_STEP``; ``reset(options={"reset_mask": mask})`` resets some worlds.
+The MuJoCo engine splits the worlds into ``num_shards`` :class:`~quadswarm_mj.envs.cpu_core.CpuSwarm`
+shards, shard 0 here and the others in worker processes (:mod:`quadswarm_mj.envs.workers`);
+``engine="jax"`` runs them as jitted MJX steps (:mod:`quadswarm_mj.envs.jax_vector`). Failures,
+seeding, array ownership and the JAX-engine split: docs/api.md ("The vector env"); the design:
+docs/engines.md.
 """
 
 from __future__ import annotations
@@ -149,8 +85,6 @@ def _check_worker_timeout(t: Any) -> float | None:
     return float(t)
 
 
-
-
 # ------------------------------------------------------------------------------------ the env
 class QuadSwarmVectorEnv(VectorEnv):
     """``num_envs`` worlds of ``cfg.num_quads`` Crazyflies stepped together (see the module doc).
@@ -169,21 +103,11 @@ class QuadSwarmVectorEnv(VectorEnv):
             models); "auto" picks.
         engine: "mujoco" (default: CPU MuJoCo shards as above) or "jax" (MJX: jitted calls in this process
             or, on CPU with many worlds, in one worker process per core).
-
         worker_timeout: the longest wait for one reply of a worker process to a step or command (s; None:
-            no limit; a worker's start, which imports and builds its worlds, waits at least 600 s); a worker
-            that does not answer in time (stopped, stuck) raises :class:`WorkerError` naming it.
+            no limit; a worker's start waits at least 600 s); a worker that does not answer in time
+            raises :class:`WorkerError` naming it.
 
-    Workers are spawned processes that never import the user's script (no ``__main__`` guard
-    needed). A failed worker raises :class:`WorkerError`; the env then needs ``reset()``.
-
-    One call at a time: a call from another thread while one runs raises RuntimeError (use one env per
-    thread). After ``os.fork()`` the child's copy refuses calls (RuntimeError) when the env has worker
-    processes or runs JAX (they belong to the parent; the child's exit leaves them alone); a copy
-    without either is independent and works. ``copy.deepcopy`` and ``pickle`` give an independent env
-    that steps exactly as the original from there (with worker processes: new workers loaded with the
-    original's worlds), except on the JAX engine with worker processes or on the "batch" back end
-    (TypeError: build a new env instead).
+    Threads, ``os.fork()``, ``copy.deepcopy`` and ``pickle``: docs/api.md ("Processes, threads and copies").
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}

@@ -15,5 +15,5 @@ in the model or the engines (a same-values test checks it), only faster on some 
 * :mod:`quadswarm_mj.perf.packing`: the JAX engine's state and outputs packed into a few buffers at
   the host boundary (fewer transfers per step), unpacked to the same pytree bit for bit.
 
-Nothing here changes a model's equations; docs/performance.md gives the measurements that keep each.
+Nothing here changes a model's equations; docs/engines.md gives the measurements that keep each.
 """

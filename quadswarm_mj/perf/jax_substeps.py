@@ -2,7 +2,7 @@
 
 With rotor control, the paper's floor and the free-body physics, the loop carries every vector as a
 tuple of (N,) component arrays ((W, N) under ``vmap``), which XLA:CPU runs as contiguous loops over
-worlds and quads (~1.45x the step at 512 worlds, docs/performance.md) instead of strided slices of
+worlds and quads (~1.45x the step at 512 worlds, docs/engines.md) instead of strided slices of
 (N, 7) rows. The formulas are the model's own (:mod:`quadswarm_mj.components` is the one body of the
 sub-step functions); ``tests/test_components.py`` checks it against the general loop.
 """

@@ -1,26 +1,11 @@
 """Scenario machinery: fixed-shape state, the Scenario base class, spawning.
 
-A scenario is a small frozen object with two pure functions over a fixed-shape
-:class:`ScenarioState` (leading batch dims allowed, NumPy or ``jax.numpy``):
-
-* ``init(cfg, u) -> ScenarioState``: ``u`` is a (..., num_uniforms) array of U(0, 1) draws,
-* ``step(cfg, state, t, pos, u) -> ScenarioState``: called once per control step *after* the
-  physics with the time ``t`` (s, since the episode start, of the state just reached), the quad
-  positions (..., N, 3) and fresh uniforms; returns the state holding the goals for that time.
-
-All randomness enters as uniforms in [0, 1) that the scenario maps to its ranges, so a front end
-makes a single draw per step. Goals are in the world frame (m) and always inside the room
-(:func:`room_bounds`); ``goal_vel`` is their time derivative (m/s, 0 for goals that jump).
-
-Events (a goal jump, a swap, a new curve segment) fire at the first step with
-``t >= next_event - EVENT_EPS``. Between events a scenario keeps the goals it holds, so goals
-written into the state by a front end (``reset(options={"state": {"goals": ...}})``) stay until
-the next event; static scenarios never change them. Scenarios whose goals move continuously
-(``dynamic_formations``, ``ep_lissajous3D``, ``ep_rand_bezier``) recompute them at every step.
-
-No Python ``if`` on array values: an event is computed and selected per world with ``where``
-(:func:`on_event`, :func:`select_state`), so every scenario runs under ``jax.jit``/``jax.vmap``
-with any batch shape, including () (one world).
+A scenario is a small frozen object with two pure functions over a fixed-shape :class:`ScenarioState`
+(leading batch dims allowed, NumPy or ``jax.numpy``): ``init(cfg, u)`` and ``step(cfg, state, t, pos, u)``,
+``u`` U(0, 1) draws, ``t`` s since the episode start, ``pos`` (..., N, 3) m; goals in the world frame (m),
+``goal_vel`` m/s. Events fire at the first step with ``t >= next_event - EVENT_EPS`` and are selected per
+world with ``where`` (:func:`on_event`, :func:`select_state`), so every scenario runs under
+``jax.jit``/``jax.vmap`` with any batch shape. The interface in full: docs/model.md ("Scenario interface").
 """
 
 from __future__ import annotations

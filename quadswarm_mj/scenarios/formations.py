@@ -1,23 +1,10 @@
 """Goal formations for N quads (SPEC §10), as offsets (m, world frame) from the formation centre.
 
-Eight formation types; each is computed for unit neighbour spacing once per N (a cached NumPy
-constant) and scaled by the spacing ``s`` (m) at run time, so sampling a random formation is a
-few fixed-shape array ops that run on NumPy and under ``jax.jit``.
-
-* circle (horizontal / vertical xz / vertical yz): at most 8 per layer, evenly spaced on a circle
-  of radius 0.5 s / sin(pi / 8) (so 8 quads on a full layer are exactly s apart; a partial layer
-  uses the same radius, a layer of one sits on the axis); layers stacked along the circle's
-  normal, s apart.
-* grid (horizontal / vertical xz / vertical yz): columns = the largest divisor of N not above
-  sqrt(N), rows = N / columns (rows run along y, or along z for the vertical grids), spacing s.
-* sphere: Fibonacci spiral points on a sphere whose radius is fitted so that the closest pair of
-  goals is exactly s apart.
-* cube: floor(cbrt(N))^2 lattice per layer, layers stacked along z (the original stacks along x,
-  a bug not copied), spacing s; the last layer may be partial.
-
-Every formation is centred: the mean offset is zero, so the goals' centroid is the formation
-centre. For N >= 2 the closest pair of goals is exactly s apart (planar circles with a partial
-layer only: at least s). N = 1 gives the single offset 0 for every type.
+Eight types (circle, grid: horizontal / vertical xz / vertical yz; sphere; cube), each computed for unit
+spacing once per N (a cached NumPy constant) and scaled by the spacing ``s`` (m) at run time, so sampling a
+random formation is a few fixed-shape array ops (NumPy or under ``jax.jit``). Every formation is centred;
+for N >= 2 its closest pair is s apart. The geometry of each type: docs/model.md ("Episodes, resets,
+scenarios, randomization").
 """
 
 from __future__ import annotations

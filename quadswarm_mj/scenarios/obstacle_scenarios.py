@@ -1,26 +1,12 @@
 """Obstacle scenarios (SPEC_obstacles A.5): ``o_random``, ``o_static_same_goal``,
 ``o_dynamic_same_goal``, ``o_swap_goals``, ``o_ep_rand_bezier``; ``mix`` with obstacles.
 
-Interface extension (minimal): an obstacle-aware scenario has the class attribute
-``accepts_obstacles = True`` and takes the column map as a keyword argument,
-
-* ``init(cfg, u, obstacles=ObstacleMap) -> ScenarioState``,
-* ``step(cfg, state, t, pos, u, obstacles=ObstacleMap) -> ScenarioState``;
-
-the ``o_*`` scenarios also have ``requires_obstacles = True`` (``EnvConfig`` rejects them without
-obstacles) and ``approach_goal_metric`` (m, the success distance of A.4). Engines call the
-dispatch helpers :func:`scenario_num_uniforms`, :func:`scenario_init`, :func:`scenario_step`
-(they pass the map only to scenarios that accept it) and, for the start state,
-:func:`scenario_spawn` / :func:`scenario_spawn_uniforms` (with obstacles on: distinct free
-cells, z ~ U(1, 3), jitter U(-0.1, 0.1)^3, z >= 0.75; without: ``base.spawn_state``).
-
-Free cells: cells whose centre is more than ``radius + arm + 0.1 sqrt(2)`` m (2D) from every
-column axis (:func:`quadswarm_mj.obstacles.free_cells`); on a generated map exactly the cells
-without a column, so spawns (with their jitter) and goals are never inside a column.
-Cell picks use one uniform each: the k-th free cell, ``k = floor(u * free_count)``; N distinct
-cells are N picks, each removing its cell. With fewer free cells than picks the extra picks
-fall back to cell 0 (``EnvConfig`` rejects configs whose maps can leave fewer free cells than
-quads). Pure, fixed shapes, any batch dims, NumPy or ``jax.numpy``.
+An obstacle-aware scenario has ``accepts_obstacles = True`` and takes the column map as the keyword
+``obstacles`` of ``init``/``step``; the ``o_*`` ones also have ``requires_obstacles = True`` and
+``approach_goal_metric`` (m). Engines call the dispatch helpers :func:`scenario_num_uniforms`,
+:func:`scenario_init`, :func:`scenario_step`, :func:`scenario_spawn` and :func:`scenario_spawn_uniforms`.
+Spawns and goals use free cells (:func:`quadswarm_mj.obstacles.free_cells`), one uniform per pick. Pure,
+fixed shapes, any batch dims, NumPy or ``jax.numpy``. Rules: docs/model.md ("Scenario interface").
 """
 
 from __future__ import annotations

@@ -1,29 +1,15 @@
 """Distil a teacher into an observation-based encoder policy on the JAX engine (DAgger).
 
-Teachers: a trained policy file (MLP or encoder; the student sees the same observation layout and
-keeps the teacher's observation normalizer), or ``"controller"``: the baseline position controller
-(:class:`~quadswarm_mj.controllers.PositionController`) with neighbour avoidance and, with
-obstacles, column steering, a *privileged* teacher that reads the true state, goals and column map
-from the env state (the student sees only its noisy observation; its normalizer is estimated from
-a teacher-flown warm-up). Students: an encoder preset of ``quadswarm_mj.policies.ARCH_PRESETS``
-(e.g. ``deepsets_deployable``, or ``deepsets_large`` with a width). Each jitted iteration:
+Teachers: a policy file, or ``controller`` (the privileged baseline controller with neighbour avoidance and
+column steering). Each jitted iteration flies the worlds by the teacher (probability beta, annealed 1 -> 0)
+or the student, stores (normalized observation, teacher action) in a ring buffer on the device and takes
+Adam steps fitting the student's tanh(mean) to the teacher's. The output is a ``quadswarm_mj.policy/2``
+file with the teacher's ``env_kwargs``. Guide: docs/training.md ("DAgger"). Examples::
 
-1. rolls out ``num_worlds`` worlds of :class:`~quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv` for
-   ``unroll_length`` control steps (auto-reset), every world flown either by the teacher (with
-   probability ``beta``, annealed from 1 to 0 over ``beta_iterations``) or by the student
-   (DAgger: the student visits its own states, the teacher labels them);
-2. stores (normalized observation, teacher action) of every quad in a ring buffer on the device;
-3. takes ``sgd_steps`` Adam steps on random minibatches of the buffer, minimizing the squared
-   difference of the deterministic actions ``tanh(mean)`` (N, 4) in [-1, 1].
-
-The output is a policy file (``quadswarm_mj.policy/2``) that ``load_policy`` reads, with the
-teacher's ``env_kwargs`` (so ``QuadSwarmEnv(scenario=..., **student.env_kwargs)`` builds the env it
-flies) and ``export_c`` exports. Command line::
-
-    python -m quadswarm_mj.training.distill --teacher runs/swarm8/best.npz --arch deepsets_deployable \\
+    python -m quadswarm_mj.training.distill --teacher runs/swarm8/best.npz --arch deepsets_deployable \
         --scenario mix --out runs/swarm8_dep --minutes 20
     python -m quadswarm_mj.training.distill ... --out runs/swarm8_dep --minutes 20 --resume   # continue it
-    python -m quadswarm_mj.training.distill --teacher controller --arch deepsets_large --width 64 \\
+    python -m quadswarm_mj.training.distill --teacher controller --arch deepsets_large --width 64 \
         --scenario mix --env 'obstacles={"density": 0.2, "size": 0.6}' --env downwash=true --out runs/o --minutes 20
 """
 

@@ -150,9 +150,3 @@ def evaluate(policy: Any, scenario: str, episodes: int = 50, num_quads: int | No
     return EvalResult(scenario, cfg.num_quads, episodes, per, time.perf_counter() - t0,
                       {"num_quads": cfg.num_quads, "motor_start": cfg.motor_start, "noise": "default"
                        if cfg.noise == EnvConfig().noise else "custom"})
-
-
-def binomial_tolerance(p: float, n_quads_episodes: int, z: float = 3.0, floor: float = 0.02) -> float:
-    """z-sigma tolerance of an observed rate with true value ``p`` over ``n`` Bernoulli trials."""
-    p = min(max(p, 0.0), 1.0)
-    return z * math.sqrt(max(p * (1 - p), floor * (1 - floor)) / max(n_quads_episodes, 1))

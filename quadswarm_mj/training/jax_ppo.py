@@ -1,28 +1,13 @@
 """PPO on the JAX engine: rollouts and updates in ONE jitted function per iteration.
 
-``JaxPPOTrainer`` runs the project's PPO (Brax's loss ``compute_ppo_loss``, Brax's networks or the
-encoders of :mod:`quadswarm_mj.training.networks`, Brax's running observation normalizer: the very pieces
-of :mod:`quadswarm_mj.training.ppo`) on :class:`~quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv` through
-``AutoResetWrapper.vstep``. One call of the jitted ``iteration`` = ``lax.scan`` over ``unroll_length``
-control steps (policy sampling for all agents, ``vstep`` of every scenario's batch of worlds, the
-first-episode desynchronization, the collision replay of :mod:`quadswarm_mj.training.replay`, episode
-metric sums) followed by the PPO update. No host callback and no NumPy inside: the same code runs on a
-GPU/TPU; the host sees one small dict of losses and metric sums per iteration.
-
-Why the project's trainer and not Brax's ``ppo.train`` on ``BraxQuadSwarmEnv`` (measured, TRAINING.md
-"Training on the JAX engine"): both jit the same kind of loop (``lax.scan`` of env steps, then
-minibatch SGD on the same loss), so their agent-steps/s are within noise of each other on this machine
-(both are dominated by the MJX step), but Brax's ``ppo.train`` cannot host what the swarm training needs:
-restarting worlds from a buffer of saved collision states (SPEC_obstacles C.2), the encoder networks with
-the project's policy-file export, per-scenario SPEC §8 episode metrics, a split of the worlds over several
-scenario configs (``mix`` + ``run_away``), the first-episode desynchronization and resuming with optimizer
-and normalizer state from a pickle-free file. Learning per sample is the same (same loss, same
-networks); learning per wall-clock minute then follows the agent-steps/s.
-
-Every quad is an agent (parameter sharing, as the CPU trainer); agent order is scenario by scenario,
-world by world, quad by quad. Reward annealing (``cfg.rewards.anneal_steps``, in control steps of a
-world: ``info["total_steps"]``, which ``AutoResetWrapper`` and the replay carry over episodes) runs inside
-the env; :func:`anneal_steps_for` converts a budget in agent-steps.
+``JaxPPOTrainer`` runs the project's PPO (the pieces of :mod:`quadswarm_mj.training.ppo`: Brax's loss,
+networks or the encoders of :mod:`quadswarm_mj.training.networks`, Brax's normalizer) on
+:class:`~quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv` through ``AutoResetWrapper.vstep``. One ``iteration`` is
+a ``lax.scan`` over ``unroll_length`` control steps (policy sampling, ``vstep`` of every scenario's worlds,
+first-episode desynchronization, collision replay of :mod:`quadswarm_mj.training.replay`, metric sums),
+then the PPO update: no host callback, so it runs unchanged on a GPU. Agent order: scenario, world, quad.
+Reward annealing runs inside the env (``info["total_steps"]``); :func:`anneal_steps_for` converts a budget
+in agent-steps. Why not Brax's ``ppo.train``: docs/training.md ("Which trainer is faster here, and why").
 """
 
 from __future__ import annotations
@@ -122,7 +107,7 @@ class JaxPPOTrainer:
         self.networks, self.arch = make_networks(ppo, self.layout)
         self.optimizer = make_optimizer(ppo)
         key = jax.random.PRNGKey(seed)
-        self.key, kinit, kenv = jax.random.split(key, 3)
+        self.key, kinit, _ = jax.random.split(key, 3)
         params = init_params(self.networks, ppo, self.arch, kinit)
         normalizer = running_statistics.init_state(jax.ShapeDtypeStruct((d,), jnp.float32))
         if init_from is not None:
@@ -135,7 +120,6 @@ class JaxPPOTrainer:
                                       axis_name=AXIS if self.num_devices > 1 else None)
         self._reset = [jax.jit(jax.vmap(e.reset)) for e in self.envs]
         self._iteration = self._jit_iteration()
-        self._env_key = kenv
         self.env_steps = 0
         self.iteration = 0
         self.lr_start = 1.0
@@ -483,85 +467,3 @@ def split_worlds(num_worlds: int, weights: list[float]) -> list[int]:
     while out.sum() > num_worlds:
         out[np.argmax(np.where(out > 1, out - exact, -np.inf))] -= 1
     return [int(x) for x in out]
-
-
-# ---------------------------------------------------------------------------------- measurement
-def measure_trainers(cfg: EnvConfig, ppo: PPOConfig, iterations: int = 4, engines: tuple[str, ...] = ("jax", "mujoco",
-                     "brax")) -> dict[str, dict[str, float]]:
-    """Agent-steps/s of the trainers on ``cfg`` with the same PPO settings, measured one after the other in
-    this process: ``jax`` (:class:`JaxPPOTrainer`, after its first, compiling iteration), ``mujoco``
-    (:class:`~quadswarm_mj.training.ppo.PPOTrainer` on the CPU engine, after its first iteration) and
-    ``brax`` (``brax.training.agents.ppo.train`` on ``BraxQuadSwarmEnv``, its own ``training/sps`` of the
-    second training epoch, i.e. without compile; the same networks, loss settings and batch). Each entry:
-    ``agent_steps_per_s``, ``compile_s`` (first iteration / first epoch, incl. compile), ``iterations``."""
-    import functools
-
-    out: dict[str, dict[str, float]] = {}
-    per_iter = ppo.num_worlds * cfg.num_quads * ppo.unroll_length
-    for eng in engines:
-        if eng in ("jax", "mujoco"):
-            from quadswarm_mj.training.ppo import PPOTrainer
-
-            tr: Any = (JaxPPOTrainer([cfg], ppo) if eng == "jax" else PPOTrainer([cfg], ppo))
-            t0 = time.perf_counter()
-            rows = tr.train(total_steps=per_iter * (iterations + 1), progress=False)
-            first = rows[0]["wall_s"]
-            rest = rows[-1]["wall_s"] - first
-            out[eng] = {"agent_steps_per_s": per_iter * iterations / max(rest, 1e-9), "compile_s": first,
-                        "iterations": iterations, "total_s": time.perf_counter() - t0}
-        elif eng == "brax":
-            from brax.training.agents.ppo import networks as bnet
-            from brax.training.agents.ppo import train as brax_ppo
-
-            from quadswarm_mj.envs.brax_env import BraxQuadSwarmEnv
-
-            env = BraxQuadSwarmEnv(cfg)
-            agents = ppo.num_worlds * cfg.num_quads
-            log: list[tuple[float, int, dict]] = []
-            t0 = time.perf_counter()
-
-            def progress(step: int, m: dict, log: list = log) -> None:
-                log.append((time.perf_counter(), step, dict(m)))
-
-            brax_ppo.train(env, wrap_env=False, num_timesteps=per_iter * 2 * iterations,
-                           episode_length=cfg.episode_steps,
-                           num_envs=agents, num_eval_envs=cfg.num_quads, batch_size=agents // ppo.num_minibatches,
-                           num_minibatches=ppo.num_minibatches, unroll_length=ppo.unroll_length,
-                           num_updates_per_batch=ppo.num_epochs, learning_rate=ppo.learning_rate,
-                           entropy_cost=ppo.entropy_cost, discounting=ppo.discounting, gae_lambda=ppo.gae_lambda,
-                           clipping_epsilon=ppo.clipping_epsilon, reward_scaling=ppo.reward_scaling,
-                           normalize_observations=ppo.normalize_observations, max_grad_norm=ppo.max_grad_norm,
-                           action_repeat=1, num_evals=3, seed=0,
-                           network_factory=functools.partial(bnet.make_ppo_networks,
-                                                             policy_hidden_layer_sizes=ppo.policy_hidden,
-                                                             value_hidden_layer_sizes=ppo.value_hidden),
-                           progress_fn=progress)
-            sps = [float(m["training/sps"]) for _, _, m in log if "training/sps" in m]
-            out[eng] = {"agent_steps_per_s": sps[-1] if sps else float("nan"),
-                        "first_epoch_sps": sps[0] if sps else float("nan"), "iterations": iterations,
-                        "total_s": time.perf_counter() - t0}
-        else:
-            raise ValueError(f"unknown trainer {eng!r}: use jax, mujoco, brax")
-    return out
-
-
-if __name__ == "__main__":  # pragma: no cover
-    import argparse
-    import json
-
-    ap = argparse.ArgumentParser(description="agent-steps/s of the trainers (same run, same PPO settings)")
-    ap.add_argument("--num-quads", type=int, default=8)
-    ap.add_argument("--num-worlds", type=int, default=128)
-    ap.add_argument("--scenario", default="static_diff_goal")
-    ap.add_argument("--iterations", type=int, default=4)
-    ap.add_argument("--arch", default="mlp")
-    ap.add_argument("--engines", default="jax,mujoco,brax")
-    ap.add_argument("--cpu-devices", type=int, default=None, help="JAX CPU devices (default: one per core)")
-    a = ap.parse_args()
-    from quadswarm_mj.devices import use_cpu_cores
-
-    use_cpu_cores(a.cpu_devices, strict=False)
-    res = measure_trainers(EnvConfig(num_quads=a.num_quads, scenario=a.scenario),
-                           PPOConfig(num_worlds=a.num_worlds, arch=a.arch), a.iterations,
-                           tuple(a.engines.split(",")))
-    print(json.dumps(res, indent=1))

@@ -1,24 +1,12 @@
 """PPO for quadswarm_mj: Brax's PPO (loss, networks, observation normalizer) on the batched CPU engine.
 
-Why this split (measurements in TRAINING.md): on this 2-core CPU the MuJoCo C engine stepping B
-worlds together (``quadswarm_mj.envs.cpu_core.CpuSwarm``) is several times faster than
-MJX on CPU, so rollouts run there (NumPy + MuJoCo, no Python loop over worlds or quads), while
-everything learned runs in JAX: the policy's action sampling (one jitted call per control step
-for all agents) and the PPO update (one jitted call per iteration: normalizer update, then
-``num_epochs`` passes of ``num_minibatches`` Adam steps on
-``brax.training.agents.ppo.losses.compute_ppo_loss``). The networks are Brax's
-``make_ppo_networks`` (tanh-normal policy, MLPs) with Brax's running observation normalizer, or
-(``PPOConfig.arch``) a deep-sets / attention encoder of :mod:`quadswarm_mj.training.networks` saved in
-the encoder policy format. The pieces live in their own modules and are shared with the JAX-engine trainer
-(:mod:`quadswarm_mj.training.jax_ppo`): :mod:`~quadswarm_mj.training.ppo_config` (``PPOConfig``, the schedule),
-:mod:`~quadswarm_mj.training.learner` (networks, optimizer, update), :mod:`~quadswarm_mj.training.checkpoints`
-(policy files, the resumable train state, warm starts), :mod:`~quadswarm_mj.training.run_logs` (logs, curves)
-and :mod:`~quadswarm_mj.training.cpu_rollout` (``AgentBatch``); their names are importable from here too.
-
-Every quad is an agent and all agents share one policy (parameter sharing, as in QuadSwarm):
-the PPO batch has ``num_worlds * num_quads`` agents, each with its own reward (the per-quad
-reward of SPEC §8). Several scenarios can be trained at once: the worlds are split evenly among
-one engine per scenario (e.g. static_same_goal + dynamic_same_goal for the single-quad policy).
+Rollouts run on :class:`~quadswarm_mj.envs.cpu_core.CpuSwarm` (NumPy + MuJoCo); the action sampling (one
+jitted call per control step for all agents) and the update (one jitted call per iteration) run in JAX.
+Every quad is an agent sharing one policy; several scenarios train at once, the worlds split evenly among
+one engine per scenario. The pieces, shared with :mod:`quadswarm_mj.training.jax_ppo` and importable from
+here too: :mod:`~quadswarm_mj.training.ppo_config`, :mod:`~quadswarm_mj.training.learner`,
+:mod:`~quadswarm_mj.training.checkpoints`, :mod:`~quadswarm_mj.training.run_logs`,
+:mod:`~quadswarm_mj.training.cpu_rollout`. Guide: docs/training.md.
 """
 
 from __future__ import annotations
@@ -37,11 +25,9 @@ from brax.training.acme import running_statistics
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.metrics import METRIC_KEYS
 
-# the pieces, importable from here as before the split (quadswarm_mj.training.ppo.<name>)
+# the pieces, re-exported (quadswarm_mj.training.ppo.<name>)
 from quadswarm_mj.training.checkpoints import (  # noqa: F401
     TRAIN_STATE_FILE,
-    _key_data,
-    _value_layers,
     load_init,
     load_train_state,
     save_policy_file,
@@ -51,11 +37,7 @@ from quadswarm_mj.training.cpu_rollout import AgentBatch
 from quadswarm_mj.training.learner import (  # noqa: F401
     DrawnEntropyNormals,
     TrainState,
-    _count,
     _dense_layers,
-    _MeanKL,
-    _to_tree,
-    _uint64,
     encoder_arch,
     env_meta,
     init_params,
@@ -69,7 +51,7 @@ from quadswarm_mj.training.learner import (  # noqa: F401
     set_learning_rate,
 )
 from quadswarm_mj.training.ppo_config import ACTIVATIONS, ARCH_NAMES, PPOConfig, linear_lr_scale, ppo_meta  # noqa: F401
-from quadswarm_mj.training.run_logs import _smooth_metric, plot_curves, start_run, write_logs  # noqa: F401
+from quadswarm_mj.training.run_logs import plot_curves, start_run, write_logs  # noqa: F401
 
 
 class PPOTrainer:
@@ -109,14 +91,6 @@ class PPOTrainer:
     def _load_init(self, path: str, params: Any, normalizer: Any) -> tuple[Any, Any]:
         """Warm start from a policy file (:func:`~quadswarm_mj.training.checkpoints.load_init`)."""
         return load_init(path, params, normalizer, self.arch, self.layout, self.obs_dim)
-
-    # ------------------------------------------------------------------ export
-    def export_arrays(self) -> dict[str, Any]:
-        """Policy layers (MLP only), value layers and normalizer statistics as NumPy arrays."""
-        mean, std, count = normalizer_stats(self.state.normalizer, self.ppo, self.obs_dim)
-        pol = _dense_layers(self.state.params.policy) if self.arch is None else None
-        return {"policy": pol, "value": _dense_layers(self.state.params.value), "obs_mean": mean, "obs_std": std,
-                "norm_count": count}
 
     def train_meta(self, extra_meta: dict[str, Any] | None = None) -> dict[str, Any]:
         return {"engine": "mujoco", "scenarios": [c.scenario for c in self.cfgs], "env_steps": int(self.env_steps),

@@ -70,8 +70,6 @@ class ProgressBar:
         self._last_print = -math.inf
         self._recent: list[dict[str, Any]] = []
         self._line_len = 0
-        self.lines_printed = 0
-        self.last_line = ""
 
     # ------------------------------------------------------------------ formatting
     def fraction(self, steps: int, elapsed: float) -> float:
@@ -136,14 +134,12 @@ class ProgressBar:
             return
         self._last_print = elapsed
         line = self.format(row, elapsed)
-        self.last_line = line
         if self.tty:
             pad = max(self._line_len - len(line), 0)
             self.stream.write("\r" + line + " " * pad)
             self._line_len = len(line)
         else:
             self.stream.write(line + "\n")
-        self.lines_printed += 1
         self.stream.flush()
 
     def close(self, row: dict[str, Any] | None = None) -> None:

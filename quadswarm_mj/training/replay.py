@@ -1,34 +1,12 @@
 """Replay of collision episodes on the JAX engine (SPEC_obstacles C.2, adapted to fixed shapes under ``jit``).
 
-The original keeps deep copies of its env every 0.5 s and, after a new collision, stores the copy from
-1.5 s earlier in a ring of 20 events; at an episode end it restarts, with probability 0.75, from a
-stored event instead of a fresh reset, and drops events replayed 10 times. Here the same runs inside the
-trainer's jitted loop on a batch of W worlds of one :class:`~quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv`
-(states with a leading worlds axis), with fixed-size pytrees of saved ``State``\\ s:
-
-* **snapshots**: every ``snapshot_s`` of episode time (``info["step"]`` a multiple of
-  ``round(snapshot_s / control_dt)``), each world not in a replay episode writes its state into its own
-  ring of ``snapshots_back`` slots (``ReplayState.ring``, leaves (W, S, ...));
-* **trigger**: a world with a new quad-quad contact (a pair in ``info["contact"]`` that was not in contact
-  before the step) or a negative ``reward/quad_collision`` / ``reward/obstacle_collision`` term, at episode
-  time > ``min_time_s`` (the original: tick > 150 = 1.5 s), not in a replay episode, more than
-  ``cooldown_s`` after its last write (5 s) and with ``snapshots_back`` snapshots taken;
-* **write**: of the worlds triggering at one step, one (drawn uniformly) writes its snapshot from
-  ``snapshots_back`` snapshots earlier (1 - 1.5 s before the hit, as the original) into the buffer, a ring
-  of ``buffer_size`` entries (``ReplayState.buf``, leaves (R, ...)); in practice triggers of different
-  worlds at the very same step are rare (each world has a 5 s cooldown);
-* **restart**: a world whose episode ended (``state.done``) restarts, with probability ``prob`` and if the
-  buffer holds an entry, from an entry drawn uniformly among the valid ones; the entry's replay count goes
-  up, entries replayed ``max_replays`` times are dropped. The restarted world continues the saved episode
-  to its time limit (a shorter episode). It keeps the step's ``done``, ``reward`` and ``metrics`` and
-  ``info["total_steps"]`` (reward annealing), ``info["episode_metrics"]`` (of the episode that just ended)
-  and ``info["truncation"]``, and takes the fresh episode's ``info["rng"]`` (new noise); everything else is
-  the saved state.
-
-Differences from the original (documented, deliberate): the buffer is active from the start (the
-original waits until agent 0's mean crash penalty over 100 episodes is below 1); it is one ring per env
-(batch of worlds), not per worker; density/size re-draws of obstacle episodes come from the saved state.
-All operations are ``jnp.where`` / dynamic index updates on fixed shapes: no host round trip.
+Inside the trainer's jitted loop on W worlds of one :class:`~quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv`:
+every ``snapshot_s`` of episode time each world not in a replay episode saves its ``State`` into its ring
+of ``snapshots_back`` slots (``ReplayState.ring``, leaves (W, S, ...)); a new collision after
+``min_time_s`` (and ``cooldown_s`` after the world's last write) stores the snapshot from 1-1.5 s before
+the hit in a ring of ``buffer_size`` entries (``ReplayState.buf``, leaves (R, ...)); a world whose episode
+ended restarts from a stored entry with probability ``prob``; entries replayed ``max_replays`` times are
+dropped. The rules in full and the differences from the original: docs/training.md ("Collision replay").
 """
 
 from __future__ import annotations

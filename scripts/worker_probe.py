@@ -1,7 +1,7 @@
 """Probe: the JAX engine's one-world step in a dedicated worker process that applies ``tune_jax_cpu()`` to
 itself only (the caller's process unchanged), seen from the caller through a pipe, against Hopper-v5.
 
-What it measures, in one caller process (``python -m quadswarm_mj.bench.worker_probe --quads 1``):
+What it measures, in one caller process (``python scripts/worker_probe.py --quads 1``):
 
 * ``pipe_round_trip_us``: a one-byte round trip to a spawned process (the transport's floor);
 * ``first_step_s``: from starting the worker to the first step's return in the caller (spawn, imports, JAX
