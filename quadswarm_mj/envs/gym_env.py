@@ -183,7 +183,7 @@ class QuadSwarmEnv(gym.Env):
         rows = np.concatenate([out["rewards"], *terms.values()])  # (1 + terms, N): one copy of them all
         info["rewards"] = rows[0]
         info["reward_terms"] = dict(zip(terms, rows[1:]))
-        info["new_collisions"] = out["kin"]["new_contact"][0].any(-1)
+        info["new_collisions"] = np.logical_or.reduce(out["kin"]["new_contact"][0], axis=-1)  # = .any(-1)
         if truncated:
             info["episode_metrics"] = {k: float(v[0]) for k, v in self.core.episode_metrics().items()}
             self._needs_reset = True
