@@ -97,6 +97,8 @@ class NumpyOps(ModelForms):
         self._deck_noise = cfg.sensors.any and cfg.sensors.noise
         lo, hi = swarm._out_lo.tolist(), swarm._out_hi.tolist()
         self._out = (lo[0], lo[1], lo[2], hi[0], hi[1], hi[2])  # the walls' and ceiling's bounds (floats)
+        B, N = swarm.B, swarm.N  # the shapes of the step's draws: motor, scenario, sensor
+        self._shapes = ((B, N, 4), (B, swarm._n_scn), (3, B, N, 3))
 
     def reward_terms(self, cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, action: Any, f_norm: Any,
                      prev_f_norm: Any, on_floor: Any, hit_floor: Any, hit_wall: Any, hit_ceiling: Any,
@@ -219,15 +221,19 @@ class NumpyOps(ModelForms):
     put = staticmethod(put)
 
     def draws(self, kind: str, mask_fn: Any, w: Any) -> dict[str, Any]:
-        s, noise = self.s, self.s.cfg.noise
+        s = self.s
         if kind == "motor":  # the step's motor-noise normals (B, N, 4)
-            return s.rng.standard_normal((s.B, s.N, 4))
+            return s.rng.standard_normal(self._shapes[0])
         if kind == "scenario":  # the scenario's uniforms (B, n)
-            return s.rng.uniform(size=(s.B, s._n_scn))
+            return s.rng.uniform(size=self._shapes[1])
         if kind == "sensor":  # = NumpySampler(rng).draw(sensor_noise_spec(cfg), (B,)): 0 + std * N(0, 1)
             if not s._sensor_on:
                 return None
-            return dict(zip(s._sensor_keys, 0.0 + s._sensor_std * s.rng.standard_normal((3, s.B, s.N, 3))))
+            z = s.rng.standard_normal(self._shapes[2])
+            z *= s._sensor_std
+            z += 0.0  # = 0.0 + std * z (in place: the same operations, the same bits)
+            return dict(zip(s._sensor_keys, z))
+        noise = s.cfg.noise
         if kind == "deck":  # deck sensor noise (quadswarm_mj.sensors), None: noise-free
             if not self._deck_noise:
                 return None
