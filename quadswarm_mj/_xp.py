@@ -20,6 +20,8 @@ def is_jax_array(x: Any) -> bool:
 def array_namespace(*arrays: Any) -> ModuleType:
     """Return ``jax.numpy`` if any input is a JAX array or tracer, else ``numpy``."""
     for a in arrays:
+        if type(a) is np.ndarray:  # (the common case, without a call)
+            continue
         if is_jax_array(a):
             import jax.numpy as jnp
 

@@ -260,3 +260,42 @@ def test_numpy_ops_route_one_quad_only_to_the_float_forms(monkeypatch):
         env.reset(seed=0)
         env.step(env.action_space.sample())
         assert set(calls) == want, (n, calls)
+
+
+def test_numpy_ops_one_quad_wall_gate_and_contacts_are_the_array_forms():
+    """NumpyOps' float forms for one quad in one world (the wall/ceiling gate, the pair contacts and
+    distances) give the array forms' results, at the bounds and for non-finite positions too."""
+    cfg = EnvConfig(num_quads=1)
+    ops = NumpyOps(CpuSwarm(cfg, visual=False))
+    ref = NumpyOps(CpuSwarm(cfg, visual=False))
+    ref._one = False  # the array forms
+    lo, hi = np.asarray(cfg.room_low), np.asarray(cfg.room_high)
+    rng = np.random.default_rng(11)
+    cases = [lo, hi, np.array([lo[0], 0.0, 1.0]), np.array([0.0, hi[1], 1.0]), np.array([0.0, 0.0, hi[2]]),
+             np.array([np.nan, 0.0, 1.0]), np.array([np.inf, 0.0, 1.0]), np.array([0.0, 0.0, -np.inf])]
+    cases += list(rng.uniform(lo - 0.5, hi + 0.5, (200, 3)))
+    for i, p in enumerate(cases):
+        pos = np.asarray(p, float).reshape(1, 1, 3)
+        flags = [np.array([[bool(i % 3 == 0)]]), np.array([[bool(i % 5 == 0)]])]
+        assert ops.wall_gate(pos, *flags) == ref.wall_gate(pos, *flags)
+        with np.errstate(invalid="ignore"):  # inf - inf
+            got, want = ops.pairwise_contacts(pos, cfg.hitbox), collisions.pairwise_contacts(pos, cfg.hitbox)
+        for a, b in zip(got, want):
+            _same(a, b)
+
+
+def test_one_body_omega_clip_is_the_array_clip():
+    """MjDataPhysics.step's angular-velocity clip on floats (one body) writes the bits of np.clip."""
+    cfg = EnvConfig(num_quads=1)
+    m = cfg.quad.max_omega
+    for w in ([m + 1.0, -m - 1.0, 0.5], [m, -m, -0.0], [3 * m, 2 * m, -2 * m], [0.0, -0.0, m * 0.999]):
+        out = []
+        for one in (True, False):
+            core = CpuSwarm(cfg, visual=False)
+            core.seed(0)
+            core.reset()
+            core.qvel[0, 0, 3:] = w
+            core.phys._one = one
+            core.phys.step(m)
+            out.append(core.qvel.copy())
+        _same(*out)

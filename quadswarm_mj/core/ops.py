@@ -91,15 +91,24 @@ class NumpyOps(ModelForms):
         self._one_obs = (self._one and cfg.neighbors == 0 and cfg.obstacles is None and not cfg.sensors.any
                          and cfg.obs_self != "wall")
         self._obs_floor = cfg.obs_self == "floor"
+        self._cfg = cfg
+        self._reward_plan = one_quad.reward_plan(rewards._term_factors(cfg.rewards, cfg.sim_dt, cfg.control_dt),
+                                                 rewards.ANNEALED)
+        self._deck_noise = cfg.sensors.any and cfg.sensors.noise
+        lo, hi = swarm._out_lo.tolist(), swarm._out_hi.tolist()
+        self._out = (lo[0], lo[1], lo[2], hi[0], hi[1], hi[2])  # the walls' and ceiling's bounds (floats)
+        B, N = swarm.B, swarm.N  # the shapes of the step's draws: motor, scenario, sensor
+        self._shapes = ((B, N, 4), (B, swarm._n_scn), (3, B, N, 3))
 
     def reward_terms(self, cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, action: Any, f_norm: Any,
                      prev_f_norm: Any, on_floor: Any, hit_floor: Any, hit_wall: Any, hit_ceiling: Any,
                      new_contact: Any, dist: Any, anneal: Any = 1.0, goal_dist: Any | None = None) -> dict[str, Any]:
         """:func:`quadswarm_mj.rewards.reward_terms` (one quad: ``perf.one_quad.reward_terms``, same bits)."""
         if self._one and one_quad.ENABLED and action.dtype == np.float64:
-            return one_quad.reward_terms(rewards._term_factors(cfg.rewards, cfg.sim_dt, cfg.control_dt),
-                                         rewards.ANNEALED, pos, vel, R, omega, goals, action, f_norm, prev_f_norm,
-                                         on_floor, hit_floor, hit_wall, hit_ceiling, new_contact, anneal, goal_dist)
+            plan = self._reward_plan if cfg is self._cfg else one_quad.reward_plan(
+                rewards._term_factors(cfg.rewards, cfg.sim_dt, cfg.control_dt), rewards.ANNEALED)
+            return one_quad.reward_terms(plan, pos, vel, R, omega, goals, action, f_norm, prev_f_norm, on_floor,
+                                         hit_floor, hit_wall, hit_ceiling, new_contact, anneal, goal_dist)
         return rewards.reward_terms(cfg, pos, vel, R, omega, goals, action, f_norm, prev_f_norm, on_floor, hit_floor,
                                     hit_wall, hit_ceiling, new_contact, dist, anneal, goal_dist)
 
@@ -141,6 +150,9 @@ class NumpyOps(ModelForms):
         s = self.s
         if not s._any_on_floor:
             return force, torque
+        if self._one and one_quad.ENABLED:  # ``v`` (1, 1, 6): its first two entries are the horizontal speed
+            return one_quad.floor_wrench(on_floor, force, torque, v, params["mass"], params["gravity"],
+                                         cfg.collision.floor_friction, cfg.sim_dt)
         w = s._worlds(on_floor)
         fw, tw = numpy_small.floor_wrench(on_floor[w], force[w], torque[w], v[w, :, :3], params["mass"][w],
                                           params["gravity"], cfg.collision.floor_friction, cfg.sim_dt)
@@ -155,16 +167,17 @@ class NumpyOps(ModelForms):
         (``CpuSwarm._floor_impact``: masked writes into the physics' qpos/qvel, yaw drawn per world
         then); returns (q, v, u, on_floor, hit_floor, R of the new q)."""
         s = self.s
+        if self._one and one_quad.ENABLED:  # one quad: perf.one_quad's float forms (same draw, same bits)
+            if q[0, 0, 2] <= s.floor_z or s._any_on_floor:
+                u, on_floor = self._floor_impact_one(q, v, u, on_floor, hit_floor)
+            return q, v, u, on_floor, hit_floor, one_quad.quat_to_rotmat(q[..., 3:7])
         grounded = q[..., 2] <= s.floor_z
         if s._any_on_floor:
             grounded |= on_floor
         if np.count_nonzero(grounded):  # (faster than .any() on tiny masks)
-            if self._one and one_quad.ENABLED:  # one quad: perf.one_quad's float form (same draw, same bits)
-                u, on_floor = self._floor_impact_one(q, v, u, on_floor, hit_floor)
-            else:
-                s.u, s.on_floor = u, on_floor
-                s._floor_impact(s._worlds(grounded), hit_floor)
-                u, on_floor = s.u, s.on_floor
+            s.u, s.on_floor = u, on_floor
+            s._floor_impact(s._worlds(grounded), hit_floor)
+            u, on_floor = s.u, s.on_floor
         return q, v, u, on_floor, hit_floor, numpy_small.quat_to_rotmat(q[..., 3:7])
 
     def _floor_impact_one(self, q: np.ndarray, v: np.ndarray, u: np.ndarray, on_floor: np.ndarray,
@@ -185,6 +198,13 @@ class NumpyOps(ModelForms):
     def wall_gate(self, pos: np.ndarray, at_wall: np.ndarray, at_ceiling: np.ndarray) -> Any:
         """The worlds with a quad at or beyond a wall or the ceiling (one compare of all three axes) or
         flagged there at the last step (None: none)."""
+        if self._one:  # one quad (B = 1): the same compares on floats
+            x, y, z = pos.ravel().tolist()
+            lx, ly, lz, hx, hy, hz = self._out
+            if (x <= lx or y <= ly or z <= lz or x >= hx or y >= hy or z >= hz or at_wall[0, 0]
+                    or at_ceiling[0, 0]):
+                return ALL
+            return None
         out = (pos <= self.s._out_lo) | (pos >= self.s._out_hi)
         if not (out.any() or at_wall.any() or at_ceiling.any()):
             return None
@@ -201,17 +221,21 @@ class NumpyOps(ModelForms):
     put = staticmethod(put)
 
     def draws(self, kind: str, mask_fn: Any, w: Any) -> dict[str, Any]:
-        s, noise = self.s, self.s.cfg.noise
+        s = self.s
         if kind == "motor":  # the step's motor-noise normals (B, N, 4)
-            return s.rng.standard_normal((s.B, s.N, 4))
+            return s.rng.standard_normal(self._shapes[0])
         if kind == "scenario":  # the scenario's uniforms (B, n)
-            return s.rng.uniform(size=(s.B, s._n_scn))
+            return s.rng.uniform(size=self._shapes[1])
         if kind == "sensor":  # = NumpySampler(rng).draw(sensor_noise_spec(cfg), (B,)): 0 + std * N(0, 1)
             if not s._sensor_on:
                 return None
-            return dict(zip(s._sensor_keys, 0.0 + s._sensor_std * s.rng.standard_normal((3, s.B, s.N, 3))))
+            z = s.rng.standard_normal(self._shapes[2])
+            z *= s._sensor_std
+            z += 0.0  # = 0.0 + std * z (in place: the same operations, the same bits)
+            return dict(zip(s._sensor_keys, z))
+        noise = s.cfg.noise
         if kind == "deck":  # deck sensor noise (quadswarm_mj.sensors), None: noise-free
-            if not (s.cfg.sensors.any and s.cfg.sensors.noise):
+            if not self._deck_noise:
                 return None
             from quadswarm_mj.random_draws import NumpySampler
             from quadswarm_mj.sensors import deck_draw_spec
@@ -227,6 +251,17 @@ class NumpyOps(ModelForms):
         if kind == "down":
             return s._sampler(noise.stochastic_downwash).draw(s._spec_down, (s.B,))
         raise ValueError(kind)
+
+    def pairwise_contacts(self, pos: Any, hitbox: float) -> tuple[Any, Any]:
+        """:func:`quadswarm_mj.collisions.pairwise_contacts`; with one quad per world no pair: contacts all
+        False and the distance ||p - p|| (0.0, NaN for a non-finite position, as the norm gives)."""
+        if self._one:  # on floats: p - p is 0.0 (NaN for a non-finite p), as is its norm
+            x, y, z = pos.ravel().tolist()
+            return np.zeros((1, 1, 1), bool), np.full((1, 1, 1), (x - x) + (y - y) + (z - z))
+        if self.s.N == 1:
+            d = pos - pos
+            return np.zeros(pos.shape[:-1] + (1,), bool), np.add.reduce(d * d, axis=-1, keepdims=True)
+        return collisions.pairwise_contacts(pos, hitbox)
 
     def quad_quad(self, pos: Any, vel: Any, omega: Any, prev: Any, contact: Any, new: Any) -> dict[str, Any] | None:
         """The paper's response on the worlds with a new contact (None: there is none)."""

@@ -101,8 +101,10 @@ class QuadSwarmEnv(gym.Env):
         """The info entries of reset and step: fresh copies (nothing shared with the engine or with
         another call's info)."""
         c = self.core
+        q, v = c.qpos[0], c.qvel[0]  # world 0's (N, 7), (N, 6) views: c.state_dict()'s values, world 0 only
         return {
-            "state": {k: v[0] for k, v in c.state_dict().items()},
+            "state": {"pos": q[:, :3] - c.offsets[0], "vel": v[:, :3].copy(), "rot": c._rotations()[0].copy(),
+                      "omega": v[:, 3:].copy(), "thrust": c.f_norm[0].copy()},
             "goals": c.sstate.goals[0].copy(),
             "goal_vel": c.sstate.goal_vel[0].copy(),
             "params": {k: v.copy() for k, v in self._params.items()},
@@ -183,7 +185,7 @@ class QuadSwarmEnv(gym.Env):
         rows = np.concatenate([out["rewards"], *terms.values()])  # (1 + terms, N): one copy of them all
         info["rewards"] = rows[0]
         info["reward_terms"] = dict(zip(terms, rows[1:]))
-        info["new_collisions"] = out["kin"]["new_contact"][0].any(-1)
+        info["new_collisions"] = np.logical_or.reduce(out["kin"]["new_contact"][0], axis=-1)  # = .any(-1)
         if truncated:
             info["episode_metrics"] = {k: float(v[0]) for k, v in self.core.episode_metrics().items()}
             self._needs_reset = True

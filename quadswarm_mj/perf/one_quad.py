@@ -145,14 +145,25 @@ def _norm(v: list[float]) -> float:
     return math.sqrt(s)
 
 
-def reward_terms(factors: tuple, annealed: tuple[str, ...], pos: Any, vel: Any, R: Any, omega: Any, goals: Any,
+def reward_plan(factors: tuple, annealed: tuple[str, ...]) -> tuple:
+    """The per-config constants of :func:`reward_terms` (made once per engine): from ``factors``
+    (``rewards._term_factors``) and ``annealed`` (``rewards.ANNEALED``) the set of costs needed, the
+    computed terms (key, -dt, base scale, annealed), the terms that are exactly -0.0, and the key order."""
+    need = frozenset(k for k, _, base in factors if base is not None)
+    live = tuple((k, neg_dt, base, k in annealed) for k, neg_dt, base in factors if base is not None)
+    zero_keys = tuple(k for k, _, base in factors if base is None)
+    return (need, live, zero_keys, tuple(k for k, _, _ in factors), bool(need & {"orient", "yaw", "rot"}))
+
+
+def reward_terms(plan: tuple, pos: Any, vel: Any, R: Any, omega: Any, goals: Any,
                  action: Any, f_norm: Any, prev_f_norm: Any, on_floor: Any, hit_floor: Any, hit_wall: Any,
                  hit_ceiling: Any, new_contact: Any, anneal: Any, goal_dist: Any | None) -> dict[str, Any]:
-    """:func:`quadswarm_mj.rewards.reward_terms` for one quad in one world ((1, 1, ...) arrays; ``factors``
-    its ``_term_factors``, ``annealed`` its ``ANNEALED``): the same (1, 1) values, as rows of one fresh
-    array (the terms that are exactly -0.0 share one row, as there). With one quad ``proximity`` has no
-    other quad (cost 0) and ``quad_collision`` counts the pairs of the (1, 1, 1) contact matrix."""
-    need = {k for k, _, base in factors if base is not None}
+    """:func:`quadswarm_mj.rewards.reward_terms` for one quad in one world ((1, 1, ...) arrays; ``plan``
+    :func:`reward_plan` of its ``_term_factors`` and ``ANNEALED``): the same (1, 1) values, as rows of
+    one fresh array (the terms that are exactly -0.0 share one row, as there). With one quad
+    ``proximity`` has no other quad (cost 0) and ``quad_collision`` counts the pairs of the (1, 1, 1)
+    contact matrix."""
+    need, live, zero_keys, order, rot = plan
     on = bool(on_floor.item())
     c: dict[str, float] = {"crash": 1.0 if on else 0.0, "proximity": 0.0}
     if "pos" in need:
@@ -169,32 +180,28 @@ def reward_terms(factors: tuple, annealed: tuple[str, ...], pos: Any, vel: Any, 
         c["vel"] = _norm(vel.ravel().tolist())
     if "action_change" in need:
         c["action_change"] = _norm([a - b for a, b in zip(f_norm.ravel().tolist(), prev_f_norm.ravel().tolist())])
-    if need & {"orient", "yaw", "rot"}:
+    if rot:
         e = R.ravel().tolist()
         c["orient"] = 1.0 if on else -e[8]
         c["yaw"] = -e[0]
         c["rot"] = -(e[0] + e[4] + e[8] - 1.0) / 2.0
     if "quad_collision" in need:
         c["quad_collision"] = float(np.count_nonzero(new_contact))
-    for k, flag in (("floor_hit", hit_floor), ("wall_hit", hit_wall), ("ceiling_hit", hit_ceiling)):
-        if k in need:
-            c[k] = 1.0 if flag.item() else 0.0
+    if "floor_hit" in need:
+        c["floor_hit"] = 1.0 if hit_floor.item() else 0.0
+    if "wall_hit" in need:
+        c["wall_hit"] = 1.0 if hit_wall.item() else 0.0
+    if "ceiling_hit" in need:
+        c["ceiling_hit"] = 1.0 if hit_ceiling.item() else 0.0
 
-    keys, vals, zero_keys = [], [], []
-    for k, neg_dt, base in factors:
-        if base is None:
-            zero_keys.append(k)
-        elif k in annealed:
-            keys.append(k)
-            vals.append(float(neg_dt * (base * anneal) * c[k]))
-        else:
-            keys.append(k)
-            vals.append(neg_dt * base * c[k])
-    rows = np.array(vals + ([-0.0] if zero_keys else [])).reshape(-1, 1, 1)
-    out = dict(zip(keys, rows))
+    vals = [float(neg_dt * (base * anneal) * c[k]) if ann else neg_dt * base * c[k] for k, neg_dt, base, ann in live]
+    if zero_keys:
+        vals.append(-0.0)
+    rows = np.array(vals).reshape(-1, 1, 1)
+    out = {k: rows[i] for i, (k, _, _, _) in enumerate(live)}
     for k in zero_keys:
         out[k] = rows[-1]
-    return {k: out[k] for k, _, _ in factors}
+    return {k: out[k] for k in order}
 
 
 def total_reward(terms: dict[str, Any], keys: list[str]) -> Any:

@@ -135,6 +135,7 @@ class MjDataPhysics(_SubstepAdapter):
         self._any_offset = bool(np.any(self.offsets))
         _check_simple_bodies(self.model, self.arena)
         self._M0 = self.model.dof_M0[vs:vs + 6 * B * N].reshape(B * N, 6)  # a view
+        self._one = B * N == 1  # one body: the angular-velocity clip on floats
 
     def __getstate__(self) -> dict[str, Any]:
         """For copy/pickle: without the views into MjData/MjModel (:meth:`__setstate__` makes them again)."""
@@ -163,6 +164,14 @@ class MjDataPhysics(_SubstepAdapter):
         if c[2] or c[0] or c[1]:
             self._bad_counts[...] = 0
             _raise_unstable(self.qpos, self.qvel, self._qacc, self.first_world)
+        if self._one:  # clip written only where a component is beyond the bound (as clip: NaN stays)
+            v = self.qvel[0, 0]
+            for i, w in enumerate(v[3:].tolist(), 3):
+                if w > max_omega:
+                    v[i] = max_omega
+                elif w < -max_omega:
+                    v[i] = -max_omega
+            return
         w = self.qvel[..., 3:]
         np.minimum(np.maximum(w, -max_omega, out=w), max_omega, out=w)  # = clip
 
