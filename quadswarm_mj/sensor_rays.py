@@ -330,13 +330,14 @@ def depth_hits(pos: Any, R: Any, shape: tuple[int, int], fov_deg: tuple[float, f
         if quad_radius is not None and pos.shape[-2] > 1 and xp is np:
             t = _depth_spheres_numpy(pos, R, t, u, v, uk, vk, norm, quad_radius)
         elif quad_radius is not None and pos.shape[-2] > 1:
+            # a hit ahead from outside: beta = |e| (d . offset) > 0 and disc = beta^2 - |e|^2 c >= 0, at
+            # range (beta - sqrt(disc)) / |e|; over (..., N, N, H W) pairs and pixels, reduced over the
+            # neighbours (perf.depth_xla: the same values, in the form XLA:CPU runs fastest)
+            from quadswarm_mj.perf.depth_xla import sphere_pixel_hits
+
             ob, c, inside = _offsets(xp, pos, R, quad_radius)
-            beta = along(*ob)  # (..., N, N, H W): |e| (d . offset)
-            disc = beta * beta - xp.asarray(norm * norm, dtype=f) * c[..., None]
-            # a hit ahead from outside: beta > 0 and disc >= 0 (beta >= |e| sqrt(c)), at range
-            # (beta - sqrt(disc)) / |e|
-            ts = xp.where((beta > 0.0) & (disc >= 0.0), beta - xp.sqrt(xp.maximum(disc, 0.0)), xp.inf)
-            t = xp.minimum(t, xp.min(ts, axis=-2) * xp.asarray(1.0 / norm, dtype=f))
+            ts = sphere_pixel_hits(ob, c, uk, vk, xp.asarray(norm * norm, dtype=f))
+            t = xp.minimum(t, ts * xp.asarray(1.0 / norm, dtype=f))
             t = xp.where(inside[..., None], 0.0, t)
         if columns is not None:
             inv_n = xp.asarray(1.0 / norm, dtype=f)

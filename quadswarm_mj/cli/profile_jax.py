@@ -2,6 +2,7 @@
 worlds, from a ``jax.profiler`` trace (per-kernel wall time, averaged over the traced steps).
 
     quadswarm-profile-jax --worlds 512 --steps 50 --top 30 [--without-noise] [--obstacles]
+                          [--sensors multiranger,flow,depth=8x8]
     python scripts/profile_jax_step.py ...   (the same, from a source checkout)
 
 Each row is one XLA kernel ("thunk") of the compiled step: its time per control step, its share of
@@ -35,6 +36,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--top", type=int, default=30, help="kernels listed (default 30)")
     p.add_argument("--without-noise", action="store_true", help="EnvConfig.without_noise()")
     p.add_argument("--obstacles", action="store_true", help="columns on (ObstacleConfig())")
+    p.add_argument("--sensors", default="", help="deck sensors on, comma-separated: multiranger, flow, "
+                   "depth=HxW (SensorConfig; default none)")
     args = p.parse_args(argv)
     if args.worlds < 1 or args.steps < 1 or args.quads < 1:
         p.error("--worlds, --quads and --steps must be >= 1")
@@ -42,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     import jax
     import jax.numpy as jnp
 
-    from quadswarm_mj import EnvConfig, ObstacleConfig
+    from quadswarm_mj import EnvConfig, ObstacleConfig, SensorConfig
     from quadswarm_mj.envs.mjx_env import AutoResetWrapper, MjxQuadSwarmEnv
 
     cfg = EnvConfig(num_quads=args.quads)
@@ -50,6 +53,17 @@ def main(argv: list[str] | None = None) -> int:
         cfg = cfg.without_noise()
     if args.obstacles:
         cfg = cfg.replace(obstacles=ObstacleConfig())
+    if args.sensors:
+        decks: dict = {}
+        for item in args.sensors.split(","):
+            name, _, value = item.strip().partition("=")
+            if name in ("multiranger", "flow") and not value:
+                decks[name] = True
+            elif name == "depth" and re.fullmatch(r"\d+x\d+", value):
+                decks["depth"] = tuple(int(x) for x in value.split("x"))
+            else:
+                p.error(f"--sensors: unknown item {item!r} (multiranger, flow, depth=HxW)")
+        cfg = cfg.replace(sensors=SensorConfig(**decks, noise=not args.without_noise))
     W = args.worlds
     env = AutoResetWrapper(MjxQuadSwarmEnv(cfg))
     hover = jnp.full((W, cfg.num_quads, 4), cfg.quad.hover_action, jnp.float32)
