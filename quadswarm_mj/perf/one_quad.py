@@ -136,6 +136,19 @@ def floor_impact_inplace(q: Any, v: Any, u: Any, on_floor: bool, floor_z: float,
     return True, hit, u
 
 
+def action_to_command(action: Any) -> Any:
+    """:func:`quadswarm_mj.actuation.action_to_command` of one quad's float64 (1, 1, 4) ``action``: 0.5 (clip(a,
+    -1, 1) + 1) per rotor (the clip as maximum then minimum), a fresh array."""
+    return np.array([[[0.5 * (_min(_max(a, -1.0), 1.0) + 1.0) for a in action.ravel().tolist()]]])
+
+
+def motor_noise_step(eps: Any, sigma: Any, theta: float, normal: Any) -> Any:
+    """:func:`quadswarm_mj.actuation.motor_noise_step` of one quad: ``eps``, ``normal`` (1, 1, 4), ``sigma``
+    (1, 1); (e + theta (0 - e)) + sigma n per rotor, a fresh array."""
+    s = sigma.item()
+    return np.array([[[e + theta * (0.0 - e) + s * n for e, n in zip(eps.ravel().tolist(), normal.ravel().tolist())]]])
+
+
 # ---------------------------------------------------------------- the task stage (reward terms, metrics)
 def _norm(v: list[float]) -> float:
     """sqrt(((v0 v0 + v1 v1) + v2 v2) + ...): ``spatial.norm_last``'s rounding."""
