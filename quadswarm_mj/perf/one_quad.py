@@ -61,10 +61,9 @@ def substep_wrench(u: Any, cmd: Any, noise: Any, alpha: Any, thrust_max: Any, to
     q0, q1, q2, q3 = torque_spin.ravel().tolist()
     tz = ((q0 * f0 + q1 * f1) + q2 * f2) + q3 * f3
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = R.ravel().tolist()
-    force = np.array([[[fz * r02, fz * r12, fz * r22]]])
-    torque = np.array([[[(r00 * tx + r01 * ty) + r02 * tz, (r10 * tx + r11 * ty) + r12 * tz,
-                         (r20 * tx + r21 * ty) + r22 * tz]]])
-    return np.array([[[u0, u1, u2, u3]]]), np.array([[[f0, f1, f2, f3]]]), force, torque
+    out = np.array([u0, u1, u2, u3, f0, f1, f2, f3, fz * r02, fz * r12, fz * r22, (r00 * tx + r01 * ty) + r02 * tz,
+                    (r10 * tx + r11 * ty) + r12 * tz, (r20 * tx + r21 * ty) + r22 * tz])  # one fresh buffer
+    return out[:4].reshape(1, 1, 4), out[4:8].reshape(1, 1, 4), out[8:11].reshape(1, 1, 3), out[11:].reshape(1, 1, 3)
 
 
 def quat_to_rotmat(q: Any) -> Any:
@@ -84,7 +83,8 @@ def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any
     ``torque_w``, ``vel`` (1, 1, 3), ``mass`` (1, 1). Returns fresh (force, torque) (1, 1, 3)."""
     fx, fy, fz = force_w.ravel().tolist()
     if not on_floor.item():
-        return np.array([[[fx, fy, fz]]]), torque_w.reshape(1, 1, 3).copy()
+        out = np.array([fx, fy, fz, *torque_w.ravel().tolist()])
+        return out[:3].reshape(1, 1, 3), out[3:].reshape(1, 1, 3)
     vx, vy = vel.ravel().tolist()[:2]
     m = mass.item()
     normal = _max(0.0, m * gravity - fz)
@@ -98,7 +98,8 @@ def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any
         static = _max(0.0, f_mag - cap) / (f_mag if f_mag > 0 else 1.0)
         hx, hy = fx * static, fy * static
     tz = torque_w.ravel()[2].item()
-    return np.array([[[hx, hy, fz + normal]]]), np.array([[[0.0, 0.0, tz]]])
+    out = np.array([hx, hy, fz + normal, 0.0, 0.0, tz])
+    return out[:3].reshape(1, 1, 3), out[3:].reshape(1, 1, 3)
 
 
 def floor_impact_inplace(q: Any, v: Any, u: Any, on_floor: bool, floor_z: float, offset: Any,
@@ -139,14 +140,15 @@ def floor_impact_inplace(q: Any, v: Any, u: Any, on_floor: bool, floor_z: float,
 def action_to_command(action: Any) -> Any:
     """:func:`quadswarm_mj.actuation.action_to_command` of one quad's float64 (1, 1, 4) ``action``: 0.5 (clip(a,
     -1, 1) + 1) per rotor (the clip as maximum then minimum), a fresh array."""
-    return np.array([[[0.5 * (_min(_max(a, -1.0), 1.0) + 1.0) for a in action.ravel().tolist()]]])
+    return np.array([0.5 * (_min(_max(a, -1.0), 1.0) + 1.0) for a in action.ravel().tolist()]).reshape(1, 1, 4)
 
 
 def motor_noise_step(eps: Any, sigma: Any, theta: float, normal: Any) -> Any:
     """:func:`quadswarm_mj.actuation.motor_noise_step` of one quad: ``eps``, ``normal`` (1, 1, 4), ``sigma``
     (1, 1); (e + theta (0 - e)) + sigma n per rotor, a fresh array."""
     s = sigma.item()
-    return np.array([[[e + theta * (0.0 - e) + s * n for e, n in zip(eps.ravel().tolist(), normal.ravel().tolist())]]])
+    return np.array([e + theta * (0.0 - e) + s * n for e, n in zip(eps.ravel().tolist(), normal.ravel().tolist())]
+                    ).reshape(1, 1, 4)
 
 
 # ---------------------------------------------------------------- the task stage (reward terms, metrics)
