@@ -299,3 +299,25 @@ def test_one_body_omega_clip_is_the_array_clip():
             core.phys.step(m)
             out.append(core.qvel.copy())
         _same(*out)
+
+
+def test_command_and_motor_noise_are_the_array_forms_bitwise():
+    rng = np.random.default_rng(4)
+    for i in range(300):
+        a = rng.normal(0, 1.5, (1, 1, 4))
+        a[0, 0, i % 4] = (-0.0, 1.0, -1.0, 0.0)[i % 4]
+        _same(one_quad.action_to_command(a), actuation.action_to_command(a))
+        eps, normal, sigma = rng.normal(0, 0.2, (1, 1, 4)), rng.normal(size=(1, 1, 4)), rng.uniform(0, 0.2, (1, 1))
+        _same(one_quad.motor_noise_step(eps, sigma, 0.15, normal), actuation.motor_noise_step(eps, sigma, 0.15, normal))
+
+
+def test_numpy_ops_contacts_of_single_quad_worlds_are_the_array_forms():
+    """B worlds of one quad each (a vector env): no pair; distances ||p - p|| as the norm gives them."""
+    cfg = EnvConfig(num_quads=1)
+    ops = NumpyOps(CpuSwarm(cfg, num_worlds=4, visual=False))
+    pos = np.random.default_rng(2).normal(size=(4, 1, 3))
+    pos[1, 0, 2], pos[2, 0, 0] = np.nan, -np.inf
+    with np.errstate(invalid="ignore"):
+        got, want = ops.pairwise_contacts(pos, cfg.hitbox), collisions.pairwise_contacts(pos, cfg.hitbox)
+    for a, b in zip(got, want):
+        _same(a, b)

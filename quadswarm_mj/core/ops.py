@@ -57,9 +57,12 @@ def put(arr: np.ndarray, idx: Any, value: Any) -> np.ndarray:
 
 class ModelForms:
     """The model's functions of the control step as the model defines them (any namespace, any batch
-    dims): ``pairwise_contacts``, ``reward_terms``, ``total_reward``, ``metrics_update``, ``obs``
-    (:func:`quadswarm_mj.observations.build_obs`). An engine's ops override them with same-values forms."""
+    dims): ``command``, ``motor_noise``, ``pairwise_contacts``, ``reward_terms``, ``total_reward``,
+    ``metrics_update``, ``obs`` (:func:`quadswarm_mj.observations.build_obs`). An engine's ops override
+    them with same-values forms."""
 
+    command = staticmethod(actuation.action_to_command)
+    motor_noise = staticmethod(actuation.motor_noise_step)
     pairwise_contacts = staticmethod(collisions.pairwise_contacts)
     reward_terms = staticmethod(rewards.reward_terms)
     total_reward = staticmethod(rewards.total_reward)
@@ -97,8 +100,21 @@ class NumpyOps(ModelForms):
         self._deck_noise = cfg.sensors.any and cfg.sensors.noise
         lo, hi = swarm._out_lo.tolist(), swarm._out_hi.tolist()
         self._out = (lo[0], lo[1], lo[2], hi[0], hi[1], hi[2])  # the walls' and ceiling's bounds (floats)
+        self._sum_keys: dict[tuple, list[str]] = {}
         B, N = swarm.B, swarm.N  # the shapes of the step's draws: motor, scenario, sensor
         self._shapes = ((B, N, 4), (B, swarm._n_scn), (3, B, N, 3))
+
+    def command(self, action: np.ndarray) -> np.ndarray:
+        """:func:`quadswarm_mj.actuation.action_to_command` (one quad: on floats, same bits)."""
+        if self._one and one_quad.ENABLED and action.dtype == np.float64:
+            return one_quad.action_to_command(action)
+        return actuation.action_to_command(action)
+
+    def motor_noise(self, eps: np.ndarray, sigma: np.ndarray, theta: float, normal: np.ndarray) -> np.ndarray:
+        """:func:`quadswarm_mj.actuation.motor_noise_step` (one quad: on floats, same bits)."""
+        if self._one and one_quad.ENABLED:
+            return one_quad.motor_noise_step(eps, sigma, theta, normal)
+        return actuation.motor_noise_step(eps, sigma, theta, normal)
 
     def reward_terms(self, cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, action: Any, f_norm: Any,
                      prev_f_norm: Any, on_floor: Any, hit_floor: Any, hit_wall: Any, hit_ceiling: Any,
@@ -115,7 +131,10 @@ class NumpyOps(ModelForms):
     def total_reward(self, terms: dict[str, Any], skip: tuple[str, ...] = ()) -> Any:
         """:func:`quadswarm_mj.rewards.total_reward` (one quad: the same sum on floats)."""
         if self._one and one_quad.ENABLED:
-            keys = [k for k in rewards.TERMS if k not in skip] + [k for k in rewards.OBSTACLE_TERMS if k in terms]
+            keys = self._sum_keys.get((skip, len(terms)))
+            if keys is None:  # the order of rewards.total_reward, made once per (skip, terms present)
+                keys = [k for k in rewards.TERMS if k not in skip] + [k for k in rewards.OBSTACLE_TERMS if k in terms]
+                self._sum_keys[(skip, len(terms))] = keys
             return one_quad.total_reward(terms, keys)
         return rewards.total_reward(terms, skip)
 
@@ -265,7 +284,7 @@ class NumpyOps(ModelForms):
 
     def quad_quad(self, pos: Any, vel: Any, omega: Any, prev: Any, contact: Any, new: Any) -> dict[str, Any] | None:
         """The paper's response on the worlds with a new contact (None: there is none)."""
-        if not new.any():
+        if not np.count_nonzero(new):  # (faster than .any() on small masks)
             return None
         s = self.s
         w = s._worlds(new.any(-1))

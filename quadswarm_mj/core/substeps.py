@@ -16,8 +16,6 @@ from __future__ import annotations
 
 from typing import Any
 
-from quadswarm_mj.actuation import action_to_command, motor_noise_step
-
 #: the sub-step carry's fields (``ctrl``: (last rotor command, controller state) with the extended
 #: actuation chain, else None; ``aux``: the physics back end's own carry, e.g. ``mjx.Data``, or None)
 CARRY = ("q", "v", "R", "u", "f_norm", "on_floor", "hit_floor", "aux", "ctrl")
@@ -26,10 +24,11 @@ CARRY = ("q", "v", "R", "u", "f_norm", "on_floor", "hit_floor", "aux", "ctrl")
 def step_inputs(cfg: Any, action: Any, eps: Any, params: dict[str, Any], ops: Any) -> dict[str, Any]:
     """What every sub-step of a control step reads: ``action`` (..., N, 4), its rotor command ``cmd``
     (None outside the "rotor" control mode) and the motor noise ``eps`` after this step's
-    Ornstein-Uhlenbeck update (its normal draws from ``ops``)."""
-    cmd = action_to_command(action) if cfg.control_mode == "rotor" else None
+    Ornstein-Uhlenbeck update (its normal draws from ``ops``; ``ops.command``, ``ops.motor_noise``: the
+    engine's forms of ``actuation.action_to_command``, ``actuation.motor_noise_step``)."""
+    cmd = ops.command(action) if cfg.control_mode == "rotor" else None
     if cfg.noise.motor_noise_ratio > 0:
-        eps = motor_noise_step(eps, params["motor_sigma"], cfg.noise.motor_noise_theta, ops.draws("motor", None, None))
+        eps = ops.motor_noise(eps, params["motor_sigma"], cfg.noise.motor_noise_theta, ops.draws("motor", None, None))
     return {"action": action, "cmd": cmd, "eps": eps, "params": params}
 
 

@@ -182,7 +182,10 @@ class QuadSwarmEnv(gym.Env):
         truncated = bool(out["truncated"][0])
         info = self._info()
         terms = out["terms"]
-        rows = np.concatenate([out["rewards"], *terms.values()])  # (1 + terms, N): one copy of them all
+        if self.single:  # (1, 1) arrays: their values into one fresh (1 + terms, 1) array
+            rows = np.array([out["rewards"].item(), *[v.item() for v in terms.values()]]).reshape(-1, 1)
+        else:
+            rows = np.concatenate([out["rewards"], *terms.values()])  # (1 + terms, N): one copy of them all
         info["rewards"] = rows[0]
         info["reward_terms"] = dict(zip(terms, rows[1:]))
         info["new_collisions"] = np.logical_or.reduce(out["kin"]["new_contact"][0], axis=-1)  # = .any(-1)

@@ -48,10 +48,9 @@ def substep_wrench(u: Any, cmd: Any, noise: Any, alpha: Any, thrust_max: Any, to
     sqrt = math.sqrt  # correctly rounded, as np.sqrt
     s0, s1, s2, s3 = sqrt(c0), sqrt(c1), sqrt(c2), sqrt(c3)
     u0, u1, u2, u3 = u0 + a * (s0 - u0), u1 + a * (s1 - u1), u2 + a * (s2 - u2), u3 + a * (s3 - u3)
-    f0 = _min(_max(u0 * u0 + c0 * n0, 0.0), 1.0)
-    f1 = _min(_max(u1 * u1 + c1 * n1, 0.0), 1.0)
-    f2 = _min(_max(u2 * u2 + c2 * n2, 0.0), 1.0)
-    f3 = _min(_max(u3 * u3 + c3 * n3, 0.0), 1.0)
+    f = [x if (x > 0.0 or x != x) else 0.0 for x in (u0 * u0 + c0 * n0, u1 * u1 + c1 * n1, u2 * u2 + c2 * n2,
+                                                       u3 * u3 + c3 * n3)]  # _max(x, 0.0), inlined
+    f0, f1, f2, f3 = [x if (x < 1.0 or x != x) else 1.0 for x in f]  # _min(x, 1.0)
     m0, m1, m2 = mix.tolist()
     t0, t1, t2, t3 = thrust_max.ravel().tolist()
     t0, t1, t2, t3 = t0 * f0, t1 * f1, t2 * f2, t3 * f3
@@ -61,10 +60,9 @@ def substep_wrench(u: Any, cmd: Any, noise: Any, alpha: Any, thrust_max: Any, to
     q0, q1, q2, q3 = torque_spin.ravel().tolist()
     tz = ((q0 * f0 + q1 * f1) + q2 * f2) + q3 * f3
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = R.ravel().tolist()
-    force = np.array([[[fz * r02, fz * r12, fz * r22]]])
-    torque = np.array([[[(r00 * tx + r01 * ty) + r02 * tz, (r10 * tx + r11 * ty) + r12 * tz,
-                         (r20 * tx + r21 * ty) + r22 * tz]]])
-    return np.array([[[u0, u1, u2, u3]]]), np.array([[[f0, f1, f2, f3]]]), force, torque
+    out = np.array([u0, u1, u2, u3, f0, f1, f2, f3, fz * r02, fz * r12, fz * r22, (r00 * tx + r01 * ty) + r02 * tz,
+                    (r10 * tx + r11 * ty) + r12 * tz, (r20 * tx + r21 * ty) + r22 * tz])  # one fresh buffer
+    return out[:4].reshape(1, 1, 4), out[4:8].reshape(1, 1, 4), out[8:11].reshape(1, 1, 3), out[11:].reshape(1, 1, 3)
 
 
 def quat_to_rotmat(q: Any) -> Any:
@@ -84,7 +82,8 @@ def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any
     ``torque_w``, ``vel`` (1, 1, 3), ``mass`` (1, 1). Returns fresh (force, torque) (1, 1, 3)."""
     fx, fy, fz = force_w.ravel().tolist()
     if not on_floor.item():
-        return np.array([[[fx, fy, fz]]]), torque_w.reshape(1, 1, 3).copy()
+        out = np.array([fx, fy, fz, *torque_w.ravel().tolist()])
+        return out[:3].reshape(1, 1, 3), out[3:].reshape(1, 1, 3)
     vx, vy = vel.ravel().tolist()[:2]
     m = mass.item()
     normal = _max(0.0, m * gravity - fz)
@@ -98,7 +97,8 @@ def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any
         static = _max(0.0, f_mag - cap) / (f_mag if f_mag > 0 else 1.0)
         hx, hy = fx * static, fy * static
     tz = torque_w.ravel()[2].item()
-    return np.array([[[hx, hy, fz + normal]]]), np.array([[[0.0, 0.0, tz]]])
+    out = np.array([hx, hy, fz + normal, 0.0, 0.0, tz])
+    return out[:3].reshape(1, 1, 3), out[3:].reshape(1, 1, 3)
 
 
 def floor_impact_inplace(q: Any, v: Any, u: Any, on_floor: bool, floor_z: float, offset: Any,
@@ -134,6 +134,21 @@ def floor_impact_inplace(q: Any, v: Any, u: Any, on_floor: bool, floor_z: float,
     else:  # staying: no vertical speed, no roll/pitch rate
         v[2], v[3], v[4] = 0.0, 0.0, 0.0
     return True, hit, u
+
+
+def action_to_command(action: Any) -> Any:
+    """:func:`quadswarm_mj.actuation.action_to_command` of one quad's float64 (1, 1, 4) ``action``: 0.5 (clip(a,
+    -1, 1) + 1) per rotor (the clip as maximum then minimum), a fresh array."""
+    c = [a if (a > -1.0 or a != a) else -1.0 for a in action.ravel().tolist()]  # _max(a, -1.0), inlined
+    return np.array([0.5 * ((a if (a < 1.0 or a != a) else 1.0) + 1.0) for a in c]).reshape(1, 1, 4)
+
+
+def motor_noise_step(eps: Any, sigma: Any, theta: float, normal: Any) -> Any:
+    """:func:`quadswarm_mj.actuation.motor_noise_step` of one quad: ``eps``, ``normal`` (1, 1, 4), ``sigma``
+    (1, 1); (e + theta (0 - e)) + sigma n per rotor, a fresh array."""
+    s = sigma.item()
+    return np.array([e + theta * (0.0 - e) + s * n for e, n in zip(eps.ravel().tolist(), normal.ravel().tolist())]
+                    ).reshape(1, 1, 4)
 
 
 # ---------------------------------------------------------------- the task stage (reward terms, metrics)
@@ -253,7 +268,8 @@ def build_obs(pos: Any, vel: Any, R: Any, omega: Any, goals: Any, noise: dict[st
     vals = [p[0] - g[0], p[1] - g[1], p[2] - g[2], *v, *R.ravel().tolist(), *w]
     if floor:
         vals.append(p[2])
-    vals = [_min(_max(x, lo), hi) for x, lo, hi in zip(vals, low.tolist(), high.tolist())]  # clip, as there
+    vals = [x if (x > lo or x != x) else lo for x, lo in zip(vals, low.tolist())]  # clip as there: _max, inlined
+    vals = [x if (x < hi or x != x) else hi for x, hi in zip(vals, high.tolist())]  # then _min
     if scale is not None:
         vals = [x / s for x, s in zip(vals, scale.tolist())]
     return np.array(vals).reshape(1, 1, len(vals))
