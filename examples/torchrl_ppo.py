@@ -34,7 +34,7 @@ try:  # TorchRL >= 0.11 names the single-process collector Collector
 except ImportError:  # pragma: no cover - older TorchRL
     from torchrl.collectors import SyncDataCollector as Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement
-from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv
+from torchrl.envs import Compose, DoubleToFloat, GymWrapper, Transform, TransformedEnv, VecNorm
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
@@ -73,14 +73,14 @@ class OneQuad(gym.vector.VectorWrapper):
                 "_final_obs": info["_final_obs"], "final_info": {METRIC: info[METRIC]}}
 
 
-def make_env(worlds: int, episode_seconds: float, seed: int, engine: str) -> TransformedEnv:
+def make_env(worlds: int, episode_seconds: float, seed: int, engine: str, norm: Transform) -> TransformedEnv:
     """``worlds`` worlds of one quad on static_same_goal (the position term at 3x the paper's scale,
-    observations scaled into [-1, 1] by the env) as one batched TorchRL env."""
+    observations scaled into [-1, 1] by the env, then by ``norm``) as one batched TorchRL env."""
     cfg = EnvConfig(num_quads=1, scenario="static_same_goal", rewards={"pos": 3.0}, normalize_obs=True,
                     info_mode="flat", episode_seconds=episode_seconds)
     env = GymWrapper(OneQuad(QuadSwarmVectorEnv(cfg, num_envs=worlds, engine=engine, info_keys=())))
     env.set_seed(seed)
-    return TransformedEnv(env, DoubleToFloat())  # the reward is float64
+    return TransformedEnv(env, Compose(DoubleToFloat(), norm))  # the reward is float64
 
 
 def mlp(n_out: int, last_gain: float) -> nn.Sequential:
@@ -110,7 +110,9 @@ def main() -> None:
         episode_seconds, args.engine = 0.5, "mujoco"
     torch.manual_seed(args.seed)
     torch.set_num_threads(1)  # small networks: one thread, and no contention with the JAX engine's threads
-    env = make_env(args.worlds, episode_seconds, args.seed, args.engine)
+    # running mean/std of the observations (SB3's VecNormalize), frozen for the held-out episodes
+    norm = VecNorm(in_keys=["observation"], decay=0.99999, reduce_batch_dims=True, new_api=True)
+    env = make_env(args.worlds, episode_seconds, args.seed, args.engine, norm)
     n_act = env.action_spec.shape[-1]
     actor_net = nn.Sequential(mlp(n_act, 0.01), AddStateIndependentNormalScale(n_act, init_value=args.log_std))
     actor = ProbabilisticActor(TensorDictModule(actor_net, in_keys=["observation"], out_keys=["loc", "scale"]),
@@ -146,7 +148,8 @@ def main() -> None:
                 loss = losses["loss_objective"] + losses["loss_critic"]
                 optim.zero_grad()
                 loss.backward()
-                nn.utils.clip_grad_norm_(loss_fn.parameters(), 1.0)
+                for net in (actor, critic):  # each its own norm: the critic's scale does not throttle the actor
+                    nn.utils.clip_grad_norm_(net.parameters(), 1.0)
                 optim.step()
         sched.step()
         if i % 10 == 0 or i == iters - 1:
@@ -158,7 +161,7 @@ def main() -> None:
     train_s = time.time() - t0
     collector.shutdown()
     env.close()  # the held-out episodes: fresh worlds, one episode each, the mean action
-    env = make_env(args.eval_episodes, episode_seconds, args.seed + 1000, args.engine)
+    env = make_env(args.eval_episodes, episode_seconds, args.seed + 1000, args.engine, norm.frozen_copy())
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.rollout(int(round(episode_seconds * 100)), actor, break_when_any_done=False)
     assert td["next", "truncated"][:, -1].all()
