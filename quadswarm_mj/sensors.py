@@ -221,7 +221,9 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     as 0.0 / 1.0; :func:`deck_readings` gives it as named readings) from the TRUE state: ``pos`` (...,
     N, 3) m and ``vel`` (..., N, 3) m/s (world), R (..., N, 3, 3) body -> world, ``omega`` (..., N, 3)
     rad/s (body); ``obstacles`` = (centres, valid, radius) of the column map or None; ``draws`` from
-    :func:`deck_draw_spec` (None: noise-free).
+    :func:`deck_draw_spec` (None: noise-free), where ``range_u`` may be replaced by ``range_z``: the rays'
+    :func:`tof_normal` already made, NaN for a lost reading (the JAX engine's carried numbers,
+    :func:`quadswarm_mj.perf.fused_draws.tof_numbers`; the same readings).
 
     Every ToF reading (VL53L1x model, all rays at once; true ranges :func:`deck_ranges`) is valid where
     the true range ``t`` is within its limit and not dropped (u >= dropout); a valid reading is
@@ -230,27 +232,32 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     s = cfg.sensors
     t = deck_ranges(cfg, pos, R, obstacles)
     limit = ray_limits(s)
-    u = None if draws is None else draws["range_u"]
-    if xp is not np:  # XLA:CPU: the per-ray model on one flat axis of N K rays (a minor axis of K = 6
-        # runs at scalar speed: ~8x slower for the multi-ranger), same values
+    u = None if draws is None else draws.get("range_u")
+    z = None if draws is None else draws.get("range_z")  # or the ToF noise already made (NaN: lost)
+    flat = xp is not np and s.depth is None
+    if flat:  # XLA:CPU: the per-ray model on one flat axis of N K rays (a minor axis of K = 6 runs at
+        # scalar speed: ~8x slower for the multi-ranger), same values. Not with the depth camera: its
+        # K >= 64 rays vectorize, and XLA:CPU then runs the whole cast along the flat axis's layout
         shape = t.shape
         limit = np.tile(limit, shape[-2])
         t = t.reshape(shape[:-2] + (-1,))
         t, = _own_buffer(t, (t,))  # the ranges' stack (6 axis rays) is not fused into the model's loop
         u = None if u is None else u.reshape(t.shape)
+        z = None if z is None else z.reshape(t.shape)
     limit = xp.asarray(limit, dtype=t.dtype)
     valid = t <= limit
     r = t
     if u is not None:
         valid = valid & (u >= s.dropout)
         r = t + tof_std(t) * tof_normal(u, s.dropout)
+    elif z is not None:
+        valid = valid & (z == z)  # not NaN
+        r = t + tof_std(t) * z
     r = xp.where(valid, xp.minimum(xp.maximum(r, 0.0), limit), limit)
-    if xp is not np and s.depth is None:  # not with depth: its long rows vectorize anyway, and XLA:CPU
+    if flat:  # not with depth: its long rows vectorize anyway, and XLA:CPU
         # updates a buffer of N (6 + H W) x 3 numbers per world slowly (a scatter under vmap)
         t, r, valid = (x.reshape(shape) for x in _own_buffer(t, (t, r, valid.astype(t.dtype))))
         valid = valid > 0.5
-    elif xp is not np:
-        t, r, valid = t.reshape(shape), r.reshape(shape), valid.reshape(shape)
     flags = valid.astype(t.dtype)
     parts: list[Any] = []
     k = 0

@@ -149,3 +149,27 @@ def test_deck_part_under_jit_with_x64_equals_numpy():
             *(jnp.asarray(x) for x in (pos, vel, R, omega)), {k: jnp.asarray(v) for k, v in d.items()})
         assert out.dtype == jnp.float64
         np.testing.assert_allclose(np.asarray(out), ref, rtol=1e-9, atol=1e-9)
+
+
+def test_deck_part_takes_the_tof_noise_made_in_advance():
+    """draws["range_z"] (perf.fused_draws.tof_numbers of the uniforms: the JAX engine's carried numbers)
+    gives the readings of draws["range_u"], under jit, with and without the depth camera."""
+    jax = pytest.importorskip("jax")
+    jnp = jax.numpy
+    from quadswarm_mj.perf.fused_draws import tof_numbers
+    from quadswarm_mj.sensors import deck_part
+
+    for s in (SensorConfig(multiranger=True, flow=True, depth=(4, 4), dropout=0.2),
+              SensorConfig(multiranger=True, flow=True, dropout=0.2)):
+        c = EnvConfig(num_quads=4, sensors=s)
+        rng = np.random.default_rng(2)
+        pos, R = _state(rng, 4, (3,))
+        vel, omega = rng.normal(size=(3, 4, 3)), rng.normal(size=(3, 4, 3))
+        u, fn = rng.uniform(size=(3, 4, s.num_rays)), rng.normal(size=(3, 4, 2))
+        args = tuple(jnp.asarray(x, jnp.float32) for x in (pos, vel, R, omega, u, fn))
+        with_u = jax.jit(lambda p, v, r, o, u, f, c=c: deck_part(c, p, v, r, o, None, {"range_u": u, "flow_noise": f}))
+        with_z = jax.jit(lambda p, v, r, o, u, f, c=c, s=s: deck_part(
+            c, p, v, r, o, None, {"range_z": tof_numbers(u, s.dropout), "flow_noise": f}))
+        a, b = np.asarray(with_u(*args)), np.asarray(with_z(*args))
+        assert (u < s.dropout).any()
+        np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-6)
