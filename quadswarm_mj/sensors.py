@@ -221,7 +221,9 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     as 0.0 / 1.0; :func:`deck_readings` gives it as named readings) from the TRUE state: ``pos`` (...,
     N, 3) m and ``vel`` (..., N, 3) m/s (world), R (..., N, 3, 3) body -> world, ``omega`` (..., N, 3)
     rad/s (body); ``obstacles`` = (centres, valid, radius) of the column map or None; ``draws`` from
-    :func:`deck_draw_spec` (None: noise-free).
+    :func:`deck_draw_spec` (None: noise-free), where ``range_u`` may be replaced by ``range_z``: the rays'
+    :func:`tof_normal` already made, NaN for a lost reading (the JAX engine's carried numbers,
+    :func:`quadswarm_mj.perf.fused_draws.tof_numbers`; the same readings).
 
     Every ToF reading (VL53L1x model, all rays at once; true ranges :func:`deck_ranges`) is valid where
     the true range ``t`` is within its limit and not dropped (u >= dropout); a valid reading is
@@ -229,28 +231,35 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     xp = array_namespace(pos, vel, R)
     s = cfg.sensors
     t = deck_ranges(cfg, pos, R, obstacles)
+    if xp is np and (draws is None or "range_u" in draws):
+        return _deck_part_numpy(s, t, vel, R, omega, draws)
     limit = ray_limits(s)
-    u = None if draws is None else draws["range_u"]
-    if xp is not np:  # XLA:CPU: the per-ray model on one flat axis of N K rays (a minor axis of K = 6
-        # runs at scalar speed: ~8x slower for the multi-ranger), same values
+    u = None if draws is None else draws.get("range_u")
+    z = None if draws is None else draws.get("range_z")  # or the ToF noise already made (NaN: lost)
+    flat = xp is not np and s.depth is None
+    if flat:  # XLA:CPU: the per-ray model on one flat axis of N K rays (a minor axis of K = 6 runs at
+        # scalar speed: ~8x slower for the multi-ranger), same values. Not with the depth camera: its
+        # K >= 64 rays vectorize, and XLA:CPU then runs the whole cast along the flat axis's layout
         shape = t.shape
         limit = np.tile(limit, shape[-2])
         t = t.reshape(shape[:-2] + (-1,))
         t, = _own_buffer(t, (t,))  # the ranges' stack (6 axis rays) is not fused into the model's loop
         u = None if u is None else u.reshape(t.shape)
+        z = None if z is None else z.reshape(t.shape)
     limit = xp.asarray(limit, dtype=t.dtype)
     valid = t <= limit
     r = t
     if u is not None:
         valid = valid & (u >= s.dropout)
         r = t + tof_std(t) * tof_normal(u, s.dropout)
+    elif z is not None:
+        valid = valid & (z == z)  # not NaN
+        r = t + tof_std(t) * z
     r = xp.where(valid, xp.minimum(xp.maximum(r, 0.0), limit), limit)
-    if xp is not np and s.depth is None:  # not with depth: its long rows vectorize anyway, and XLA:CPU
+    if flat:  # not with depth: its long rows vectorize anyway, and XLA:CPU
         # updates a buffer of N (6 + H W) x 3 numbers per world slowly (a scatter under vmap)
         t, r, valid = (x.reshape(shape) for x in _own_buffer(t, (t, r, valid.astype(t.dtype))))
         valid = valid > 0.5
-    elif xp is not np:
-        t, r, valid = t.reshape(shape), r.reshape(shape), valid.reshape(shape)
     flags = valid.astype(t.dtype)
     parts: list[Any] = []
     k = 0
@@ -271,6 +280,69 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     if s.depth is not None:
         parts.append(r[..., k:])
     return parts[0] if len(parts) == 1 else xp.concatenate(parts, axis=-1)
+
+
+@functools.lru_cache(maxsize=32)
+def _numpy_plan(s: SensorConfig) -> tuple[np.ndarray, np.ndarray, int]:
+    """(limit (K,), out columns (obs_dim,), flow ray index) of :func:`_deck_part_numpy`: the deck part's
+    columns as indices into its buffer [r (K) | flags (K) | flow x, y | flow valid]. Read-only."""
+    k_rays = s.num_rays
+    cols: list[int] = []
+    k = 0
+    if s.multiranger:
+        cols += list(range(5)) + list(range(k_rays, k_rays + 5))
+        k = 5
+    if s.flow:
+        cols += [k, 2 * k_rays, 2 * k_rays + 1, k_rays + k, 2 * k_rays + 2]
+        k += 1
+    if s.depth is not None:
+        cols += list(range(k, k_rays))
+    out = (ray_limits(s), np.asarray(cols, np.intp))
+    for x in out:
+        x.setflags(write=False)
+    return out[0], out[1], (5 if s.multiranger else 0)
+
+
+def _deck_part_numpy(s: SensorConfig, t: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray,
+                     draws: dict[str, Any] | None) -> np.ndarray:
+    """:func:`deck_part` in NumPy from the true ranges ``t`` (..., N, K), with few calls (the CPU
+    engine's arrays are small: the per-call cost dominates): every reading written into one buffer,
+    the columns picked by one ``take``. The same operations on the same values: the same bits."""
+    limit, cols, kf = _numpy_plan(s)
+    k_rays = t.shape[-1]
+    buf = np.empty(t.shape[:-1] + (2 * k_rays + 3,))
+    r, flags = buf[..., :k_rays], buf[..., k_rays:2 * k_rays]
+    valid = t <= limit
+    if draws is not None:
+        u = draws["range_u"]
+        valid &= u >= s.dropout
+        x = np.minimum(np.maximum(t, 0.0), TOF_POINT_B)  # tof_std(t), in place
+        x -= TOF_POINT_A
+        x *= TOF_STD_K
+        np.exp(x, out=x)
+        x += 1.0
+        x *= TOF_STD_A
+        x *= tof_normal(u, s.dropout)
+        x += t
+        np.maximum(x, 0.0, out=x)
+    else:
+        x = np.maximum(t, 0.0)
+    np.minimum(x, limit, out=r)
+    np.copyto(r, limit, where=~valid)
+    np.copyto(flags, valid)
+    if s.flow:
+        d = t[..., kf]  # the true range along body -z
+        f, rate_ok = flow_pixels2(_body_velocity(np, R, vel), omega, d)
+        rate_ok &= d >= FLOW_MIN_RANGE
+        if s.light_lux < FLOW_MIN_LUX:  # too dark: never valid
+            rate_ok[...] = False
+        if draws is not None:
+            f += FLOW_STD_PX * draws["flow_noise"]
+        fo = buf[..., 2 * k_rays:2 * k_rays + 2]
+        np.minimum(np.maximum(f, -FLOW_LIMIT_PX), FLOW_LIMIT_PX, out=fo)
+        np.copyto(fo, 0.0, where=~rate_ok[..., None])
+        np.copyto(buf[..., 2 * k_rays + 2], rate_ok)
+    return np.take(buf, cols, axis=-1)
 
 
 def deck_readings(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,

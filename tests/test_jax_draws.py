@@ -122,3 +122,42 @@ def test_step_key_and_numbers_is_step_words_then_unit_numbers_bit_for_bit(total,
     assert np.asarray(k_new).tobytes() == np.asarray(k_old).tobytes()
     k1, _ = step_key_and_numbers(jax.random.key(1) if typed else jax.random.PRNGKey(1), mask)
     assert jax.dtypes.issubdtype(k1.dtype, jax.dtypes.prng_key) == typed
+
+
+def test_step_numbers_with_tof_positions_are_the_deck_noise_of_the_same_uniforms():
+    """At ``tof_mask`` positions step_key_and_numbers carries tof_numbers (the deck rays' ToF noise,
+    NaN where the reading is lost) of the uniform it would carry there, to float32 round-off; every
+    other number and the next key are unchanged bit for bit."""
+    from quadswarm_mj.perf.fused_draws import tof_numbers
+    from quadswarm_mj.sensors import tof_normal
+
+    rng = np.random.default_rng(3)
+    total, dropout = 301, 0.05
+    mask = rng.random(total) < 0.4
+    tof = ~mask & (rng.random(total) < 0.6)
+    spec = {f"d{i}": (Normal() if m else Uniform(0.0, 1.0)) for i, m in enumerate(mask)}
+
+    def plain(key):
+        k, w = step_words(key, total)
+        return jax.random.key_data(k), FusedJaxSampler.unit_numbers(spec, w)
+
+    def with_tof(key):
+        k, x = step_key_and_numbers(key, mask, tof, dropout)
+        return jax.random.key_data(k), x
+
+    keys = jax.random.split(jax.random.key(8), 200)
+    (k0, x0), (k1, x1) = jax.jit(jax.vmap(plain))(keys), jax.jit(jax.vmap(with_tof))(keys)
+    x0, x1 = np.asarray(x0), np.asarray(x1)
+    assert np.asarray(k0).tobytes() == np.asarray(k1).tobytes()
+    assert x0[:, ~tof].tobytes() == x1[:, ~tof].tobytes()
+    u = x0[:, tof]
+    lost = u < dropout
+    assert lost.any() and np.array_equal(np.isnan(x1[:, tof]), lost)
+    want = np.asarray(jax.jit(lambda v: tof_normal(v, dropout))(jnp.asarray(u)))
+    # float32 round-off of the argument 2 w - 1 (another fusion may contract it into an FMA), amplified
+    # by erfinv's slope near -1 in the tail: most numbers agree to a few ulp, the tail to 1e-3
+    np.testing.assert_allclose(x1[:, tof][~lost], want[~lost], rtol=1e-3, atol=1e-3)
+    assert np.median(np.abs(x1[:, tof][~lost] - want[~lost])) < 1e-6
+    mine = np.asarray(jax.jit(lambda v: tof_numbers(v, dropout))(jnp.asarray(u)))
+    assert np.array_equal(np.isnan(mine), lost)
+    np.testing.assert_allclose(mine[~lost], want[~lost], rtol=1e-3, atol=1e-3)

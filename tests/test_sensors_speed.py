@@ -149,3 +149,67 @@ def test_deck_part_under_jit_with_x64_equals_numpy():
             *(jnp.asarray(x) for x in (pos, vel, R, omega)), {k: jnp.asarray(v) for k, v in d.items()})
         assert out.dtype == jnp.float64
         np.testing.assert_allclose(np.asarray(out), ref, rtol=1e-9, atol=1e-9)
+
+
+def test_deck_part_takes_the_tof_noise_made_in_advance():
+    """draws["range_z"] (perf.fused_draws.tof_numbers of the uniforms: the JAX engine's carried numbers)
+    gives the readings of draws["range_u"], under jit, with and without the depth camera."""
+    jax = pytest.importorskip("jax")
+    jnp = jax.numpy
+    from quadswarm_mj.perf.fused_draws import tof_numbers
+    from quadswarm_mj.sensors import deck_part
+
+    for s in (SensorConfig(multiranger=True, flow=True, depth=(4, 4), dropout=0.2),
+              SensorConfig(multiranger=True, flow=True, dropout=0.2)):
+        c = EnvConfig(num_quads=4, sensors=s)
+        rng = np.random.default_rng(2)
+        pos, R = _state(rng, 4, (3,))
+        vel, omega = rng.normal(size=(3, 4, 3)), rng.normal(size=(3, 4, 3))
+        u, fn = rng.uniform(size=(3, 4, s.num_rays)), rng.normal(size=(3, 4, 2))
+        args = tuple(jnp.asarray(x, jnp.float32) for x in (pos, vel, R, omega, u, fn))
+        with_u = jax.jit(lambda p, v, r, o, u, f, c=c: deck_part(c, p, v, r, o, None, {"range_u": u, "flow_noise": f}))
+        with_z = jax.jit(lambda p, v, r, o, u, f, c=c, s=s: deck_part(
+            c, p, v, r, o, None, {"range_z": tof_numbers(u, s.dropout), "flow_noise": f}))
+        a, b = np.asarray(with_u(*args)), np.asarray(with_z(*args))
+        assert (u < s.dropout).any()
+        np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("noise", [True, False])
+def test_numpy_deck_part_is_the_plain_model_bit_for_bit(noise):
+    """The NumPy deck part (one buffer, one take) equals the sensor model written plainly from
+    tof_std, tof_normal and flow_pixels2, bit for bit, with readings out of range and lost."""
+    from quadswarm_mj.sensors import (
+        FLOW_LIMIT_PX,
+        FLOW_MIN_RANGE,
+        FLOW_STD_PX,
+        deck_part,
+        deck_ranges,
+        flow_pixels2,
+        ray_limits,
+        tof_normal,
+        tof_std,
+    )
+
+    s = SensorConfig(multiranger=True, flow=True, depth=(2, 3), dropout=0.2)
+    c = EnvConfig(num_quads=8, sensors=s)
+    rng = np.random.default_rng(5)
+    pos, R = _state(rng, 8, (3,))
+    vel, omega = 3 * rng.normal(size=(3, 8, 3)), rng.normal(size=(3, 8, 3))
+    d = {"range_u": rng.uniform(size=(3, 8, s.num_rays)), "flow_noise": rng.normal(size=(3, 8, 2))} if noise else None
+    t = deck_ranges(c, pos, R)
+    limit = ray_limits(s)
+    valid, r = t <= limit, t
+    if noise:
+        valid = valid & (d["range_u"] >= s.dropout)
+        r = t + tof_std(t) * tof_normal(d["range_u"], s.dropout)
+    r = np.where(valid, np.minimum(np.maximum(r, 0.0), limit), limit)
+    f, ok = flow_pixels2((vel[..., None, :] @ R)[..., 0, :], omega, t[..., 5])
+    ok = ok & (t[..., 5] >= FLOW_MIN_RANGE)
+    f = f + FLOW_STD_PX * d["flow_noise"] if noise else f
+    f = np.where(ok[..., None], np.clip(f, -FLOW_LIMIT_PX, FLOW_LIMIT_PX), 0.0)
+    want = np.concatenate([r[..., :5], valid[..., :5], r[..., 5:6], f, valid[..., 5:6], ok[..., None], r[..., 6:]],
+                          axis=-1)
+    got = deck_part(c, pos, vel, R, omega, None, d)
+    assert (~valid).any() and got.shape == want.shape
+    assert got.tobytes() == want.astype(float).tobytes()

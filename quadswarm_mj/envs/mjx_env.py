@@ -96,6 +96,9 @@ def _prefixed(prefix: str, spec: DrawSpec, lead: tuple[int, ...] = ()) -> DrawSp
     return {f"{prefix}/{k}": dataclasses.replace(d, shape=tuple(lead) + tuple(d.shape)) for k, d in spec.items()}
 
 
+_DECK_U = "deck/range_u"  # the deck rays' uniforms in the step's draws (quadswarm_mj.sensors.deck_draw_spec)
+
+
 def _deck_spec(cfg: EnvConfig) -> DrawSpec:
     """The deck sensors' draws of one step (quadswarm_mj.sensors.deck_draw_spec; {} when off)."""
     from quadswarm_mj.sensors import deck_draw_spec
@@ -203,6 +206,11 @@ class MjxQuadSwarmEnv:
         # the normals' erf_inv into every consumer (or needs a loop to materialize them).
         self._carry_numbers = (draws == "fused" and bool(self._step_spec)
                                and FusedJaxSampler.fused(jax.random.key(0), _float()))
+        # the deck rays' uniforms are carried as their ToF noise (perf.fused_draws.tof_numbers, made with
+        # the numbers' own erf_inv), which build_obs takes as draws["deck/range_z"]: the same readings
+        self._tof_mask = FusedJaxSampler.entry_mask(self._step_spec, _DECK_U) if self._carry_numbers else None
+        if self._tof_mask is not None and not self._tof_mask.any():
+            self._tof_mask = None
 
     # ------------------------------------------------------------------ properties
     @property
@@ -249,7 +257,8 @@ class MjxQuadSwarmEnv:
         threefry hash, :func:`step_words`); empty where the numbers are not carried."""
         if not self._carry_numbers:
             return {}
-        k_next, numbers = step_key_and_numbers(key, FusedJaxSampler.normal_mask(self._step_spec))
+        k_next, numbers = step_key_and_numbers(key, FusedJaxSampler.normal_mask(self._step_spec), self._tof_mask,
+                                               self.cfg.sensors.dropout)
         return {"rng": k_next, "step_numbers": numbers}
 
     def _read(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
@@ -431,6 +440,9 @@ class MjxQuadSwarmEnv:
         k_next = info["rng"]
         if "step_numbers" in info:  # made by the previous step (or reset); the next ones at the end
             rnd = FusedJaxSampler.from_numbers(self._step_spec, info["step_numbers"])
+            if self._tof_mask is not None:  # the deck rays' ToF noise (NaN: lost), not their uniforms
+                del rnd[_DECK_U]
+                rnd["deck/range_z"] = FusedJaxSampler.raw_entry(self._step_spec, info["step_numbers"], _DECK_U)
             if self._step_mean_spec:
                 rnd.update(MeanSampler(dtype=f, xp=jnp).draw(self._step_mean_spec))
         else:

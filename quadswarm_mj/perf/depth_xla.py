@@ -10,8 +10,11 @@ neighbours: XLA:CPU writes it out and reads it back in a separate (YNNPACK) redu
   float, both of whose bit patterns are larger than +inf's as unsigned integers, as is NaN of the own
   sphere (c = inf). An unsigned minimum (one instruction) thus replaces the tests, the select and the
   NaN-aware float minimum (~6 instructions) per pair and pixel;
-* the neighbours' axis is put first and halved by pairwise minima of slices (log2 N steps, no
-  reduction op), which XLA fuses with the distances into one loop over the pixels.
+* the neighbours are taken in two halves by a two-trip loop, whose result is a buffer: XLA:CPU cannot
+  fuse the cast into the deck part's later kernels, where it ran along their layouts several times
+  slower (a one-trip loop would be inlined). Within a half, the neighbours' axis is put first and
+  halved by pairwise minima of slices (log2 N steps, no reduction op), fused with the distances into
+  one loop over the pixels.
 """
 
 from __future__ import annotations
@@ -43,10 +46,21 @@ def sphere_pixel_hits(ob: list[Any], c: Any, uk: Any, vk: Any, norm2: Any) -> ja
     the plain form's (beta > 0 and disc >= 0); a pair with c < 0 (inside) is the caller's to override."""
     f = c.dtype
     u = _UINT[jnp.dtype(f)]
-    sw = [jnp.swapaxes(a, -1, -2)[..., None] for a in ob + [c]]  # (..., N (j), N (i), 1)
-    x, y, z, cc = (jnp.moveaxis(a, -3, 0) for a in sw)  # (N (j), ..., N (i), 1): neighbours first
-    beta = x + uk * y + vk * z
-    t = beta - jnp.sqrt(beta * beta - norm2 * cc)  # NaN: no hit; < 0: behind (see the module doc)
     inf_bits = jax.lax.bitcast_convert_type(jnp.asarray(np.inf, f), u)
-    best = jnp.minimum(_min_leading(jax.lax.bitcast_convert_type(t, u), inf_bits), inf_bits)
+    n = c.shape[-1]
+    half = (n + 1) // 2
+    # (4, 2 half (j), ..., N (i)): the neighbours first, padded to an even count with a sphere never hit
+    parts = [jnp.moveaxis(a, -1, 0) for a in ob + [c]]
+    if 2 * half > n:
+        parts = [jnp.concatenate([a, jnp.full((1,) + a.shape[1:], np.inf if k == 3 else 0.0, f)])
+                 for k, a in enumerate(parts)]
+    stacked = jnp.stack(parts)
+
+    def body(k: jax.Array, best: jax.Array) -> jax.Array:
+        x, y, z, cc = jax.lax.dynamic_slice_in_dim(stacked, k * half, half, axis=1)[..., None]
+        beta = x + uk * y + vk * z  # (half, ..., N, H W)
+        t = beta - jnp.sqrt(beta * beta - norm2 * cc)  # NaN: no hit; < 0: behind (see the module doc)
+        return jnp.minimum(best, _min_leading(jax.lax.bitcast_convert_type(t, u), inf_bits))
+
+    best = jax.lax.fori_loop(0, 2, body, jnp.full(c.shape[:-1] + uk.shape, inf_bits, u))
     return jax.lax.bitcast_convert_type(best, f)

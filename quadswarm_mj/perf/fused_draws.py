@@ -74,7 +74,8 @@ def _unit_numbers(words: jax.Array) -> tuple[jax.Array, jax.Array]:
     return u01, np.sqrt(2.0).astype(np.float32) * erf_inv_f32(jnp.maximum(lo_n, lo_n + (1.0 - lo_n) * u01))
 
 
-def step_key_and_numbers(key: jax.Array, normal_mask: np.ndarray) -> tuple[jax.Array, jax.Array]:
+def step_key_and_numbers(key: jax.Array, normal_mask: np.ndarray, tof_mask: np.ndarray | None = None,
+                         dropout: float = 0.0) -> tuple[jax.Array, jax.Array]:
     """(next key, float32 unit numbers) equal to ``step_words`` followed by
     :meth:`FusedJaxSampler.unit_numbers` (the same bits), in ONE pass over the threefry rounds.
 
@@ -84,7 +85,12 @@ def step_key_and_numbers(key: jax.Array, normal_mask: np.ndarray) -> tuple[jax.A
     two halves of one complex64 (bit casts and selects only: no arithmetic on the carried bits),
     made in a two-trip loop over halves of the blocks (a loop's result is a buffer XLA cannot fuse
     back into its consumers; a one-trip loop would be inlined). ``normal_mask`` (total,) bool: the
-    positions of normals (N(0, 1)); the others are U[0, 1)."""
+    positions of normals (N(0, 1)); the others are U[0, 1).
+
+    ``tof_mask`` (total,) bool (or None): positions whose uniform u is a deck ray's (the VL53L1x model
+    of :mod:`quadswarm_mj.sensors`, reading lost where u < ``dropout``): they hold :func:`tof_numbers`
+    of u instead (the ray's standard normal noise, NaN where the reading is lost), from the same
+    erf_inv as the normals (the kernel computes one erf_inv per word either way)."""
     total = int(normal_mask.shape[0])
     n = total + 2
     n += n % 2
@@ -100,6 +106,11 @@ def step_key_and_numbers(key: jax.Array, normal_mask: np.ndarray) -> tuple[jax.A
 
     count0, count1 = padded(count[:half]), padded(count[half:])
     normal0, normal1 = padded(full[:half]), padded(full[half:])
+    tof_full = np.zeros(2 * half, bool)
+    if tof_mask is not None:
+        tof_full[2:2 + total] = tof_mask
+    tof0, tof1 = padded(tof_full[:half]), padded(tof_full[half:])
+    has_tof = bool(tof_full.any())
     is_key = padded(np.arange(half) < 2)
     kd = jax.random.key_data(key)
     k0, k1 = kd[0], kd[1]
@@ -111,10 +122,16 @@ def step_key_and_numbers(key: jax.Array, normal_mask: np.ndarray) -> tuple[jax.A
 
         x0, x1 = pick(count0) + ks[0], pick(count1) + ks[1]
         x0, x1 = _threefry_rounds(x0, x1, ks)
-        u0, n0 = _unit_numbers(x0)
-        u1, n1 = _unit_numbers(x1)
-        v0 = jnp.where(pick(is_key), jax.lax.bitcast_convert_type(x0, jnp.float32), jnp.where(pick(normal0), n0, u0))
-        v1 = jnp.where(pick(normal1), n1, u1)
+        if has_tof:
+            v0 = _numbers_with_tof(x0, pick(normal0), pick(tof0), dropout)
+            v1 = _numbers_with_tof(x1, pick(normal1), pick(tof1), dropout)
+            v0 = jnp.where(pick(is_key), jax.lax.bitcast_convert_type(x0, jnp.float32), v0)
+        else:
+            u0, n0 = _unit_numbers(x0)
+            u1, n1 = _unit_numbers(x1)
+            v0 = jnp.where(pick(is_key), jax.lax.bitcast_convert_type(x0, jnp.float32),
+                           jnp.where(pick(normal0), n0, u0))
+            v1 = jnp.where(pick(normal1), n1, u1)
         return jax.lax.dynamic_update_slice(acc, jax.lax.complex(v0, v1), (i * q,))
 
     pairs = jax.lax.fori_loop(0, 2, body, jnp.zeros((2 * q,), jnp.complex64))[:half]
@@ -123,6 +140,32 @@ def step_key_and_numbers(key: jax.Array, normal_mask: np.ndarray) -> tuple[jax.A
     if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
         key_words = jax.random.wrap_key_data(key_words, impl=jax.random.key_impl(key))
     return key_words, flat[2:2 + total]
+
+
+def _tof_argument(u01: jax.Array, dropout: float) -> jax.Array:
+    """2 w - 1 of :func:`quadswarm_mj.sensors.tof_normal` (float32): w = max((u - dropout) / (1 - dropout),
+    2^-24), whose ``sqrt(2) erf_inv_f32`` is the ray's standard normal noise."""
+    scale = 1.0 / (1.0 - dropout) if dropout < 1.0 else 0.0
+    return 2.0 * jnp.maximum((u01 - dropout) * scale, 2.0 ** -24) - 1.0
+
+
+def tof_numbers(u: jax.Array, dropout: float) -> jax.Array:
+    """float32 ``tof_normal(u, dropout)`` where ``u >= dropout`` (the reading is kept), NaN where it is
+    lost: what :func:`step_key_and_numbers` carries at its ``tof_mask`` positions, and what
+    :func:`quadswarm_mj.sensors.deck_part` takes as ``draws["range_z"]`` instead of ``range_u``."""
+    z = np.sqrt(2.0).astype(np.float32) * erf_inv_f32(_tof_argument(u, dropout))
+    return jnp.where(u >= dropout, z, jnp.nan)
+
+
+def _numbers_with_tof(words: jax.Array, normal: jax.Array, tof: jax.Array, dropout: float) -> jax.Array:
+    """:func:`_unit_numbers` of ``words`` chosen by ``normal`` (N(0, 1)) or not (U[0, 1)), and
+    :func:`tof_numbers` of the uniform where ``tof``: ONE erf_inv per word, of the normal's or the
+    ToF noise's argument."""
+    u01 = jax.lax.bitcast_convert_type((words >> 9) | jnp.uint32(0x3F800000), jnp.float32) - 1.0
+    lo_n = np.nextafter(np.float32(-1.0), np.float32(0.0))
+    arg = jnp.where(tof, _tof_argument(u01, dropout), jnp.maximum(lo_n, lo_n + (1.0 - lo_n) * u01))
+    z = np.sqrt(2.0).astype(np.float32) * erf_inv_f32(arg)
+    return jnp.where(tof, jnp.where(u01 >= dropout, z, jnp.nan), jnp.where(normal, z, u01))
 
 
 _ERF_INV_SMALL = np.array([2.81022636e-08, 3.43273939e-07, -3.5233877e-06, -4.39150654e-06, 0.00021858087,
@@ -214,6 +257,22 @@ class FusedJaxSampler(JaxSampler):
         """(num_words,) bool: the positions of the spec's normal draws."""
         return np.concatenate([np.full(int(np.prod(tuple(batch_shape) + tuple(d.shape))), isinstance(d, Normal))
                                for d in spec.values()])
+
+    @staticmethod
+    def entry_mask(spec: DrawSpec, name: str) -> np.ndarray:
+        """(num_words,) bool: the positions of the entry ``name`` of ``spec`` (all False without it)."""
+        return np.concatenate([np.full(int(np.prod(tuple(d.shape))), k == name) for k, d in spec.items()])
+
+    @staticmethod
+    def raw_entry(spec: DrawSpec, numbers: jax.Array, name: str) -> jax.Array:
+        """The numbers at the positions of the entry ``name`` of ``spec``, unscaled, in its shape."""
+        start = 0
+        for k, d in spec.items():
+            size = int(np.prod(tuple(d.shape)))
+            if k == name:
+                return numbers[start:start + size].reshape(tuple(d.shape))
+            start += size
+        raise KeyError(name)
 
     @staticmethod
     def unit_numbers(spec: DrawSpec, words: jax.Array) -> jax.Array:
