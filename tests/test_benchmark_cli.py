@@ -91,6 +91,7 @@ def test_gym_rates_ratio_to_the_first_row_and_a_failed_row_reported() -> None:
     assert [r["label"] for r in out] == ["ref", "eight", "bad"]
     assert out[0]["rate"] > 0 and out[0]["ratio"] == 1.0
     assert out[1]["ratio"] == out[1]["rate"] / out[0]["rate"]
+    assert out[0]["cpu_ratio"] == 1.0 and out[1]["cpu_ratio"] == out[1]["cpu_rate"] / out[0]["cpu_rate"]
     assert out[2]["rate"] is None and out[2]["ratio"] is None and "num_quads" in out[2]["error"]
     table = gym_table(out, [("fresh", {"import_s": 0.5, "first_step_s": 1.25}), ("failed", None)])
     assert "| ref | " in table and "1.00x" in table and "| fresh | 0.50 | 1.25 |" in table and "(failed)" in table

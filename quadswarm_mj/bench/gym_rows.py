@@ -4,7 +4,9 @@
 ``Hopper-v5`` and of ``gym.make("QuadSwarm-v0", ...)`` variants in one process, with random actions
 (pre-drawn uniform in the action space, so drawing them is not timed) and the resets included in the
 timed loop. The rows are measured in ``rounds`` alternating rounds (Hopper first in every round) and each
-figure is the best of its rounds, so every ratio is of figures of the same run. The benchmark runs it in a
+figure is the best of its rounds, so every ratio is of figures of the same run; ``cpu_ratio`` is the ratio of
+steps per second of process CPU time (all threads; steadier than wall time when other jobs share the cores,
+and for the single-threaded MuJoCo engine and Hopper-v5 the same ratio on a quiet machine). The benchmark runs it in a
 fresh process with JAX's defaults (no ``tune_jax_cpu``): what a user who just calls ``gym.make`` gets.
 ``first_step_seconds`` is the time from ``gym.make`` to the first ``step``'s return in a fresh process
 (``import`` timed separately). ``Hopper-v5`` needs gymnasium's MuJoCo extra (``imageio``).
@@ -39,14 +41,15 @@ def _make(kwargs: dict[str, Any]) -> Any:
 
 
 def _runner(env: Any, seed: int = 0) -> Any:
-    """``run(k)``: k timed random-action steps, resets included; returns their wall time."""
+    """``run(k)``: k timed random-action steps, resets included; returns their wall time and the process's
+    CPU time (all its threads)."""
     env.reset(seed=seed)
     env.action_space.seed(seed)
     pool = [np.asarray(env.action_space.sample()) for _ in range(64)]
     box = {"i": 0}
 
-    def run(k: int) -> float:
-        t = time.perf_counter()
+    def run(k: int) -> tuple[float, float]:
+        t, c = time.perf_counter(), time.process_time()
         i = box["i"]
         for _ in range(k):
             _, _, term, trunc, _ = env.step(pool[i % 64])
@@ -54,7 +57,7 @@ def _runner(env: Any, seed: int = 0) -> Any:
             if term or trunc:
                 env.reset()
         box["i"] = i
-        return time.perf_counter() - t
+        return time.perf_counter() - t, time.process_time() - c
 
     run(20)  # warm up (the JAX engine compiles on its first step)
     return run
@@ -69,7 +72,7 @@ def gym_rates(seconds: float = 2.0, rounds: int = 3, rows: tuple[tuple[str, dict
         try:
             env = _make(kw)
             envs.append((env, _runner(env)))
-            out.append({"label": label, "kwargs": kw, "rate": 0.0})
+            out.append({"label": label, "kwargs": kw, "rate": 0.0, "cpu_rate": 0.0})
         except Exception as e:  # noqa: BLE001
             envs.append((None, None))
             out.append({"label": label, "kwargs": kw, "rate": None, "error": repr(e)[:200]})
@@ -78,19 +81,21 @@ def gym_rates(seconds: float = 2.0, rounds: int = 3, rows: tuple[tuple[str, dict
             for (_env, run), r in zip(envs, out):
                 if run is None:
                     continue
-                k, t = 0, 0.0
+                k, t, c = 0, 0.0, 0.0
                 while t < seconds:
                     n = max(10, k // 4 or 10)
-                    t += run(n)
-                    k += n
+                    dt, dc = run(n)
+                    t, c, k = t + dt, c + dc, k + n
                 r["rate"] = max(r["rate"], k / t)
+                r["cpu_rate"] = max(r["cpu_rate"], k / max(c, 1e-9))
     finally:
         for env, _ in envs:
             if env is not None:
                 env.close()
-    ref = out[0]["rate"]
+    ref, cpu_ref = out[0]["rate"], out[0].get("cpu_rate")
     for r in out:
         r["ratio"] = r["rate"] / ref if ref and r["rate"] else None
+        r["cpu_ratio"] = r["cpu_rate"] / cpu_ref if cpu_ref and r.get("cpu_rate") else None
     return out
 
 

@@ -17,20 +17,18 @@ from quadswarm_mj.bench.envs import bench_vector
 
 PROFILE_GROUPS = [  # (label, [(file suffix, function name)]); builtins have file "~" and match by substring
     ("MuJoCo physics step (C)", [("~", "mj_step"), ("~", "_batch.step")]),
-    # the CPU engine calls the sub-step functions through quadswarm_mj.perf.numpy_small (which hands one quad
-    # to quadswarm_mj.perf.one_quad, counted in the same groups) and the task functions through core.ops.NumpyOps
+    # the CPU engine calls the model through its ops (core/ops.py's NumpyOps: the model's functions, the
+    # fewest-NumPy-calls forms of perf/numpy_small.py, or for one quad perf/one_quad.py's float forms)
     ("actuation: command, motor noise, lag, thrusts, wrench", [("numpy_small.py", "substep_wrench"),
-                                                               ("actuation.py", "motor_noise_step"),
-                                                               ("actuation.py", "action_to_command")]),
-    ("rotation matrices from quaternions", [("numpy_small.py", "quat_to_rotmat")]),
-    ("floor model (friction wrench + impact)", [("numpy_small.py", "floor_wrench"), ("cpu_core.py", "_floor_impact"),
-                                                ("ops.py", "_floor_impact_one")]),
+                                                               ("ops.py", "motor_noise"), ("ops.py", "command")]),
+    ("rotation matrices from quaternions", [("numpy_small.py", "quat_to_rotmat"), ("one_quad.py", "quat_to_rotmat")]),
+    ("floor model (friction wrench + impact)", [("ops.py", "floor_wrench"), ("ops.py", "floor_impact")]),
     ("walls, ceiling, quad-quad response", [("collisions.py", "wall_collisions"),
                                             ("collisions.py", "quad_collisions")]),
-    ("pairwise distances and contacts", [("collisions.py", "pairwise_contacts")]),
+    ("pairwise distances and contacts", [("ops.py", "pairwise_contacts")]),
     ("reward terms and total", [("ops.py", "reward_terms"), ("ops.py", "total_reward")]),
     ("episode metrics", [("ops.py", "metrics_update"), ("metrics.py", "goal_jump")]),
-    ("observations (sensor noise, own state, K nearest)", [("ops.py", "obs")]),
+    ("observations (own state, K nearest)", [("ops.py", "obs")]),
     ("scenario goals", [("scenarios/static.py", "step"), ("scenarios/base.py", "step")]),
     ("env wrapper: action check, info / output arrays", [("validation.py", "check_action"), ("gym_env.py", "_info"),
                                                          ("vector_env.py", "_info"),

@@ -45,14 +45,17 @@ def vector_summary(table: list[dict[str, Any]], workloads: tuple[str, ...]) -> l
 
 
 def gym_table(rates: list[dict[str, Any]] | None, first: list[tuple[str, dict[str, float] | None]]) -> str:
-    """The Gymnasium rows (env steps/s, ratio to Hopper-v5) and the first-step times ('' if none)."""
+    """The Gymnasium rows (env steps/s, ratio to Hopper-v5 in wall and in CPU time) and the first-step times
+    ('' if none)."""
     lines = []
     if rates:
-        lines += ["| gym.make(...) | env steps/s | ratio to Hopper-v5 (same process) |", "|---|---:|---:|"]
+        lines += ["| gym.make(...) | env steps/s | ratio to Hopper-v5 (same process) | ratio in process CPU time |",
+                  "|---|---:|---:|---:|"]
         for r in rates:
             ratio = f"{r['ratio']:.2f}x" if r.get("ratio") else "-"
+            cpu = f"{r['cpu_ratio']:.2f}x" if r.get("cpu_ratio") else "-"
             note = f" ({r['error']})" if r.get("error") else ""
-            lines.append(f"| {r['label']}{note} | {fmt(r['rate'])} | {ratio} |")
+            lines.append(f"| {r['label']}{note} | {fmt(r['rate'])} | {ratio} | {cpu} |")
     if first:
         lines += ["", "| fresh process | import (s) | gym.make to the first step's return (s) |", "|---|---:|---:|"]
         for label, res in first:

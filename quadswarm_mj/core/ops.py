@@ -187,7 +187,7 @@ class NumpyOps(ModelForms):
         then); returns (q, v, u, on_floor, hit_floor, R of the new q)."""
         s = self.s
         if self._one and one_quad.ENABLED:  # one quad: perf.one_quad's float forms (same draw, same bits)
-            if q[0, 0, 2] <= s.floor_z or s._any_on_floor:
+            if q[0, 0, 2] <= s.floor_z or (s._any_on_floor and on_floor[0, 0]):  # grounded, as below
                 u, on_floor = self._floor_impact_one(q, v, u, on_floor, hit_floor)
             return q, v, u, on_floor, hit_floor, one_quad.quat_to_rotmat(q[..., 3:7])
         grounded = q[..., 2] <= s.floor_z
