@@ -47,12 +47,15 @@ METRIC = "episode_metrics/mean_distance"  # m, NaN until an episode ends (info_m
 
 class OneQuad(gym.vector.VectorWrapper):
     """W worlds of one quad as W envs of (obs_dim,) observations and (4,) actions (clipped to [-1, 1]); ``info``
-    reduced to what this script reads, in the shape TorchRL's ``GymWrapper`` reads it."""
+    reduced to what this script reads, in the shape TorchRL's ``GymWrapper`` reads it. With ``scale_rewards``
+    the rewards are divided by the running std of the discounted return (SB3's ``VecNormalize``)."""
 
     autoreset_mode = gym.vector.AutoresetMode.SAME_STEP  # TorchRL reads it as an attribute
 
-    def __init__(self, env: QuadSwarmVectorEnv):
+    def __init__(self, env: QuadSwarmVectorEnv, scale_rewards: bool = False, gamma: float = 0.99):
         super().__init__(env)
+        self.scale_rewards, self.gamma, self.ret = scale_rewards, gamma, np.zeros(env.num_envs)
+        self.count, self.mean, self.var = 1e-4, 0.0, 1.0  # running moments of the discounted return
         o, a = env.single_observation_space, env.single_action_space
         self.single_observation_space = gym.spaces.Box(o.low[0], o.high[0], dtype=np.float32)
         self.single_action_space = gym.spaces.Box(a.low[0], a.high[0], dtype=np.float32)
@@ -65,6 +68,15 @@ class OneQuad(gym.vector.VectorWrapper):
 
     def step(self, actions):
         obs, reward, terminated, truncated, info = self.env.step(np.clip(actions, -1.0, 1.0)[:, None])
+        if self.scale_rewards:
+            self.ret = self.ret * self.gamma + reward
+            n, m, v = self.ret.size, self.ret.mean(), self.ret.var()
+            total = self.count + n
+            delta = m - self.mean
+            self.mean, self.count = self.mean + delta * n / total, total
+            self.var = (self.var * (total - n) + v * n + delta ** 2 * (total - n) * n / total) / total
+            reward = np.clip(reward / np.sqrt(self.var + 1e-8), -10.0, 10.0)
+            self.ret[terminated | truncated] = 0.0
         return obs[:, 0], reward, terminated, truncated, self._info(info)
 
     @staticmethod
@@ -73,12 +85,13 @@ class OneQuad(gym.vector.VectorWrapper):
                 "_final_obs": info["_final_obs"], "final_info": {METRIC: info[METRIC]}}
 
 
-def make_env(worlds: int, episode_seconds: float, seed: int, engine: str, norm: Transform) -> TransformedEnv:
+def make_env(worlds: int, episode_seconds: float, seed: int, engine: str, norm: Transform,
+             scale_rewards: bool = False) -> TransformedEnv:
     """``worlds`` worlds of one quad on static_same_goal (the position term at 3x the paper's scale,
     observations scaled into [-1, 1] by the env, then by ``norm``) as one batched TorchRL env."""
     cfg = EnvConfig(num_quads=1, scenario="static_same_goal", rewards={"pos": 3.0}, normalize_obs=True,
                     info_mode="flat", episode_seconds=episode_seconds)
-    env = GymWrapper(OneQuad(QuadSwarmVectorEnv(cfg, num_envs=worlds, engine=engine, info_keys=())))
+    env = GymWrapper(OneQuad(QuadSwarmVectorEnv(cfg, num_envs=worlds, engine=engine, info_keys=()), scale_rewards))
     env.set_seed(seed)
     return TransformedEnv(env, Compose(DoubleToFloat(), norm))  # the reward is float64
 
@@ -112,7 +125,7 @@ def main() -> None:
     torch.set_num_threads(1)  # small networks: one thread, and no contention with the JAX engine's threads
     # running mean/std of the observations (SB3's VecNormalize), frozen for the held-out episodes
     norm = VecNorm(in_keys=["observation"], decay=0.99999, reduce_batch_dims=True, new_api=True)
-    env = make_env(args.worlds, episode_seconds, args.seed, args.engine, norm)
+    env = make_env(args.worlds, episode_seconds, args.seed, args.engine, norm, scale_rewards=True)
     n_act = env.action_spec.shape[-1]
     actor_net = nn.Sequential(mlp(n_act, 0.01), AddStateIndependentNormalScale(n_act, init_value=args.log_std))
     actor = ProbabilisticActor(TensorDictModule(actor_net, in_keys=["observation"], out_keys=["loc", "scale"]),
@@ -154,9 +167,9 @@ def main() -> None:
         sched.step()
         if i % 10 == 0 or i == iters - 1:
             ended = torch.cat(ended)
-            print(f"{frames:>9,d} frames  {frames / (time.time() - t0):6.0f}/s  reward/step "
-                  f"{batch['next', 'reward'].mean().item():+.4f}  training episodes ended: {ended.numel()}, mean "
-                  f"distance {ended.mean().item():.3f} m", flush=True)
+            std = actor_net[-1].state_independent_scale.exp().mean().item()
+            print(f"{frames:>9,d} frames  {frames / (time.time() - t0):6.0f}/s  action std {std:.3f}  "
+                  f"training episodes ended: {ended.numel()}, mean distance {ended.mean().item():.3f} m", flush=True)
             ended = []
     train_s = time.time() - t0
     collector.shutdown()
