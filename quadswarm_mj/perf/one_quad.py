@@ -154,6 +154,9 @@ def motor_noise_step(eps: Any, sigma: Any, theta: float, normal: Any) -> Any:
 # ---------------------------------------------------------------- the task stage (reward terms, metrics)
 def _norm(v: list[float]) -> float:
     """sqrt(((v0 v0 + v1 v1) + v2 v2) + ...): ``spatial.norm_last``'s rounding."""
+    if len(v) == 3:
+        a, b, c = v
+        return math.sqrt((a * a + b * b) + c * c)
     s = v[0] * v[0] + v[1] * v[1]
     for x in v[2:]:
         s = s + x * x
@@ -163,11 +166,14 @@ def _norm(v: list[float]) -> float:
 def reward_plan(factors: tuple, annealed: tuple[str, ...]) -> tuple:
     """The per-config constants of :func:`reward_terms` (made once per engine): from ``factors``
     (``rewards._term_factors``) and ``annealed`` (``rewards.ANNEALED``) the set of costs needed, the
-    computed terms (key, -dt, base scale, annealed), the terms that are exactly -0.0, and the key order."""
+    computed terms (key, -dt, base scale, annealed), the terms that are exactly -0.0, and the keys in order
+    with their rows."""
     need = frozenset(k for k, _, base in factors if base is not None)
     live = tuple((k, neg_dt, base, k in annealed) for k, neg_dt, base in factors if base is not None)
     zero_keys = tuple(k for k, _, base in factors if base is None)
-    return (need, live, zero_keys, tuple(k for k, _, _ in factors), bool(need & {"orient", "yaw", "rot"}))
+    row = {k: i for i, (k, _, _, _) in enumerate(live)}  # each key's row of the output; -0.0 terms: the last
+    index = tuple((k, row.get(k, len(live))) for k, _, _ in factors)
+    return (need, live, zero_keys, index, bool(need & {"orient", "yaw", "rot"}))
 
 
 def reward_terms(plan: tuple, pos: Any, vel: Any, R: Any, omega: Any, goals: Any,
@@ -178,7 +184,7 @@ def reward_terms(plan: tuple, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
     one fresh array (the terms that are exactly -0.0 share one row, as there). With one quad
     ``proximity`` has no other quad (cost 0) and ``quad_collision`` counts the pairs of the (1, 1, 1)
     contact matrix."""
-    need, live, zero_keys, order, rot = plan
+    need, live, zero_keys, index, rot = plan
     on = bool(on_floor.item())
     c: dict[str, float] = {"crash": 1.0 if on else 0.0, "proximity": 0.0}
     if "pos" in need:
@@ -213,10 +219,7 @@ def reward_terms(plan: tuple, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
     if zero_keys:
         vals.append(-0.0)
     rows = np.array(vals).reshape(-1, 1, 1)
-    out = {k: rows[i] for i, (k, _, _, _) in enumerate(live)}
-    for k in zero_keys:
-        out[k] = rows[-1]
-    return {k: out[k] for k in order}
+    return {k: rows[i] for k, i in index}
 
 
 def total_reward(terms: dict[str, Any], keys: list[str]) -> Any:
