@@ -114,7 +114,7 @@ def evaluate(agent: IPPO, env_kwargs: dict, episodes: int, seed: int) -> dict[st
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--total-steps", type=int, default=100_000, help="env steps (every quad of every world acts)")
+    p.add_argument("--total-steps", type=int, default=28_000, help="env steps (every quad of every world acts)")
     p.add_argument("--num-quads", type=int, default=4)
     p.add_argument("--scenario", default="static_diff_goal", help="quadswarm_mj.list_scenarios()")
     p.add_argument("--worlds", type=int, default=64, help="worlds stepped together (1: quadswarm_v0.parallel_env)")
