@@ -144,3 +144,20 @@ def test_profile_jax_lists_the_step_kernels(capsys):
     assert "per control step under the profiler" in out and "us/step" in out
     rows = [ln for ln in out.splitlines() if "%" in ln and ln.split()[0].replace(".", "").isdigit()]
     assert 1 <= len(rows) <= 5
+
+
+def test_profile_jax_sensors_option_refuses_an_unknown_deck(capsys):
+    from quadswarm_mj.cli import profile_jax
+
+    with pytest.raises(SystemExit):
+        profile_jax.main(["--sensors", "multiranger,lidar"])
+    assert "unknown item 'lidar'" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_profile_jax_with_the_decks_on(capsys):
+    from quadswarm_mj.cli import profile_jax
+
+    assert profile_jax.main(["--worlds", "2", "--quads", "2", "--steps", "2", "--top", "3",
+                             "--sensors", "multiranger,flow,depth=2x3"]) == 0
+    assert "per control step under the profiler" in capsys.readouterr().out

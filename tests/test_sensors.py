@@ -403,3 +403,28 @@ def test_mjx_env_state_info_and_noise_off():
     ref = deck_readings(quiet.cfg, st["pos"], st["vel"], st["rot"], st["omega"])
     np.testing.assert_allclose(np.asarray(s.info["multiranger"]), ref["multiranger"], atol=1e-4)
     np.testing.assert_allclose(np.asarray(s.info["depth"]), ref["depth"], atol=1e-4)
+
+
+def test_mjx_engine_deck_noise_and_dropout_from_the_carried_numbers():
+    """The JAX engine's stepped deck readings (their ToF noise made with the carried step numbers,
+    perf.fused_draws.tof_numbers): lost readings at the dropout rate, flagged and reading the limit, and
+    the kept ones within 6 standard deviations of the noise-free readings of the same state."""
+    jax = pytest.importorskip("jax")
+    from quadswarm_mj.envs.mjx_env import MjxQuadSwarmEnv
+
+    s = SensorConfig(multiranger=True, flow=True, depth=(2, 3), dropout=0.3)
+    env = MjxQuadSwarmEnv(EnvConfig(num_quads=4, sensors=s))
+    states = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(3), 64))
+    hover = jax.numpy.full((64, 4, 4), env.cfg.quad.hover_action)
+    states = jax.jit(jax.vmap(env.step))(states, hover)
+    st = {k: np.asarray(v, np.float64) for k, v in states.info["state"].items()}
+    true = deck_readings(env.cfg, st["pos"], st["vel"], st["rot"], st["omega"])
+    got, ok = np.asarray(states.info["multiranger"]), np.asarray(states.info["multiranger_valid"])
+    in_range = true["multiranger"] < s.range_limit - 0.05
+    lost = in_range & ~ok
+    assert 0.2 < lost.sum() / in_range.sum() < 0.4
+    np.testing.assert_array_equal(got[lost], s.range_limit)
+    kept = in_range & ok
+    std = np.asarray(tof_std(true["multiranger"]))
+    assert np.all(np.abs(got[kept] - true["multiranger"][kept]) <= 6.0 * std[kept] + 1e-4)
+    assert np.any(got[kept] != true["multiranger"][kept].astype(np.float32))  # noisy

@@ -8,10 +8,13 @@ in the model or the engines (a same-values test checks it), only faster on some 
 * :mod:`quadswarm_mj.perf.xla_cpu`: layouts and kernel boundaries aimed at XLA:CPU (``worlds_last``,
   ``kernel_boundary``, integer sort keys), same values as the plain JAX forms.
 * :mod:`quadswarm_mj.perf.fused_draws`: all random numbers of a JAX reset or step from one unrolled
-  threefry hash (``FusedJaxSampler``), the same distributions as ``jax.random``.
+  threefry hash (``FusedJaxSampler``), the same distributions as ``jax.random``; the deck rays' ToF
+  noise made there with the numbers' own erf_inv (``tof_numbers``).
 * :mod:`quadswarm_mj.perf.jax_substeps`: the JAX engine's whole sub-step loop of the default
   configuration on components (``ComponentLoop``, a ``physics`` of the control step), the same
   formulas as the general loop.
+* :mod:`quadswarm_mj.perf.depth_xla`: the depth camera's hitbox test for XLA:CPU (unsigned minima of the
+  hit distances' bits, a two-trip loop over neighbour halves), the same values as the plain JAX form.
 * :mod:`quadswarm_mj.perf.packing`: the JAX engine's state and outputs packed into a few buffers at
   the host boundary (fewer transfers per step), unpacked to the same pytree bit for bit.
 
