@@ -31,7 +31,8 @@ import numpy as np
 from quadswarm_mj import actuation, collisions, observations, rewards, spatial
 from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj.collisions import expand_per_quad, quad_collisions, quad_collisions_budgeted
-from quadswarm_mj.perf import numpy_small, one_quad, xla_cpu
+from quadswarm_mj.perf import numpy_floor, numpy_small, one_quad, xla_cpu
+from quadswarm_mj.spatial import BIG
 
 ALL = slice(None)
 
@@ -172,6 +173,10 @@ class NumpyOps(ModelForms):
         if self._one and one_quad.ENABLED:  # ``v`` (1, 1, 6): its first two entries are the horizontal speed
             return one_quad.floor_wrench(on_floor, force, torque, v, params["mass"], params["gravity"],
                                          cfg.collision.floor_friction, cfg.sim_dt)
+        if force.size < BIG:  # perf.numpy_floor: the grounded quads' rows, written in place (same bits)
+            numpy_floor.floor_wrench_inplace(on_floor, force, torque, v, params["mass"], params["gravity"],
+                                             cfg.collision.floor_friction, cfg.sim_dt)
+            return force, torque
         w = s._worlds(on_floor)
         fw, tw = numpy_small.floor_wrench(on_floor[w], force[w], torque[w], v[w, :, :3], params["mass"][w],
                                           params["gravity"], cfg.collision.floor_friction, cfg.sim_dt)
