@@ -9,6 +9,7 @@ import pytest
 
 from quadswarm_mj import collisions
 from quadswarm_mj.perf import numpy_floor
+from quadswarm_mj.perf import numpy_small as small
 
 
 def _same(a: np.ndarray, b: np.ndarray) -> None:
@@ -44,3 +45,39 @@ def test_floor_wrench_inplace_is_the_model_bitwise(lead, grounded, mass_shape):
     _same(f, ref_f)
     _same(t, ref_t)
     _same(f[~on_floor], force[~on_floor])  # airborne quads untouched
+
+
+@pytest.mark.parametrize("lead", [(1, 1), (1, 8), (3, 8)])
+@pytest.mark.parametrize("offsets", ["zero", "per_world"])
+def test_floor_impact_rows_is_the_model_bitwise(lead, offsets):
+    """In-place rows (MuJoCo's frame) = the model's angle path, with quads below, exactly at, just above
+    (within the tolerance) and above the floor, grounded and airborne, upside down, signed zeros."""
+    rng = np.random.default_rng(hash((lead, offsets)) % 2**32)
+    arm = 0.046
+    off = (np.zeros((1, 1, 3)) if offsets == "zero"
+           else np.concatenate([rng.uniform(-20, 20, lead[:1] + (1, 2)), np.zeros(lead[:1] + (1, 1))], axis=-1))
+    pos = _signed_zeros(rng, rng.uniform(-1, 1, lead + (3,)), 0.2)
+    pos[..., 2] = rng.choice([arm - 0.01, arm, arm + 5e-7, arm + 0.01, 1.0], size=lead)
+    quat = rng.normal(size=lead + (4,))
+    quat /= np.linalg.norm(quat, axis=-1, keepdims=True)
+    quat.reshape(-1, 4)[:4] = np.eye(4)[:min(4, quat.size // 4)] * rng.choice([-1.0, 1.0])  # exact zeros
+    on_floor = rng.uniform(size=lead) < 0.5
+    v = _signed_zeros(rng, rng.normal(size=lead + (6,)), 0.2)
+    yaw_draw = rng.uniform(-np.pi, np.pi, lead)
+    R = small.quat_to_rotmat_gather(quat)
+    u = rng.uniform(size=lead + (4,))
+    ref = collisions.floor_impact(pos, v[..., :3], v[..., 3:], quat, R, u, on_floor, arm, yaw_draw)
+    q = np.concatenate([pos if offsets == "zero" else pos + off, quat], axis=-1)  # (keeps -0.0 there)
+    vv, RR = v.copy(), R.copy()
+    hit, grounded, any_hit = numpy_floor.floor_impact_rows(q, vv, on_floor, arm, None if offsets == "zero" else off,
+                                                           yaw_draw, RR)
+    _same(q[..., :3], ref["pos"] + off)  # the engine's frame round trip (model position + offset)
+    _same(q[..., 3:7], ref["quat"])
+    _same(vv[..., :3], ref["vel"])
+    _same(vv[..., 3:], ref["omega"])
+    _same(RR, small.quat_to_rotmat_gather(ref["quat"]))  # the rotation of the new quaternions
+    np.testing.assert_array_equal(hit, ref["hit_floor"])
+    np.testing.assert_array_equal(grounded, ref["on_floor"])
+    assert any_hit == bool(ref["hit_floor"].any())
+    if lead == (3, 8):  # the mix covers upside-down landings and quads staying on the floor
+        assert (hit & (R[..., 2, 2] < 0)).any() and (grounded & ~hit).any()
