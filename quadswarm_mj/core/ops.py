@@ -31,7 +31,8 @@ import numpy as np
 from quadswarm_mj import actuation, collisions, observations, rewards, spatial
 from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj.collisions import expand_per_quad, quad_collisions, quad_collisions_budgeted
-from quadswarm_mj.perf import numpy_small, one_quad, xla_cpu
+from quadswarm_mj.perf import numpy_floor, numpy_small, one_quad, xla_cpu
+from quadswarm_mj.spatial import BIG
 
 ALL = slice(None)
 
@@ -172,6 +173,10 @@ class NumpyOps(ModelForms):
         if self._one and one_quad.ENABLED:  # ``v`` (1, 1, 6): its first two entries are the horizontal speed
             return one_quad.floor_wrench(on_floor, force, torque, v, params["mass"], params["gravity"],
                                          cfg.collision.floor_friction, cfg.sim_dt)
+        if force.size < BIG:  # perf.numpy_floor: the grounded quads' rows, written in place (same bits)
+            numpy_floor.floor_wrench_inplace(on_floor, force, torque, v, params["mass"], params["gravity"],
+                                             cfg.collision.floor_friction, cfg.sim_dt)
+            return force, torque
         w = s._worlds(on_floor)
         fw, tw = numpy_small.floor_wrench(on_floor[w], force[w], torque[w], v[w, :, :3], params["mass"][w],
                                           params["gravity"], cfg.collision.floor_friction, cfg.sim_dt)
@@ -190,14 +195,16 @@ class NumpyOps(ModelForms):
             if q[0, 0, 2] <= s.floor_z or (s._any_on_floor and on_floor[0, 0]):  # grounded, as below
                 u, on_floor = self._floor_impact_one(q, v, u, on_floor, hit_floor)
             return q, v, u, on_floor, hit_floor, one_quad.quat_to_rotmat(q[..., 3:7])
+        small = q.shape[0] * q.shape[1] * 4 < BIG  # R before the impact, updated where a quad lands or stays
+        R = numpy_small.quat_to_rotmat(q[..., 3:7]) if small else None
         grounded = q[..., 2] <= s.floor_z
         if s._any_on_floor:
             grounded |= on_floor
         if np.count_nonzero(grounded):  # (faster than .any() on tiny masks)
             s.u, s.on_floor = u, on_floor
-            s._floor_impact(s._worlds(grounded), hit_floor)
+            s._floor_impact(s._worlds(grounded), hit_floor, R)
             u, on_floor = s.u, s.on_floor
-        return q, v, u, on_floor, hit_floor, numpy_small.quat_to_rotmat(q[..., 3:7])
+        return q, v, u, on_floor, hit_floor, R if small else numpy_small.quat_to_rotmat(q[..., 3:7])
 
     def _floor_impact_one(self, q: np.ndarray, v: np.ndarray, u: np.ndarray, on_floor: np.ndarray,
                           hit_floor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -42,7 +42,6 @@ from quadswarm_mj.collisions import (
     collision_draw_specs,
 )
 from quadswarm_mj.config import EnvConfig
-from quadswarm_mj.constants import FLOOR_TOL
 from quadswarm_mj.core.control import control_step
 from quadswarm_mj.core.ops import ALL as _ALL
 from quadswarm_mj.core.ops import NumpyOps
@@ -50,7 +49,8 @@ from quadswarm_mj.core.ops import put as _put
 from quadswarm_mj.core.reset import start_accumulators, start_flags, start_state
 from quadswarm_mj.downwash import downwash_draw_spec
 from quadswarm_mj.observations import obs_bounds, obs_scale, sensor_noise_spec
-from quadswarm_mj.perf.numpy_small import yaw_entries
+from quadswarm_mj.perf import numpy_floor
+from quadswarm_mj.perf.numpy_small import quat_to_rotmat_gather
 from quadswarm_mj.physics.mujoco_c import (  # noqa: F401  re-exported
     BACKENDS,
     BatchPhysics,
@@ -372,38 +372,29 @@ class CpuSwarm:
     def _count(self, w: Any) -> int:
         return self.B if isinstance(w, slice) else len(w)
 
-    def _floor_impact(self, w: Any, hit_floor: np.ndarray) -> None:
+    def _floor_impact(self, w: Any, hit_floor: np.ndarray, R: np.ndarray | None = None) -> None:
         """The paper's floor model after a sub-step, on worlds ``w`` (those with a quad at or below
-        the floor height or grounded; elsewhere it changes nothing): ``perf.numpy_small.floor_impact``
-        (same bits, signs of zero included) as masked writes into qpos/qvel (one quad: ``NumpyOps``)."""
-        cfg, fz = self.cfg, self.floor_z
+        the floor height or grounded; elsewhere it changes nothing): ``perf.numpy_floor.floor_impact_rows``
+        (same bits as the model, signs of zero included) as writes into qpos/qvel; ``R`` (B, N, 3, 3)
+        the rotations of qpos's quaternions by ``perf.numpy_small.quat_to_rotmat_gather``, updated in
+        place (None: not kept) (one quad: ``NumpyOps``)."""
+        cfg = self.cfg
         rows = isinstance(w, slice)  # views: write in place; else copies written back
         q, v = self.qpos[w], self.qvel[w]
-        offsets = self.offsets if self.offsets.shape[0] == 1 else self.offsets[w]
+        offsets = None if self._offsets_zero else self.offsets if self.offsets.shape[0] == 1 else self.offsets[w]
         M, d = self._count(w), self._spec_floor["yaw"]  # = self._sampler(...).draw(self._spec_floor, (M,))["yaw"]
         yaw_draw = (self.rng.uniform(d.low, d.high, size=(M, self.N)) if cfg.noise.stochastic_collisions
                     else np.full((M, self.N), d.mean))
-        pos = q[..., :3] - offsets
-        z, on = pos[..., 2], self.on_floor[w]
-        hit = (z <= fz) & ~on
-        staying = on & (z <= fz + FLOOR_TOL)
-        grounded = hit | staying
-        any_hit = np.count_nonzero(hit) > 0
-        e = yaw_entries(q[..., 3:7])  # R10, R00, R22 of the old rotation
-        yaw = np.arctan2(e[..., 0], e[..., 1]) + (np.where(hit & (e[..., 2] < 0), yaw_draw, 0.0) if any_hit else 0.0)
-        half = 0.5 * yaw  # the yaw-only quaternion (cos h, 0, 0, sin h) where grounded
-        np.cos(half, out=q[..., 3], where=grounded)
-        np.copyto(q[..., 4:6], 0.0, where=grounded[..., None])
-        np.sin(half, out=q[..., 6], where=grounded)
-        np.copyto(pos[..., 2], fz, where=grounded)
-        np.add(pos, offsets, out=q[..., :3])
-        if any_hit:  # a hit zeroes vel, omega and the motors (0.0 * x: signs kept)
-            np.multiply(v, 0.0, out=v, where=hit[..., None])
+        Rw = quat_to_rotmat_gather(q[..., 3:7]) if R is None else R[w]  # (the bits of yaw_entries)
+        hit, grounded, any_hit = numpy_floor.floor_impact_rows(q, v, self.on_floor[w], self.floor_z, offsets,
+                                                               yaw_draw, Rw)
+        if any_hit:  # a hit zeroes the motors (0.0 * u: signs kept)
             self.u = _put(self.u, w, np.where(hit[..., None], 0.0 * self.u[w], self.u[w]))
             hit_floor[w] |= hit
-        np.copyto(v[..., 2:5], 0.0, where=staying[..., None])  # staying: no vertical speed, no roll/pitch rate
         if not rows:
             self.qpos[w], self.qvel[w] = q, v
+            if R is not None:
+                R[w] = Rw
         self.phys.touch()
         self.on_floor = _put(self.on_floor, w, grounded)
         self._any_on_floor = np.count_nonzero(self.on_floor) > 0

@@ -120,6 +120,11 @@ def quat_to_rotmat(q: Any) -> Any:
         return one_quad.quat_to_rotmat(q)
     if q.size >= BIG:
         return spatial.quat_to_rotmat(q)
+    return quat_to_rotmat_gather(q)
+
+
+def quat_to_rotmat_gather(q: Any) -> Any:
+    """:func:`quat_to_rotmat`'s small-array form at any size (one gather, same bits whatever the size)."""
     lead = q.shape[:-1]
     P = (q[..., :, None] * q[..., None, :]).reshape(lead + (16,))
     t = P.take(_Q_IAB, axis=-1) * _Q_SCALE
