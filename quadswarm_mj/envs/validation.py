@@ -25,7 +25,8 @@ def as_real_array(value: Any, name: str) -> np.ndarray:
     try:
         a = np.asarray(value)
     except (TypeError, ValueError, OverflowError) as e:  # ragged nesting, ...
-        raise ValueError(f"{name} must be a numeric array of real numbers (float or int), got {type(value).__name__}") from e
+        raise ValueError(f"{name} must be a numeric array of real numbers (float or int), "
+                         f"got {type(value).__name__}") from e
     if a.dtype.kind == "O" and not isinstance(value, np.ndarray):
         # a nested list with Python ints too large for int64 lands here: numbers only, float64-sized
         if a.size and all(isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_)) for x in a.flat):

@@ -1,22 +1,18 @@
-"""Speed code, kept apart from the model: each module here computes the same values as a plain form
-in the model or the engines (a same-values test checks it), only faster on some platform.
+"""Speed code, kept apart from the model: each module computes the same values as a plain form in the
+model or the engines (a same-values test checks it), only faster on some platform; the engines reach
+it through their ops (:mod:`quadswarm_mj.core.ops`), never the model.
 
-* :mod:`quadswarm_mj.perf.numpy_small`: the fewest-NumPy-calls forms of the sub-step model functions
-  for small arrays (the CPU engine's single env), bit-identical to the model's own bodies.
-* :mod:`quadswarm_mj.perf.one_quad`: the same for exactly one quad in one world, on Python floats
-  (sub-step wrench, floor model, rotation, reward terms, metrics, observation), bit-identical.
-* :mod:`quadswarm_mj.perf.xla_cpu`: layouts and kernel boundaries aimed at XLA:CPU (``worlds_last``,
-  ``kernel_boundary``, integer sort keys), same values as the plain JAX forms.
-* :mod:`quadswarm_mj.perf.fused_draws`: all random numbers of a JAX reset or step from one unrolled
-  threefry hash (``FusedJaxSampler``), the same distributions as ``jax.random``; the deck rays' ToF
-  noise made there with the numbers' own erf_inv (``tof_numbers``).
-* :mod:`quadswarm_mj.perf.jax_substeps`: the JAX engine's whole sub-step loop of the default
-  configuration on components (``ComponentLoop``, a ``physics`` of the control step), the same
-  formulas as the general loop.
-* :mod:`quadswarm_mj.perf.depth_xla`: the depth camera's hitbox test for XLA:CPU (unsigned minima of the
-  hit distances' bits, a two-trip loop over neighbour halves), the same values as the plain JAX form.
-* :mod:`quadswarm_mj.perf.packing`: the JAX engine's state and outputs packed into a few buffers at
-  the host boundary (fewer transfers per step), unpacked to the same pytree bit for bit.
+* ``numpy_small``: fewest-NumPy-calls forms of the sub-step functions for small arrays (same bits);
+  ``numpy_floor``: the paper's floor model on the grounded quads' rows only (same bits).
+* ``one_quad``: one quad in one world on Python floats (wrench, floor, rotation, rewards, metrics,
+  observation), bit-identical to the array forms.
+* ``xla_cpu``: layouts and kernel boundaries for XLA:CPU (``worlds_last``, ``kernel_boundary``,
+  integer sort keys); ``depth_xla``: the depth camera's hitbox test for XLA:CPU.
+* ``fused_draws``: a JAX step's random numbers from one unrolled threefry hash (``FusedJaxSampler``,
+  the distributions of ``jax.random``; the deck rays' ToF noise from the same numbers).
+* ``jax_substeps``: the JAX engine's default sub-step loop on components (``ComponentLoop``).
+* ``packing``: the JAX engine's state and outputs packed into few buffers at the host boundary.
+* ``xla_options``: per-program XLA:CPU compile options.
 
 Nothing here changes a model's equations; docs/engines.md gives the measurements that keep each.
 """
