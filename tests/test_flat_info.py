@@ -82,6 +82,8 @@ def test_vector_env_flat_info_through_autoreset():
             assert layout(info) == want
             np.testing.assert_array_equal(info["_final_obs"], trunc)
             assert (np.isnan(info["episode_metrics/success"]) == ~trunc).all()
+            # final_obs: finite, zeros (inside the observation box) where no episode ended
+            assert np.isfinite(info["final_obs"]).all() and (info["final_obs"][~trunc] == 0).all()
             ended |= bool(trunc.any())
         assert ended
     finally:

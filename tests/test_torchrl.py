@@ -39,3 +39,27 @@ def test_pettingzoo_wrapper_rolls_out():
         assert td.batch_size[0] == 4
     finally:
         env.close()
+
+
+def test_gym_wrapper_of_the_vector_env_rolls_out():
+    """``GymWrapper(QuadSwarmVectorEnv(info_mode="flat"))``: TorchRL checks the flat info's entries,
+    ``final_obs`` included, against the specs it builds; where no episode ended that row is zeros
+    (inside the observation box), with ``_final_obs`` False."""
+    import numpy as np
+    from torchrl.envs import GymWrapper
+
+    from quadswarm_mj import QuadSwarmVectorEnv
+
+    venv = QuadSwarmVectorEnv(num_envs=2, num_quads=1, **SHORT)
+    env = GymWrapper(venv)
+    try:
+        td = env.rollout(8, break_when_any_done=False)
+        assert tuple(td.batch_size) == (2, 8)
+        assert td["next", "truncated"].any()
+        venv.reset(seed=0)
+        for _ in range(8):
+            *_, info = venv.step(np.zeros((2, 1, 4), np.float32))
+            final, ended = info["final_obs"], info["_final_obs"]
+            assert np.isfinite(final).all() and (final[~ended] == 0).all()
+    finally:
+        env.close()

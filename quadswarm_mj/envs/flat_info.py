@@ -11,7 +11,8 @@ flat mode:
 * every key is present at every step, reset included: ``rewards``, ``reward_terms/*`` and
   ``new_collisions`` hold NaN (False) after a reset, ``episode_metrics/*`` NaN until an episode ends
   (and in the vector env for the worlds that did not end in that step); the vector env's
-  ``final_obs`` is NaN where no episode ended, with its masks ``_final_obs`` / ``_episode_metrics``;
+  ``final_obs`` is zeros where no episode ended (inside the observation box, as TorchRL's spec
+  checks want), with its masks ``_final_obs`` / ``_episode_metrics``;
 * floating entries are float32, booleans bool, integers int64; scalars are 0-d arrays.
 
 Shapes are those of the nested layout (per-quad arrays keep their quad axis; the vector env's
@@ -87,15 +88,18 @@ class InfoFlattener:
                 flat[k] = v.copy()
         if self.layout is None:
             self.layout = {k: (v.shape, v.dtype) for k, v in flat.items()}
-            return flat
         out = {}
         for k, (shape, dtype) in self.layout.items():
             v = flat.get(k)
             if v is None:  # an entry of some steps only (e.g. a vector env's masks): its fill value
-                v = np.zeros(shape, dtype) if dtype.kind == "b" else np.full(shape, np.nan, dtype)
+                v = self.defaults[k].copy() if k in self.defaults else (
+                    np.zeros(shape, dtype) if dtype.kind == "b" else np.full(shape, np.nan, dtype))
             elif v.shape != shape:
                 raise RuntimeError(f"flat info entry {k!r} changed shape {shape} -> {v.shape}")
             out[k] = v.astype(dtype, copy=False)
+        if "_final_obs" in out:  # rows of worlds whose episode did not end: zeros
+            out["final_obs"] = np.where(out["_final_obs"].reshape((-1,) + (1,) * (out["final_obs"].ndim - 1)),
+                                        out["final_obs"], np.float32(0.0))
         return out
 
 
@@ -111,9 +115,9 @@ def agent_flattener(cfg: EnvConfig) -> InfoFlattener:
 
 def vector_flattener(cfg: EnvConfig, num_envs: int, obs_dim: int) -> InfoFlattener:
     """For :class:`~quadswarm_mj.envs.vector_env.QuadSwarmVectorEnv` (leading world axis), with the
-    episode-end entries ``final_obs`` (NaN) and the masks ``_final_obs``/``_episode_metrics`` (False)."""
+    episode-end entries ``final_obs`` (zeros) and the masks ``_final_obs``/``_episode_metrics`` (False)."""
     d = step_only_keys(cfg, lead=(num_envs,))
-    d["final_obs"] = np.full((num_envs, cfg.num_quads, obs_dim), np.nan, np.float32)
+    d["final_obs"] = np.zeros((num_envs, cfg.num_quads, obs_dim), np.float32)
     d["_final_obs"] = np.zeros(num_envs, np.bool_)
     d["_episode_metrics"] = np.zeros(num_envs, np.bool_)
     return InfoFlattener(d)
