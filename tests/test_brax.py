@@ -76,7 +76,15 @@ _PPO_SCRIPT = textwrap.dedent("""
 """)
 
 
+def _brax_trainer_runs_on_this_jax() -> bool:
+    import jax
+
+    return hasattr(jax, "device_put_replicated")  # brax <= 0.14.2's PPO calls it; jax 0.10 removed it
+
+
 @pytest.mark.slow
+@pytest.mark.skipif(not _brax_trainer_runs_on_this_jax(),
+                    reason="brax's PPO trainer calls jax.device_put_replicated, which this jax (>= 0.10) removed")
 def test_ppo_trains_a_few_iterations_on_cpu():
     """brax.training.agents.ppo.train runs 2 PPO iterations on the env (several episodes end and
     auto-reset inside them). Brax's evaluator is left out here to save its compile (its wrapper is
