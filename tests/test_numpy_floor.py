@@ -80,3 +80,18 @@ def test_floor_impact_rows_is_the_model_bitwise(lead, offsets):
     assert any_hit == bool(ref["hit_floor"].any())
     if lead == (3, 8):  # the mix covers upside-down landings and quads staying on the floor
         assert (hit & (R[..., 2, 2] < 0)).any() and (grounded & ~hit).any()
+
+
+@pytest.mark.parametrize("lead", [(1, 2), (1, 8), (3, 8)])
+def test_qpos_row_rotations_are_the_quaternion_forms_bitwise(lead):
+    """``quat_to_rotmat_qpos`` / ``yaw_entries_qpos`` on qpos rows = the forms on the quaternion view,
+    signs of zero included (exact zeros of both signs in the quaternions)."""
+    rng = np.random.default_rng(sum(lead))
+    quat = rng.normal(size=lead + (4,))
+    quat /= np.linalg.norm(quat, axis=-1, keepdims=True)
+    flat = quat.reshape(-1, 4)
+    flat[:min(4, len(flat))] = np.eye(4)[:min(4, len(flat))]
+    flat[-1] = [-0.0, 0.0, -1.0, -0.0]
+    qpos = np.concatenate([rng.normal(size=lead + (3,)), quat], axis=-1)
+    _same(small.quat_to_rotmat_qpos(qpos), small.quat_to_rotmat(qpos[..., 3:7]))
+    _same(small.yaw_entries_qpos(qpos), small.yaw_entries(qpos[..., 3:7]))

@@ -202,7 +202,9 @@ class NumpyOps(ModelForms):
             s.u, s.on_floor = u, on_floor
             s._floor_impact(s._worlds(grounded), hit_floor)
             u, on_floor = s.u, s.on_floor
-        return q, v, u, on_floor, hit_floor, numpy_small.quat_to_rotmat(q[..., 3:7])
+        R = (numpy_small.quat_to_rotmat_qpos(q) if 7 < q.size < BIG  # (the same bits, fewer calls)
+             else numpy_small.quat_to_rotmat(q[..., 3:7]))
+        return q, v, u, on_floor, hit_floor, R
 
     def _floor_impact_one(self, q: np.ndarray, v: np.ndarray, u: np.ndarray, on_floor: np.ndarray,
                           hit_floor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from quadswarm_mj.constants import FLOOR_TOL
-from quadswarm_mj.perf.numpy_small import yaw_entries
+from quadswarm_mj.perf.numpy_small import yaw_entries_qpos
 
 # thresholds of (|F_h|, |v_h|): the static ratio divides by |F_h| where it is > 0, the kinetic one by
 # the speed where the quad moves (> 1e-9 m/s), as the model
@@ -65,7 +65,7 @@ def floor_impact_rows(q: np.ndarray, v: np.ndarray, on_floor: np.ndarray, floor_
     staying = on_floor & (z <= floor_z + FLOOR_TOL)
     grounded = hit | staying
     any_hit = np.count_nonzero(hit) > 0
-    e = yaw_entries(q[..., 3:7])  # R10, R00, R22 of the old rotation
+    e = yaw_entries_qpos(q)  # R10, R00, R22 of the old rotation
     yaw = np.arctan2(e[..., 0], e[..., 1]) + (np.where(hit & (e[..., 2] < 0), yaw_draw, 0.0) if any_hit else 0.0)
     half = 0.5 * yaw  # the yaw-only quaternion (cos h, 0, 0, sin h) where grounded
     np.cos(half, out=q[..., 3], where=grounded)
