@@ -3,6 +3,8 @@ in the model or the engines (a same-values test checks it), only faster on some 
 
 * :mod:`quadswarm_mj.perf.numpy_small`: the fewest-NumPy-calls forms of the sub-step model functions
   for small arrays (the CPU engine's single env), bit-identical to the model's own bodies.
+* :mod:`quadswarm_mj.perf.numpy_floor`: the paper's floor model (friction wrench, impact) written in
+  place into the CPU engine's small arrays by masked whole-array expressions, bit-identical.
 * :mod:`quadswarm_mj.perf.one_quad`: the same for exactly one quad in one world, on Python floats
   (sub-step wrench, floor model, rotation, reward terms, metrics, observation), bit-identical.
 * :mod:`quadswarm_mj.perf.xla_cpu`: layouts and kernel boundaries aimed at XLA:CPU (``worlds_last``,
