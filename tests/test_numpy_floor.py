@@ -64,20 +64,34 @@ def test_floor_impact_rows_is_the_model_bitwise(lead, offsets):
     on_floor = rng.uniform(size=lead) < 0.5
     v = _signed_zeros(rng, rng.normal(size=lead + (6,)), 0.2)
     yaw_draw = rng.uniform(-np.pi, np.pi, lead)
-    R = small.quat_to_rotmat_gather(quat)
+    R = small.quat_to_rotmat(quat)
     u = rng.uniform(size=lead + (4,))
     ref = collisions.floor_impact(pos, v[..., :3], v[..., 3:], quat, R, u, on_floor, arm, yaw_draw)
     q = np.concatenate([pos if offsets == "zero" else pos + off, quat], axis=-1)  # (keeps -0.0 there)
-    vv, RR = v.copy(), R.copy()
+    vv = v.copy()
     hit, grounded, any_hit = numpy_floor.floor_impact_rows(q, vv, on_floor, arm, None if offsets == "zero" else off,
-                                                           yaw_draw, RR)
+                                                           yaw_draw)
     _same(q[..., :3], ref["pos"] + off)  # the engine's frame round trip (model position + offset)
     _same(q[..., 3:7], ref["quat"])
     _same(vv[..., :3], ref["vel"])
     _same(vv[..., 3:], ref["omega"])
-    _same(RR, small.quat_to_rotmat_gather(ref["quat"]))  # the rotation of the new quaternions
     np.testing.assert_array_equal(hit, ref["hit_floor"])
     np.testing.assert_array_equal(grounded, ref["on_floor"])
     assert any_hit == bool(ref["hit_floor"].any())
     if lead == (3, 8):  # the mix covers upside-down landings and quads staying on the floor
         assert (hit & (R[..., 2, 2] < 0)).any() and (grounded & ~hit).any()
+
+
+@pytest.mark.parametrize("lead", [(1, 2), (1, 8), (3, 8)])
+def test_qpos_row_rotations_are_the_quaternion_forms_bitwise(lead):
+    """``quat_to_rotmat_qpos`` / ``yaw_entries_qpos`` on qpos rows = the forms on the quaternion view,
+    signs of zero included (exact zeros of both signs in the quaternions)."""
+    rng = np.random.default_rng(sum(lead))
+    quat = rng.normal(size=lead + (4,))
+    quat /= np.linalg.norm(quat, axis=-1, keepdims=True)
+    flat = quat.reshape(-1, 4)
+    flat[:min(4, len(flat))] = np.eye(4)[:min(4, len(flat))]
+    flat[-1] = [-0.0, 0.0, -1.0, -0.0]
+    qpos = np.concatenate([rng.normal(size=lead + (3,)), quat], axis=-1)
+    _same(small.quat_to_rotmat_qpos(qpos), small.quat_to_rotmat(qpos[..., 3:7]))
+    _same(small.yaw_entries_qpos(qpos), small.yaw_entries(qpos[..., 3:7]))

@@ -195,16 +195,16 @@ class NumpyOps(ModelForms):
             if q[0, 0, 2] <= s.floor_z or (s._any_on_floor and on_floor[0, 0]):  # grounded, as below
                 u, on_floor = self._floor_impact_one(q, v, u, on_floor, hit_floor)
             return q, v, u, on_floor, hit_floor, one_quad.quat_to_rotmat(q[..., 3:7])
-        small = q.shape[0] * q.shape[1] * 4 < BIG  # R before the impact, updated where a quad lands or stays
-        R = numpy_small.quat_to_rotmat(q[..., 3:7]) if small else None
         grounded = q[..., 2] <= s.floor_z
         if s._any_on_floor:
             grounded |= on_floor
         if np.count_nonzero(grounded):  # (faster than .any() on tiny masks)
             s.u, s.on_floor = u, on_floor
-            s._floor_impact(s._worlds(grounded), hit_floor, R)
+            s._floor_impact(s._worlds(grounded), hit_floor)
             u, on_floor = s.u, s.on_floor
-        return q, v, u, on_floor, hit_floor, R if small else numpy_small.quat_to_rotmat(q[..., 3:7])
+        R = (numpy_small.quat_to_rotmat_qpos(q) if 7 < q.size < BIG  # (the same bits, fewer calls)
+             else numpy_small.quat_to_rotmat(q[..., 3:7]))
+        return q, v, u, on_floor, hit_floor, R
 
     def _floor_impact_one(self, q: np.ndarray, v: np.ndarray, u: np.ndarray, on_floor: np.ndarray,
                           hit_floor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

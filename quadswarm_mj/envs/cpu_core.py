@@ -50,7 +50,6 @@ from quadswarm_mj.core.reset import start_accumulators, start_flags, start_state
 from quadswarm_mj.downwash import downwash_draw_spec
 from quadswarm_mj.observations import obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.perf import numpy_floor
-from quadswarm_mj.perf.numpy_small import quat_to_rotmat_gather
 from quadswarm_mj.physics.mujoco_c import (  # noqa: F401  re-exported
     BACKENDS,
     BatchPhysics,
@@ -372,12 +371,10 @@ class CpuSwarm:
     def _count(self, w: Any) -> int:
         return self.B if isinstance(w, slice) else len(w)
 
-    def _floor_impact(self, w: Any, hit_floor: np.ndarray, R: np.ndarray | None = None) -> None:
+    def _floor_impact(self, w: Any, hit_floor: np.ndarray) -> None:
         """The paper's floor model after a sub-step, on worlds ``w`` (those with a quad at or below
         the floor height or grounded; elsewhere it changes nothing): ``perf.numpy_floor.floor_impact_rows``
-        (same bits as the model, signs of zero included) as writes into qpos/qvel; ``R`` (B, N, 3, 3)
-        the rotations of qpos's quaternions by ``perf.numpy_small.quat_to_rotmat_gather``, updated in
-        place (None: not kept) (one quad: ``NumpyOps``)."""
+        (same bits as the model, signs of zero included) as writes into qpos/qvel (one quad: ``NumpyOps``)."""
         cfg = self.cfg
         rows = isinstance(w, slice)  # views: write in place; else copies written back
         q, v = self.qpos[w], self.qvel[w]
@@ -385,16 +382,13 @@ class CpuSwarm:
         M, d = self._count(w), self._spec_floor["yaw"]  # = self._sampler(...).draw(self._spec_floor, (M,))["yaw"]
         yaw_draw = (self.rng.uniform(d.low, d.high, size=(M, self.N)) if cfg.noise.stochastic_collisions
                     else np.full((M, self.N), d.mean))
-        Rw = quat_to_rotmat_gather(q[..., 3:7]) if R is None else R[w]  # (the bits of yaw_entries)
         hit, grounded, any_hit = numpy_floor.floor_impact_rows(q, v, self.on_floor[w], self.floor_z, offsets,
-                                                               yaw_draw, Rw)
+                                                               yaw_draw)
         if any_hit:  # a hit zeroes the motors (0.0 * u: signs kept)
             self.u = _put(self.u, w, np.where(hit[..., None], 0.0 * self.u[w], self.u[w]))
             hit_floor[w] |= hit
         if not rows:
             self.qpos[w], self.qvel[w] = q, v
-            if R is not None:
-                R[w] = Rw
         self.phys.touch()
         self.on_floor = _put(self.on_floor, w, grounded)
         self._any_on_floor = np.count_nonzero(self.on_floor) > 0

@@ -120,11 +120,6 @@ def quat_to_rotmat(q: Any) -> Any:
         return one_quad.quat_to_rotmat(q)
     if q.size >= BIG:
         return spatial.quat_to_rotmat(q)
-    return quat_to_rotmat_gather(q)
-
-
-def quat_to_rotmat_gather(q: Any) -> Any:
-    """:func:`quat_to_rotmat`'s small-array form at any size (one gather, same bits whatever the size)."""
     lead = q.shape[:-1]
     P = (q[..., :, None] * q[..., None, :]).reshape(lead + (16,))
     t = P.take(_Q_IAB, axis=-1) * _Q_SCALE
@@ -146,5 +141,26 @@ def yaw_entries(q: Any) -> Any:
     :func:`quat_to_rotmat` (bit-identical, signs of zero included): ``arctan2(R10, R00)`` is the
     heading (:func:`quadswarm_mj.spatial.yaw_of`), R22 < 0 an upside-down body."""
     p = q.take(_YAW_I1, axis=-1) * q.take(_YAW_I2, axis=-1)
+    p *= _YAW_SCALE
+    return _YAW_BASE + (p[..., :3] + p[..., 3:])
+
+
+# the same products taken straight from qpos rows (..., 7) (position, then the quaternion at 3:7): two
+# gathers of a contiguous last axis instead of a strided quaternion view's outer product (same bits)
+_QPOS_A, _QPOS_B = _Q_IAB // 4 + 3, _Q_IAB % 4 + 3
+_QPOS_YAW_1, _QPOS_YAW_2 = _YAW_I1 + 3, _YAW_I2 + 3
+
+
+def quat_to_rotmat_qpos(qpos: Any) -> Any:
+    """(..., 7) free-body qpos rows -> (..., 3, 3): :func:`quat_to_rotmat` of ``qpos[..., 3:7]``
+    below ``spatial.BIG`` elements (bit-identical, signs of zero included)."""
+    t = qpos.take(_QPOS_A, axis=-1) * qpos.take(_QPOS_B, axis=-1)  # q_a q_b = P[4 a + b]
+    t *= _Q_SCALE
+    return (_Q_BASE + (t[..., :9] + t[..., 9:])).reshape(qpos.shape[:-1] + (3, 3))
+
+
+def yaw_entries_qpos(qpos: Any) -> Any:
+    """(..., 7) free-body qpos rows -> (..., 3): :func:`yaw_entries` of ``qpos[..., 3:7]`` (same bits)."""
+    p = qpos.take(_QPOS_YAW_1, axis=-1) * qpos.take(_QPOS_YAW_2, axis=-1)
     p *= _YAW_SCALE
     return _YAW_BASE + (p[..., :3] + p[..., 3:])
