@@ -230,9 +230,11 @@ def _axis_hits_numpy(pos: np.ndarray, R: np.ndarray, room_low: Any, room_high: A
             # and b >= 0, at b - sqrt(disc) >= 0 (c >= 0 outside); a line that misses gives NaN, a ray
             # away from the sphere b - sqrt(disc) < 0 (both: inf); a quad inside: 0 below
             ts = np.subtract(ob[..., None] * signs, np.sqrt(disc)[..., None])  # (..., N, N, 3, 2)
-            np.minimum(t, np.minimum.reduce(ts, axis=-3, where=ts >= 0.0, initial=np.inf), out=t)
-            if np.fmin.reduce(c, axis=None) < 0.0:  # (inside a hitbox: disc > 0, in this branch)
-                t[np.logical_or.reduce(c < 0.0, axis=-1)] = 0.0
+            ts = np.where(ts >= 0.0, ts, np.inf)
+            np.minimum(t, np.minimum.reduce(ts, axis=-3), out=t)
+        if np.fmin.reduce(c, axis=None) < 0.0:
+            inside = np.logical_or.reduce(c < 0.0, axis=-1)
+            t[inside] = 0.0
     return t.reshape(t.shape[:-2] + (6,))
 
 

@@ -68,7 +68,6 @@ DOWN_DIR = (0.0, 0.0, -1.0)
 #: the info entries of the deck readings (:func:`deck_info`)
 DECK_INFO_KEYS = ("multiranger", "multiranger_valid", "flow", "flow_valid", "depth")
 _EPS = 1e-9
-_clip = np._core.umath.clip  # the clip ufunc (np.clip's Python wrapper costs more on small arrays)
 _FLOW_SIGNS = np.array([-1.0, 1.0])  # (-omega_y, +omega_x) in flow_pixels2
 
 
@@ -284,51 +283,48 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
 
 
 @functools.lru_cache(maxsize=32)
-def _numpy_plan(s: SensorConfig, shape: tuple[int, ...]) -> tuple[np.ndarray, ...]:
-    """(out columns (obs_dim,), buffer template (*shape[:-1], 2 K + 4), low (K + 2,), high (K + 2,)) of
+def _numpy_plan(s: SensorConfig, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """(limit (K,), out columns (obs_dim,), buffer template (*shape, 2 K + 3), flow ray index) of
     :func:`_deck_part_numpy` for ranges of ``shape`` (..., N, K): the deck part's columns as indices into
-    its buffer [r (K) | flow x, y | flags (K) | flow valid (twice)], the template holding the readings
-    of an invalid ray (the limit) and of an invalid flow (0), the readings' clip bounds. Read-only."""
+    its buffer [r (K) | flags (K) | flow x, y | flow valid]; the template holds the readings of an
+    invalid ray (the limit) and of an invalid flow (0). Read-only."""
     k_rays = s.num_rays
     cols: list[int] = []
     k = 0
     if s.multiranger:
-        cols += list(range(5)) + list(range(k_rays + 2, k_rays + 7))
+        cols += list(range(5)) + list(range(k_rays, k_rays + 5))
         k = 5
     if s.flow:
-        cols += [k, k_rays, k_rays + 1, k_rays + 2 + k, 2 * k_rays + 2]
+        cols += [k, 2 * k_rays, 2 * k_rays + 1, k_rays + k, 2 * k_rays + 2]
         k += 1
     if s.depth is not None:
         cols += list(range(k, k_rays))
-    template = np.zeros(shape[:-1] + (2 * k_rays + 4,))
+    template = np.zeros(shape[:-1] + (2 * k_rays + 3,))
     template[..., :k_rays] = ray_limits(s)
-    low = np.concatenate([np.zeros(k_rays), [-FLOW_LIMIT_PX] * 2])
-    high = np.concatenate([ray_limits(s), [FLOW_LIMIT_PX] * 2])
-    out = (np.asarray(cols, np.intp), template, low, high)
+    out = (ray_limits(s), np.asarray(cols, np.intp), template)
     for x in out:
         x.setflags(write=False)
-    return out
+    return out[0], out[1], out[2], (5 if s.multiranger else 0)
+
+
+_clip = np._core.umath.clip  # the clip ufunc (np.clip's Python wrapper costs more on small arrays)
 
 
 def _deck_part_numpy(s: SensorConfig, t: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray,
                      draws: dict[str, Any] | None) -> np.ndarray:
     """:func:`deck_part` in NumPy from the true ranges ``t`` (..., N, K), with few calls (the CPU
-    engine's arrays are small: the per-call cost dominates): the ranges and the flow in one work array,
-    clipped together into a copy of a buffer that holds the invalid readings (``where=`` the valid),
-    the flags copied at once, the columns picked by one ``take``. The same operations on the same
-    values as the plain model: the same bits."""
-    cols, template, low, high = _numpy_plan(s, t.shape)
+    engine's arrays are small: the per-call cost dominates): every reading written into a copy of one
+    buffer that holds the invalid readings (ufuncs with ``where=`` write the valid ones), the columns
+    picked by one ``take``. The same operations on the same values: the same bits."""
+    limit, cols, template, kf = _numpy_plan(s, t.shape)
     k_rays = t.shape[-1]
-    limit = high[:k_rays]
     buf = template.copy()
-    work = np.empty(t.shape[:-1] + (k_rays + 2,))  # [readings (K) | flow x, y]
-    ok = np.empty(work.shape, bool)  # [valid (K) | flow valid (twice)]
-    x, valid = work[..., :k_rays], ok[..., :k_rays]
-    np.less_equal(t, limit, out=valid)
+    r, flags = buf[..., :k_rays], buf[..., k_rays:2 * k_rays]
+    valid = np.less_equal(t, limit)
     if draws is not None:
         u = draws["range_u"]
         valid &= u >= s.dropout
-        _clip(t, 0.0, TOF_POINT_B, out=x)  # tof_std(t), in place (the sign of a zero range is lost next)
+        x = _clip(t, 0.0, TOF_POINT_B)  # tof_std(t), in place (the sign of a zero range is lost next)
         x -= TOF_POINT_A
         x *= TOF_STD_K
         np.exp(x, out=x)
@@ -339,26 +335,25 @@ def _deck_part_numpy(s: SensorConfig, t: np.ndarray, vel: np.ndarray, R: np.ndar
         np.maximum(w, 2.0 ** -24, out=w)
         x *= _ndtri()(w, out=w)
         x += t
+        np.maximum(x, 0.0, out=x)
     else:
-        np.copyto(x, t)
+        x = np.maximum(t, 0.0)
+    np.minimum(x, limit, out=r, where=valid)  # the invalid keep the template's limit
+    np.copyto(flags, valid)
     if s.flow:
-        d = t[..., 5 if s.multiranger else 0]  # the true range along body -z (flow_pixels2, inlined)
-        f, f_ok = work[..., k_rays:], ok[..., k_rays:]
-        np.divide((vel[..., None, :] @ R)[..., 0, :2], np.maximum(d, 1e-3)[..., None], out=f)  # body velocity
-        f += omega[..., 1::-1] * _FLOW_SIGNS
-        np.less_equal(np.abs(f), FLOW_MAX_RATE, out=f_ok)
-        np.logical_and(np.logical_and.reduce(f_ok, axis=-1, keepdims=True), (d >= FLOW_MIN_RANGE)[..., None],
-                       out=f_ok)
+        d = t[..., kf]  # the true range along body -z (flow_pixels2, inlined)
+        w = (vel[..., None, :] @ R)[..., 0, :2]  # the body velocity's x, y (_body_velocity)
+        w /= np.maximum(d, 1e-3)[..., None]
+        w += omega[..., 1::-1] * _FLOW_SIGNS
+        rate_ok = np.logical_and.reduce(np.abs(w) <= FLOW_MAX_RATE, axis=-1)
+        rate_ok &= d >= FLOW_MIN_RANGE
         if s.light_lux < FLOW_MIN_LUX:  # too dark: never valid
-            f_ok[...] = False
-        f *= FLOW_GAIN
+            rate_ok[...] = False
+        w *= FLOW_GAIN
         if draws is not None:
-            f += FLOW_STD_PX * draws["flow_noise"]
-    else:
-        ok[..., k_rays:] = False
-    np.maximum(work, low, out=work)
-    np.minimum(work, high, out=buf[..., :k_rays + 2], where=ok)  # the invalid keep the template's values
-    np.copyto(buf[..., k_rays + 2:], ok)
+            w += FLOW_STD_PX * draws["flow_noise"]
+        _clip(w, -FLOW_LIMIT_PX, FLOW_LIMIT_PX, out=buf[..., 2 * k_rays:2 * k_rays + 2], where=rate_ok[..., None])
+        np.copyto(buf[..., 2 * k_rays + 2], rate_ok)
     return np.take(buf, cols, axis=-1)
 
 
