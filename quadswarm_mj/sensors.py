@@ -396,18 +396,27 @@ def deck_obs(cfg: Any, readings: dict[str, Any]) -> Any:
     return xp.concatenate(parts, axis=-1)
 
 
+@functools.lru_cache(maxsize=32)
+def _split_plan(s: SensorConfig) -> tuple[tuple[str, int, int, int], ...]:
+    """(name, start, stop, kind) of each reading in a deck part (:func:`deck_layout`); kind 1: a flag,
+    2: the depth image, 0: as it is."""
+    out, k = [], 0
+    for name, w in deck_layout(s):
+        out.append((name, k, k + w, 1 if name.endswith("_valid") else 2 if name == "depth" else 0))
+        k += w
+    return tuple(out)
+
+
 def _split(s: SensorConfig, part: Any) -> dict[str, Any]:
     """The named readings (:func:`deck_readings`) of a deck observation part (..., N, S) in metres."""
     out: dict[str, Any] = {}
-    k = 0
-    for name, w in deck_layout(s):
-        v = part[..., k:k + w]
-        if name.endswith("_valid"):
+    for name, a, b, kind in _split_plan(s):
+        v = part[..., a:b]
+        if kind == 1:
             v = v > 0.5
-        elif name == "depth":
+        elif kind == 2:
             v = v.reshape(v.shape[:-1] + s.depth)
         out[name] = v
-        k += w
     return out
 
 
