@@ -29,6 +29,8 @@ import numpy as np
 
 from quadswarm_mj._xp import array_namespace
 
+_clip = np._core.umath.clip  # the clip ufunc (np.clip's Python wrapper costs more on small arrays)
+
 #: the body-axis rays of :func:`axis_hits`, in order: +x, -x, +y, -y, +z, -z (the multi-ranger's front,
 #: back, left, right, up, then the flow deck's down)
 AXIS_DIRS = ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, 1.0),
@@ -186,33 +188,52 @@ def _offsets(xp: Any, pos: Any, R: Any, radius: float) -> tuple[list[Any], Any, 
 _SIGNS = np.array([1.0, -1.0])
 
 
-def _axis_hits_numpy(pos: np.ndarray, R: np.ndarray, gap_hi: np.ndarray, gap_lo: np.ndarray,
+@functools.lru_cache(maxsize=64)
+def _axis_constants(room_low: tuple, room_high: tuple, n: int, radius: float | None) -> tuple[np.ndarray, ...]:
+    """Read-only constants of :func:`_axis_hits_numpy`: the room's planes (2, 3) = (high, low) and the
+    bounds (2, 3) that keep their gaps > 0 and < 0, the ray signs (2,) and (N, N) radius^2 with
+    -inf on the diagonal (``|offset|^2 - it`` is inf there: the own sphere never counts)."""
+    planes = np.array([room_high, room_low], float)
+    lo = np.array([[1e-30] * 3, [-np.inf] * 3])
+    hi = np.array([[np.inf] * 3, [-1e-30] * 3])
+    r2 = np.full((n, n), 0.0 if radius is None else radius * radius)
+    np.fill_diagonal(r2, -np.inf)
+    out = (planes, lo, hi, _SIGNS.copy(), r2)
+    for x in out:
+        x.setflags(write=False)
+    return out
+
+
+def _axis_hits_numpy(pos: np.ndarray, R: np.ndarray, room_low: Any, room_high: Any,
                      radius: float | None) -> np.ndarray:
     """:func:`axis_hits` in NumPy with few calls (the CPU engine's arrays are small: call overhead
-    dominates): (..., N, 3, 3) quotients for the room, (..., N, N, 3) for the hitboxes, and the sphere
-    part skipped when no ray of any quad meets another's hitbox (the same values)."""
-    inv = 1.0 / R  # (..., N, a, c)
-    q_hi, q_lo = gap_hi[..., :, None] * inv, gap_lo[..., :, None] * inv
-    t = np.empty(R.shape[:-2] + (3, 2))  # (..., N, c, +-)
-    np.minimum.reduce(np.maximum(q_hi, q_lo), axis=-2, out=t[..., 0])  # ufunc reductions: no
-    # Python wrappers (np.min / .any cost ~3 us more each on these small arrays)
-    np.maximum.reduce(np.minimum(q_hi, q_lo), axis=-2, out=t[..., 1])
-    t[..., 1] *= -1.0
+    dominates): the room's quotients of the 6 rays in one (..., N, hi/lo, a, c, +-) array, the
+    hitboxes' on (..., N, N, c, +-) and skipped when no ray line of any quad meets another's hitbox (the
+    same values as the plain form). Call inside ``np.errstate(divide="ignore", invalid="ignore")``."""
+    n = pos.shape[-2]
+    planes, g_lo, g_hi, signs, r2 = _axis_constants(tuple(room_low), tuple(room_high), n, radius)
+    gaps = np.subtract(planes, pos[..., None, :])  # (..., N, 2, 3): high and low planes minus pos
+    _clip(gaps, g_lo, g_hi, out=gaps)  # kept > 0 (high) and < 0 (low)
+    inv = np.divide(signs, R[..., None])  # (..., N, a, c, +-): 1 / (+-R[a, c])
+    q = np.multiply(gaps[..., :, :, None, None], inv[..., None, :, :, :])  # (..., N, hi/lo, a, c, +-)
+    t = np.minimum.reduce(np.maximum.reduce(q, axis=-4), axis=-3)  # (..., N, c, +-): the plane ahead
+    # (the larger quotient), the nearest over the 3 axes; ufunc reductions (no Python wrappers)
     if radius is not None:
-        n = pos.shape[-2]
         o = pos[..., None, :, :] - pos[..., :, None, :]  # (..., N (i), N (j), 3) world: quad j - quad i
         ob = o @ R  # body frame of quad i: ob[i, j, c] = sum_a o[i, j, a] R[i, a, c]
         ob2 = ob * ob
-        c = np.add.reduce(ob2, axis=-1) - radius * radius  # |offset|^2 - r^2 (a rotation keeps the length)
-        c.reshape(c.shape[:-2] + (n * n,))[..., ::n + 1] = np.inf  # the own sphere never counts
-        disc = ob2 - c[..., None]  # >= 0: the line of ray +-c meets the sphere
-        hit = disc >= 0.0
-        if hit.any():  # along +c (-c) the dot product with the offset is ob_c (-ob_c), a hit needs it >= 0
-            b = ob[..., None] * _SIGNS  # (..., N, N, 3, 2)
-            ts = np.where(hit[..., None] & (b >= 0.0), b - np.sqrt(np.maximum(disc, 0.0))[..., None], np.inf)
+        c = np.add.reduce(ob2, axis=-1)
+        np.subtract(c, r2, out=c)  # |offset|^2 - r^2 (a rotation keeps the length); inf on the diagonal
+        disc = np.subtract(ob2, c[..., None], out=ob2)  # >= 0: the line of ray +-c meets the sphere
+        if np.fmax.reduce(disc, axis=None) >= 0.0:
+            # along +c (-c) the dot product with the offset is b = ob_c (-ob_c): a hit needs disc >= 0
+            # and b >= 0, at b - sqrt(disc) >= 0 (c >= 0 outside); a line that misses gives NaN, a ray
+            # away from the sphere b - sqrt(disc) < 0 (both: inf); a quad inside: 0 below
+            ts = np.subtract(ob[..., None] * signs, np.sqrt(disc)[..., None])  # (..., N, N, 3, 2)
+            ts = np.where(ts >= 0.0, ts, np.inf)
             np.minimum(t, np.minimum.reduce(ts, axis=-3), out=t)
-        inside = np.logical_or.reduce(c < 0.0, axis=-1)
-        if inside.any():
+        if np.fmin.reduce(c, axis=None) < 0.0:
+            inside = np.logical_or.reduce(c < 0.0, axis=-1)
             t[inside] = 0.0
     return t.reshape(t.shape[:-2] + (6,))
 
@@ -229,13 +250,13 @@ def axis_hits(pos: Any, R: Any, room_low: Any, room_high: Any, columns: Any = No
     xp = array_namespace(pos, R)
     spheres = quad_radius is not None and pos.shape[-2] > 1
     with np.errstate(divide="ignore", invalid="ignore"):
-        gap_hi, gap_lo = _room_gaps(xp, pos, room_low, room_high)
-        if spheres and xp is not np:
-            ob, c, inside = _offsets(xp, pos, R, quad_radius)
-            sc = xp.sqrt(xp.maximum(c, 0.0))
         if xp is np:
-            t = _axis_hits_numpy(pos, R, gap_hi, gap_lo, quad_radius if spheres else None)
+            t = _axis_hits_numpy(pos, R, room_low, room_high, quad_radius if spheres else None)
         else:
+            gap_hi, gap_lo = _room_gaps(xp, pos, room_low, room_high)
+            if spheres:
+                ob, c, inside = _offsets(xp, pos, R, quad_radius)
+                sc = xp.sqrt(xp.maximum(c, 0.0))
             outs = []
             for k in range(3):  # body axis k: rays +k, -k
                 t_pos = t_neg = None

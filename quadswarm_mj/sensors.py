@@ -283,9 +283,11 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
 
 
 @functools.lru_cache(maxsize=32)
-def _numpy_plan(s: SensorConfig) -> tuple[np.ndarray, np.ndarray, int]:
-    """(limit (K,), out columns (obs_dim,), flow ray index) of :func:`_deck_part_numpy`: the deck part's
-    columns as indices into its buffer [r (K) | flags (K) | flow x, y | flow valid]. Read-only."""
+def _numpy_plan(s: SensorConfig, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """(limit (K,), out columns (obs_dim,), buffer template (*shape, 2 K + 3), flow ray index) of
+    :func:`_deck_part_numpy` for ranges of ``shape`` (..., N, K): the deck part's columns as indices into
+    its buffer [r (K) | flags (K) | flow x, y | flow valid]; the template holds the readings of an
+    invalid ray (the limit) and of an invalid flow (0). Read-only."""
     k_rays = s.num_rays
     cols: list[int] = []
     k = 0
@@ -297,50 +299,60 @@ def _numpy_plan(s: SensorConfig) -> tuple[np.ndarray, np.ndarray, int]:
         k += 1
     if s.depth is not None:
         cols += list(range(k, k_rays))
-    out = (ray_limits(s), np.asarray(cols, np.intp))
+    template = np.zeros(shape[:-1] + (2 * k_rays + 3,))
+    template[..., :k_rays] = ray_limits(s)
+    out = (ray_limits(s), np.asarray(cols, np.intp), template)
     for x in out:
         x.setflags(write=False)
-    return out[0], out[1], (5 if s.multiranger else 0)
+    return out[0], out[1], out[2], (5 if s.multiranger else 0)
+
+
+_clip = np._core.umath.clip  # the clip ufunc (np.clip's Python wrapper costs more on small arrays)
 
 
 def _deck_part_numpy(s: SensorConfig, t: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray,
                      draws: dict[str, Any] | None) -> np.ndarray:
     """:func:`deck_part` in NumPy from the true ranges ``t`` (..., N, K), with few calls (the CPU
-    engine's arrays are small: the per-call cost dominates): every reading written into one buffer,
-    the columns picked by one ``take``. The same operations on the same values: the same bits."""
-    limit, cols, kf = _numpy_plan(s)
+    engine's arrays are small: the per-call cost dominates): every reading written into a copy of one
+    buffer that holds the invalid readings (ufuncs with ``where=`` write the valid ones), the columns
+    picked by one ``take``. The same operations on the same values: the same bits."""
+    limit, cols, template, kf = _numpy_plan(s, t.shape)
     k_rays = t.shape[-1]
-    buf = np.empty(t.shape[:-1] + (2 * k_rays + 3,))
+    buf = template.copy()
     r, flags = buf[..., :k_rays], buf[..., k_rays:2 * k_rays]
-    valid = t <= limit
+    valid = np.less_equal(t, limit)
     if draws is not None:
         u = draws["range_u"]
         valid &= u >= s.dropout
-        x = np.minimum(np.maximum(t, 0.0), TOF_POINT_B)  # tof_std(t), in place
+        x = _clip(t, 0.0, TOF_POINT_B)  # tof_std(t), in place (the sign of a zero range is lost next)
         x -= TOF_POINT_A
         x *= TOF_STD_K
         np.exp(x, out=x)
         x += 1.0
         x *= TOF_STD_A
-        x *= tof_normal(u, s.dropout)
+        w = np.subtract(u, s.dropout)  # tof_normal(u, s.dropout), in place
+        w *= 1.0 / (1.0 - s.dropout) if s.dropout < 1.0 else 0.0
+        np.maximum(w, 2.0 ** -24, out=w)
+        x *= _ndtri()(w, out=w)
         x += t
         np.maximum(x, 0.0, out=x)
     else:
         x = np.maximum(t, 0.0)
-    np.minimum(x, limit, out=r)
-    np.copyto(r, limit, where=~valid)
+    np.minimum(x, limit, out=r, where=valid)  # the invalid keep the template's limit
     np.copyto(flags, valid)
     if s.flow:
-        d = t[..., kf]  # the true range along body -z
-        f, rate_ok = flow_pixels2(_body_velocity(np, R, vel), omega, d)
+        d = t[..., kf]  # the true range along body -z (flow_pixels2, inlined)
+        w = (vel[..., None, :] @ R)[..., 0, :2]  # the body velocity's x, y (_body_velocity)
+        w /= np.maximum(d, 1e-3)[..., None]
+        w += omega[..., 1::-1] * _FLOW_SIGNS
+        rate_ok = np.logical_and.reduce(np.abs(w) <= FLOW_MAX_RATE, axis=-1)
         rate_ok &= d >= FLOW_MIN_RANGE
         if s.light_lux < FLOW_MIN_LUX:  # too dark: never valid
             rate_ok[...] = False
+        w *= FLOW_GAIN
         if draws is not None:
-            f += FLOW_STD_PX * draws["flow_noise"]
-        fo = buf[..., 2 * k_rays:2 * k_rays + 2]
-        np.minimum(np.maximum(f, -FLOW_LIMIT_PX), FLOW_LIMIT_PX, out=fo)
-        np.copyto(fo, 0.0, where=~rate_ok[..., None])
+            w += FLOW_STD_PX * draws["flow_noise"]
+        _clip(w, -FLOW_LIMIT_PX, FLOW_LIMIT_PX, out=buf[..., 2 * k_rays:2 * k_rays + 2], where=rate_ok[..., None])
         np.copyto(buf[..., 2 * k_rays + 2], rate_ok)
     return np.take(buf, cols, axis=-1)
 
@@ -384,18 +396,27 @@ def deck_obs(cfg: Any, readings: dict[str, Any]) -> Any:
     return xp.concatenate(parts, axis=-1)
 
 
+@functools.lru_cache(maxsize=32)
+def _split_plan(s: SensorConfig) -> tuple[tuple[str, int, int, int], ...]:
+    """(name, start, stop, kind) of each reading in a deck part (:func:`deck_layout`); kind 1: a flag,
+    2: the depth image, 0: as it is."""
+    out, k = [], 0
+    for name, w in deck_layout(s):
+        out.append((name, k, k + w, 1 if name.endswith("_valid") else 2 if name == "depth" else 0))
+        k += w
+    return tuple(out)
+
+
 def _split(s: SensorConfig, part: Any) -> dict[str, Any]:
     """The named readings (:func:`deck_readings`) of a deck observation part (..., N, S) in metres."""
     out: dict[str, Any] = {}
-    k = 0
-    for name, w in deck_layout(s):
-        v = part[..., k:k + w]
-        if name.endswith("_valid"):
+    for name, a, b, kind in _split_plan(s):
+        v = part[..., a:b]
+        if kind == 1:
             v = v > 0.5
-        elif name == "depth":
+        elif kind == 2:
             v = v.reshape(v.shape[:-1] + s.depth)
         out[name] = v
-        k += w
     return out
 
 

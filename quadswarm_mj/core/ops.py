@@ -99,6 +99,7 @@ class NumpyOps(ModelForms):
         self._reward_plan = one_quad.reward_plan(rewards._term_factors(cfg.rewards, cfg.sim_dt, cfg.control_dt),
                                                  rewards.ANNEALED)
         self._deck_noise = cfg.sensors.any and cfg.sensors.noise
+        self._deck_spec = None  # the deck draws' (name, uniform?, a, b, shape), made on first use
         lo, hi = swarm._out_lo.tolist(), swarm._out_hi.tolist()
         self._out = (lo[0], lo[1], lo[2], hi[0], hi[1], hi[2])  # the walls' and ceiling's bounds (floats)
         self._sum_keys: dict[tuple, list[str]] = {}
@@ -263,10 +264,15 @@ class NumpyOps(ModelForms):
         if kind == "deck":  # deck sensor noise (quadswarm_mj.sensors), None: noise-free
             if not self._deck_noise:
                 return None
-            from quadswarm_mj.random_draws import NumpySampler
-            from quadswarm_mj.sensors import deck_draw_spec
+            if self._deck_spec is None:  # = NumpySampler(rng).draw(deck_draw_spec(cfg), (B,)), its spec made once
+                from quadswarm_mj.random_draws import Uniform
+                from quadswarm_mj.sensors import deck_draw_spec
 
-            return NumpySampler(s.rng).draw(deck_draw_spec(s.cfg), (s.B,))
+                self._deck_spec = [(k, isinstance(d, Uniform), *((d.low, d.high) if isinstance(d, Uniform)
+                                    else (d.mean, d.std)), (s.B,) + tuple(d.shape))
+                                   for k, d in deck_draw_spec(s.cfg).items()]
+            return {k: (s.rng.uniform if uni else s.rng.normal)(a, b, size=shape)
+                    for k, uni, a, b, shape in self._deck_spec}
         if kind == "wall":
             return s._sampler(noise.stochastic_collisions).draw(s._spec_wall, (s._count(w),))
         if kind == "yaw":  # = s._sampler(...).draw(s._spec_floor, (M,))["yaw"]

@@ -117,11 +117,14 @@ class QuadSwarmEnv(gym.Env):
         """``info`` as returned: nested, or flat with ``cfg.info_mode="flat"`` (envs/flat_info.py); with
         the deck sensors on, their readings from ``obs`` (N, obs_dim) (``quadswarm_mj.sensors.deck_info``)."""
         if obs is not None and self.cfg.sensors.any:
-            from quadswarm_mj.observations import obs_scale
-            from quadswarm_mj.sensors import deck_info
+            deck = self.__dict__.get("_deck_info_args")
+            if deck is None:  # (deck_info, shape, scale), made once
+                from quadswarm_mj.observations import obs_scale
+                from quadswarm_mj.sensors import deck_info
 
-            scale = obs_scale(self.cfg) if self.cfg.normalize_obs else None
-            info.update(deck_info(self.cfg, np.reshape(obs, (self.cfg.num_quads, self.cfg.obs_dim)), scale))
+                deck = self._deck_info_args = (deck_info, (self.cfg.num_quads, self.cfg.obs_dim),
+                                               obs_scale(self.cfg) if self.cfg.normalize_obs else None)
+            info.update(deck[0](self.cfg, np.reshape(obs, deck[1]), deck[2]))
         return info if self._flat is None else self._flat(info)
 
     # ------------------------------------------------------------------ API
