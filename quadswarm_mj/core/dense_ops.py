@@ -36,12 +36,6 @@ class DenseOps(AlwaysOn):
         return {k: self.xp.asarray(v, dtype=self.dtype) for k, v in terms.items()}
 
     @staticmethod
-    def loop(body: Any, carry: Any, n: int) -> Any:
-        for i in range(n):
-            carry = body(carry, i)
-        return carry
-
-    @staticmethod
     def floor_wrench(cfg: Any, on_floor: Any, force: Any, torque: Any, v: Any, params: dict[str, Any]) -> tuple:
         return collisions.floor_wrench(on_floor, force, torque, v[..., :3], params["mass"], params["gravity"],
                                        cfg.collision.floor_friction, cfg.sim_dt)

@@ -70,6 +70,13 @@ class ModelForms:
     metrics_update = staticmethod(metrics_lib.update)
     obs = staticmethod(observations.build_obs)
 
+    @staticmethod
+    def loop(body: Any, carry: Any, n: int) -> Any:
+        """``n`` sub-steps, eagerly: ``carry = body(carry, i)`` (the JAX engine's ops use ``fori_loop``)."""
+        for i in range(n):
+            carry = body(carry, i)
+        return carry
+
 
 class NumpyOps(ModelForms):
     """Eager event gating with per-event NumPy draws, for a :class:`~quadswarm_mj.envs.cpu_core.CpuSwarm`
@@ -158,12 +165,6 @@ class NumpyOps(ModelForms):
         return observations.build_obs(cfg, pos, vel, R, omega, goals, noise, low, high, scale, dist, obstacles,
                                       obstacle_feats, deck_draws)
 
-    @staticmethod
-    def loop(body: Any, carry: Any, n: int) -> Any:
-        """``n`` sub-steps: ``carry = body(carry, i)``."""
-        for i in range(n):
-            carry = body(carry, i)
-        return carry
 
     def floor_wrench(self, cfg: Any, on_floor: np.ndarray, force: np.ndarray, torque: np.ndarray, v: np.ndarray,
                      params: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
