@@ -92,6 +92,44 @@ def test_speed_forms_numpy_equal_jit():
                                                           omap, c.hitbox), rtol=1e-4, atol=1e-4)
 
 
+def test_jax_engine_deck_forms_equal_the_model_under_jit():
+    """The JAX engine's forms (core.ops.jax_deck_part: perf.depth_xla's hitbox test, perf.fused_draws'
+    erfinv) give the model's plain values: the hitbox test the same hits (to float32 round-off), the deck
+    part with noise to round-off, with and without the depth camera."""
+    jax = pytest.importorskip("jax")
+    jnp = jax.numpy
+    from quadswarm_mj.core.ops import jax_deck_part
+    from quadswarm_mj.perf.depth_xla import sphere_pixel_hits as fast
+    from quadswarm_mj.sensor_rays import _offsets, _pixel_constants, sphere_pixel_hits
+    from quadswarm_mj.sensors import deck_part
+
+    pos, R, omap = _scene(6)
+    f32 = lambda x: jnp.asarray(x, jnp.float32) if np.asarray(x).dtype.kind == "f" else jnp.asarray(x)  # noqa: E731
+    _, _, uk, vk, norm = _pixel_constants((8, 8), (45.0, 45.0))
+
+    def hits(form):
+        def f(p, r):
+            ob, c, inside = _offsets(jnp, p, r, 0.1)
+            return form(ob, c, f32(uk), f32(vk), f32(norm * norm)), inside
+        t, inside = jax.jit(jax.vmap(f))(f32(pos), f32(R))
+        return np.asarray(t)[~np.asarray(inside)]  # a quad inside another's hitbox: the caller's 0
+
+    a, b = hits(sphere_pixel_hits), hits(fast)
+    assert np.isfinite(a).any() and np.isinf(a).any() and a.shape[0] < 40
+    np.testing.assert_array_equal(np.isinf(b), np.isinf(a))
+    np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-6)
+    rng = np.random.default_rng(3)
+    for s in (SensorConfig(multiranger=True, flow=True, depth=(8, 8), dropout=0.1),
+              SensorConfig(multiranger=True, flow=True, dropout=0.1)):
+        c = EnvConfig(num_quads=8, room_size=(6.0, 5.0, 3.0), sensors=s)
+        d = {"range_u": f32(rng.uniform(size=(5, 8, s.num_rays))), "flow_noise": f32(rng.normal(size=(5, 8, 2)))}
+        args = (f32(pos), f32(rng.normal(size=(5, 8, 3))), f32(R), f32(rng.normal(size=(5, 8, 3))),
+                tuple(f32(x) for x in omap), d)
+        plain = np.asarray(jax.jit(jax.vmap(lambda *a, c=c: deck_part(c, *a)))(*args))
+        engine = np.asarray(jax.jit(jax.vmap(lambda *a, c=c: jax_deck_part()(c, *a)))(*args))
+        np.testing.assert_allclose(engine, plain, rtol=1e-5, atol=1e-5)
+
+
 def test_sensor_config_rays_match_the_speed_forms():
     from quadswarm_mj.sensors import ray_directions
 

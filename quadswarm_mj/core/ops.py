@@ -24,6 +24,7 @@ forms of :mod:`quadswarm_mj.perf` are reached only here).
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -330,6 +331,18 @@ class AlwaysOn(ModelForms):
         return value
 
 
+@functools.cache
+def jax_deck_part() -> Any:
+    """:func:`quadswarm_mj.sensors.deck_part` with the JAX engine's same-values forms: the float32 erfinv of
+    its random numbers (:func:`quadswarm_mj.perf.fused_draws.erf_inv_f32`) and the depth camera's hitbox
+    test for XLA:CPU (:func:`quadswarm_mj.perf.depth_xla.sphere_pixel_hits`); ``build_obs``' ``deck_fn``."""
+    from quadswarm_mj.perf.depth_xla import sphere_pixel_hits
+    from quadswarm_mj.perf.fused_draws import erf_inv_f32
+    from quadswarm_mj.sensors import deck_part
+
+    return functools.partial(deck_part, erf_inv=erf_inv_f32, pixel_spheres=sphere_pixel_hits)
+
+
 class JaxOps(AlwaysOn):
     """Always-on stages with the step's budgeted draws ``rnd`` (one world, ``jax.numpy``)."""
 
@@ -348,8 +361,9 @@ class JaxOps(AlwaysOn):
         return collisions.pairwise_contacts(pos, hitbox, self._k["pair_dist"])
 
     def obs(self, *args: Any, **kw: Any) -> Any:
-        """:func:`quadswarm_mj.observations.build_obs` with the worlds-last neighbour ranks."""
-        return observations.build_obs(*args, rank_fn=self._k["rank_fn"], **kw)
+        """:func:`quadswarm_mj.observations.build_obs` with the worlds-last neighbour ranks and the engine's
+        deck part (:func:`jax_deck_part`)."""
+        return observations.build_obs(*args, rank_fn=self._k["rank_fn"], deck_fn=jax_deck_part(), **kw)
 
     def loop(self, body: Any, carry: Any, n: int) -> Any:
         """``lax.scan`` over the sub-steps, each given its floor-landing yaw slots (cos, sin) (n, slots)."""
