@@ -451,13 +451,16 @@ def deck_info(cfg: Any, obs: Any, scale: Any = None) -> dict[str, Any]:
     s = cfg.sensors
     if not s.any:
         return {}
-    xp = array_namespace(obs)
-    start = cfg.obs_dim - s.obs_dim
-    if xp is np:  # one fresh float32 array of the deck part; the entries are views of it (no alias of obs)
-        part = np.array(obs[..., start:], dtype=np.float32)
+    start = obs.shape[-1] - s.obs_dim  # = cfg.obs_dim - s.obs_dim
+    if type(obs) is np.ndarray:  # one fresh float32 array of the deck part and one of its flags; the entries
+        # are views of them (no alias of obs)
+        part = obs[..., start:].astype(np.float32)
         if scale is not None:
             part *= np.asarray(scale, dtype=np.float32)[start:]
-        return _split(s, part)
+        flags = part > 0.5
+        return {name: (flags if kind == 1 else part)[..., a:b] if kind != 2 else
+                part[..., a:b].reshape(part.shape[:-1] + s.depth) for name, a, b, kind in _split_plan(s)}
+    xp = array_namespace(obs)
     part = obs[..., start:]
     if scale is not None:
         part = part * xp.asarray(np.asarray(scale)[start:], dtype=part.dtype)

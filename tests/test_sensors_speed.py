@@ -251,3 +251,38 @@ def test_numpy_deck_part_is_the_plain_model_bit_for_bit(noise):
     got = deck_part(c, pos, vel, R, omega, None, d)
     assert (~valid).any() and got.shape == want.shape
     assert got.tobytes() == want.astype(float).tobytes()
+
+
+@pytest.mark.parametrize("sensors", [{"multiranger": True, "flow": True}, {"multiranger": True}, {"flow": True},
+                                     {"multiranger": True, "flow": True, "noise": False},
+                                     {"multiranger": True, "flow": True, "light_lux": 10.0, "dropout": 0.2}])
+def test_numpy_deck_speed_form_is_the_model_bit_for_bit(sensors):
+    """perf.numpy_deck.deck_part (the MuJoCo engine's form, through core.ops.NumpyOps) gives the model's
+    bits: crowded scenes (a quad inside another's hitbox, rays meeting hitboxes), level quads on the floor
+    (rays parallel to the room's planes), columns, one world, three worlds, one quad, no leading dims."""
+    from quadswarm_mj.perf import numpy_deck
+    from quadswarm_mj.sensors import deck_part
+
+    s = SensorConfig(**sensors)
+    hit_rays = 0
+    for seed in range(6):
+        for n, lead in ((8, (1,)), (8, (3,)), (1, (1,)), (3, ())):
+            c = EnvConfig(num_quads=n, room_size=(6.0, 5.0, 3.0), sensors=s)
+            pos, R, omap = _scene(seed, n=n, lead=lead, crowded=n >= 5)
+            rng = np.random.default_rng(seed)
+            vel, omega = 2.0 * rng.normal(size=lead + (n, 3)), 3.0 * rng.normal(size=lead + (n, 3))
+            if seed % 2:  # level quads on the floor
+                pos[..., 2], R[...] = 0.046, np.eye(3)
+            draws = None
+            if s.noise:
+                draws = {"range_u": rng.uniform(size=lead + (n, s.num_rays))}
+                if s.flow:
+                    draws["flow_noise"] = rng.normal(size=lead + (n, 2))
+            for cols in (None, omap):
+                want = deck_part(c, pos, vel, R, omega, cols, draws)
+                assert numpy_deck.deck_part(c, pos, vel, R, omega, cols, draws).tobytes() == want.tobytes()
+            if n > 1:
+                free = axis_hits(pos, R, c.room_low, c.room_high)
+                hit_rays += np.count_nonzero((axis_hits(pos, R, c.room_low, c.room_high, None, c.hitbox) < free) & (
+                    axis_hits(pos, R, c.room_low, c.room_high, None, c.hitbox) > 0.0))
+    assert hit_rays > 0  # the hitbox hits are exercised

@@ -32,7 +32,7 @@ import numpy as np
 from quadswarm_mj import actuation, collisions, observations, rewards, spatial
 from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj.collisions import expand_per_quad, quad_collisions, quad_collisions_budgeted
-from quadswarm_mj.perf import numpy_floor, numpy_small, one_quad, xla_cpu
+from quadswarm_mj.perf import numpy_deck, numpy_floor, numpy_small, one_quad, xla_cpu
 from quadswarm_mj.spatial import BIG
 
 ALL = slice(None)
@@ -160,11 +160,11 @@ class NumpyOps(ModelForms):
             low: Any, high: Any, scale: Any | None = None, dist: Any | None = None, obstacles: Any | None = None,
             obstacle_feats: Any | None = None, deck_draws: dict[str, Any] | None = None) -> Any:
         """:func:`quadswarm_mj.observations.build_obs` (one quad without neighbours, obstacles or decks:
-        ``perf.one_quad.build_obs``, same values)."""
+        ``perf.one_quad.build_obs``, same values; the decks' part: ``perf.numpy_deck``, same bits)."""
         if self._one_obs and one_quad.ENABLED and pos.shape == (1, 1, 3):
             return one_quad.build_obs(pos, vel, R, omega, goals, noise, low, high, scale, self._obs_floor)
         return observations.build_obs(cfg, pos, vel, R, omega, goals, noise, low, high, scale, dist, obstacles,
-                                      obstacle_feats, deck_draws)
+                                      obstacle_feats, deck_draws, deck_fn=numpy_deck.deck_part)
 
 
     def floor_wrench(self, cfg: Any, on_floor: np.ndarray, force: np.ndarray, torque: np.ndarray, v: np.ndarray,
