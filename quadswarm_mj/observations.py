@@ -243,9 +243,9 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
 
         parts.append(obstacle_feats if obstacle_feats is not None else obstacle_features(pos, *obstacles))
     if cfg.sensors.any:
-        from quadswarm_mj.sensors import deck_part
-
-        parts.append((deck_fn or deck_part)(cfg, pos, vel, R, omega, obstacles, deck_draws))
+        if deck_fn is None:
+            from quadswarm_mj.sensors import deck_part as deck_fn
+        parts.append(deck_fn(cfg, pos, vel, R, omega, obstacles, deck_draws))
     if xp is np:
         obs = np.minimum(np.maximum(np.concatenate(parts, axis=-1), low), high)  # = clip into the bounds
     else:  # each part clipped into its bounds, then concatenated: the same values, and XLA:CPU then
