@@ -2,24 +2,17 @@
 engine's (1, 8, .) arrays: NumPy's per-call cost dominates, and a call's cost depends on its form).
 
 :func:`deck_part` gives the same bits as :func:`quadswarm_mj.sensors.deck_part` (its NumPy forms
-``sensor_rays._axis_hits_numpy`` and ``sensors._deck_part_numpy``; ``tests/test_sensors_speed.py``): the
-same floating-point operations on the same operands, only
-
-* same-shape or 0-d operands instead of broadcast constants and Python floats (a broadcast binary
-  ufunc call costs ~3x a same-shape one, a Python float ~2x a 0-d array);
-* minima and maxima over short axes as elementwise calls on slices instead of ``ufunc.reduce``;
-* the hitbox minimum on the unsigned integers of the distances' bits (a hit ahead is a float >= 0,
-  whose bits order as the floats do; a miss (NaN) or a hit behind (< 0) orders above +inf: see
-  ``perf/depth_xla.py``) instead of ``where`` and a float minimum, halved over the neighbours by
-  elementwise minima; the body velocity on its contiguous
-  3 components (the third unused);
-* preallocated work arrays and their views (no allocation or slicing per call but the result);
-* ``np.copyto(where=)`` (a plain copy loop) instead of ufuncs with ``where=``; ``ndarray.take``
-  instead of ``np.take``; a ``(-omega_y, omega_x)`` term as one subtract and one add.
-
-The two matrix products (the neighbours' body-frame offsets, the body velocity) stay as the model
-writes them (they round with FMA). Other configurations (the depth camera, JAX arrays, noise given
-as ``range_z``) go to the model's function.
+``sensor_rays._axis_hits_numpy`` and ``sensors._deck_part_numpy``; ``tests/test_sensors_speed.py``):
+the same floating-point operations on the same operands, only with same-shape or 0-d operands instead
+of broadcast constants and Python floats (~3x and ~2x cheaper calls); minima over short axes as
+elementwise calls on slices instead of ``ufunc.reduce``; the hitbox minimum on the unsigned integers
+of the distances' bits (a hit ahead is a float >= 0, ordered as the floats; a miss (NaN) or a hit
+behind (< 0) orders above +inf, as in ``perf/depth_xla.py``) instead of ``where`` and a float minimum;
+preallocated work arrays and views (per config, shape and thread); ``np.copyto(where=)`` instead of
+ufuncs with ``where=``; ``ndarray.take`` instead of ``np.take``. The two matrix products (the
+neighbours' body-frame offsets, the body velocity) stay as the model writes them (they round with FMA).
+Other configurations (the depth camera, JAX arrays, noise given as ``range_z``) go to the model's
+function. ``core.ops.NumpyOps`` passes it to ``build_obs`` as ``deck_fn``.
 """
 
 from __future__ import annotations
