@@ -97,15 +97,18 @@ def step_state(cfg: Any, scenario: Any, state: SwarmState, q: Any, v: Any, aux: 
     if state.obstacles is not None:
         s.update(omap=state.obstacles, obst_metrics=state.obstacle_metrics, obst_threshold=obst_threshold)
     k, c, r = control_step(cfg, scenario, s, action, consts, physics, ops)
-    changes = {"rot": k["R"], "motor_u": k["u"], "motor_eps": k["eps"], "thrust": k["f_norm"],
-               "on_floor": k["on_floor"], "at_wall": k["at_wall"], "at_ceiling": k["at_ceiling"],
-               "contact": k["contact"], "step": r["steps"], "total_steps": r["total_steps"],
-               "scenario": r["sstate"], "metrics_acc": r["metrics_acc"]}
+    new = object.__new__(SwarmState)  # = state.replace(...) without its checks (the per-step path)
+    d = new.__dict__
+    d.update(state.__dict__)
+    d["rot"], d["motor_u"], d["motor_eps"], d["thrust"] = k["R"], k["u"], k["eps"], k["f_norm"]
+    d["on_floor"], d["at_wall"], d["at_ceiling"] = k["on_floor"], k["at_wall"], k["at_ceiling"]
+    d["contact"], d["step"], d["total_steps"] = k["contact"], r["steps"], r["total_steps"]
+    d["scenario"], d["metrics_acc"] = r["sstate"], r["metrics_acc"]
     if k["ctrl"] is not None:
-        changes["rotor_cmd"], changes["ctrl_state"] = k["ctrl"]
+        d["rotor_cmd"], d["ctrl_state"] = k["ctrl"]
     if state.obstacles is not None:
-        changes["obstacle_contact"], changes["obstacle_metrics"] = k["obst_contact"], r["obst_metrics"]
-    return state.replace(**changes), k, c, r
+        d["obstacle_contact"], d["obstacle_metrics"] = k["obst_contact"], r["obst_metrics"]
+    return new, k, c, r
 
 
 # ------------------------------------------------------------------ the JAX engine's info dict

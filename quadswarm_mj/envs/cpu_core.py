@@ -21,6 +21,7 @@ distance matrix per step) change no value: docs/engines.md.
 
 from __future__ import annotations
 
+import operator
 from typing import Any
 
 import numpy as np
@@ -77,13 +78,10 @@ def _put_rows(old: Any, idx: Any, new: Any, B: int) -> Any:
 
 def _view(field: str, doc: str) -> property:
     """An attribute that reads (and, assigned, replaces) the field ``field`` of ``self.state``."""
-    def get(self: CpuSwarm) -> Any:
-        return getattr(self.state, field)
-
     def set_(self: CpuSwarm, value: Any) -> None:
         self.state = self.state.replace(**{field: value})
 
-    return property(get, set_, doc=doc)
+    return property(operator.attrgetter(f"state.{field}"), set_, doc=doc)
 
 
 class CpuSwarm:
@@ -419,10 +417,12 @@ class CpuSwarm:
         """Advance all worlds one control step with validated actions (B, N, 4) of ``cfg.control_mode``
         (per-rotor in [-1, 1], or physical units clipped into ``control_action_bounds``):
         :func:`quadswarm_mj.core.swarm.step_state` on MuJoCo (``self.phys``) with :class:`NumpyOps`."""
-        self._rotations()  # state.rot set
+        st = self.state
+        if st.rot is None:  # the rotations of qpos (after a reset or a write from outside)
+            st = self.state = st.replace(rot=NumpyOps.rotmat(self.qpos[..., 3:7]))
         consts = self._consts
         consts["torque_spin"] = self._torque_spin  # (drawn at reset)
-        new, k, c, r = step_state(self.cfg, self.scenario, self.state, self.qpos, self.qvel, None, self._params,
+        new, k, c, r = step_state(self.cfg, self.scenario, st, self.qpos, self.qvel, None, self._params,
                                   action, consts, self.phys, self._ops, self._obst_thr)
         self._store(k, c)
         self.state = new
