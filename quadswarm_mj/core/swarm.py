@@ -89,24 +89,26 @@ def step_state(cfg: Any, scenario: Any, state: SwarmState, q: Any, v: Any, aux: 
     ``gravity`` (m/s^2) as the model functions read them; ``obst_threshold``: the obstacle success
     distance per world (None: the scenario's). Returns ``(next state, k, c, task)``: the state after the
     step (``rng``/``step_numbers`` unchanged: the engine's) and control_step's results."""
-    ctrl = None if consts["act"] is None else (state.rotor_cmd, state.ctrl_state)
-    s = {"q": q, "v": v, "R": state.rot, "u": state.motor_u, "eps": state.motor_eps, "f_norm": state.thrust,
-         "on_floor": state.on_floor, "at_wall": state.at_wall, "at_ceiling": state.at_ceiling,
-         "contact": state.contact, "params": params, "aux": aux, "ctrl": ctrl, "steps": state.step,
-         "total_steps": state.total_steps, "sstate": state.scenario, "metrics_acc": state.metrics_acc}
-    if state.obstacles is not None:
-        s.update(omap=state.obstacles, obst_metrics=state.obstacle_metrics, obst_threshold=obst_threshold)
+    f = state.__dict__  # the fields (read as a dict: the per-step path)
+    ctrl = None if consts["act"] is None else (f["rotor_cmd"], f["ctrl_state"])
+    s = {"q": q, "v": v, "R": f["rot"], "u": f["motor_u"], "eps": f["motor_eps"], "f_norm": f["thrust"],
+         "on_floor": f["on_floor"], "at_wall": f["at_wall"], "at_ceiling": f["at_ceiling"], "contact": f["contact"],
+         "params": params, "aux": aux, "ctrl": ctrl, "steps": f["step"], "total_steps": f["total_steps"],
+         "sstate": f["scenario"], "metrics_acc": f["metrics_acc"]}
+    obstacles = f["obstacles"] is not None
+    if obstacles:
+        s.update(omap=f["obstacles"], obst_metrics=f["obstacle_metrics"], obst_threshold=obst_threshold)
     k, c, r = control_step(cfg, scenario, s, action, consts, physics, ops)
-    new = object.__new__(SwarmState)  # = state.replace(...) without its checks (the per-step path)
+    new = object.__new__(SwarmState)  # = state.replace(...) without its checks
     d = new.__dict__
-    d.update(state.__dict__)
+    d.update(f)
     d["rot"], d["motor_u"], d["motor_eps"], d["thrust"] = k["R"], k["u"], k["eps"], k["f_norm"]
     d["on_floor"], d["at_wall"], d["at_ceiling"] = k["on_floor"], k["at_wall"], k["at_ceiling"]
     d["contact"], d["step"], d["total_steps"] = k["contact"], r["steps"], r["total_steps"]
     d["scenario"], d["metrics_acc"] = r["sstate"], r["metrics_acc"]
     if k["ctrl"] is not None:
         d["rotor_cmd"], d["ctrl_state"] = k["ctrl"]
-    if state.obstacles is not None:
+    if obstacles:
         d["obstacle_contact"], d["obstacle_metrics"] = k["obst_contact"], r["obst_metrics"]
     return new, k, c, r
 
