@@ -201,9 +201,7 @@ class NumpyOps(ModelForms):
         if s._any_on_floor:
             grounded |= on_floor
         if np.count_nonzero(grounded):  # (faster than .any() on tiny masks)
-            s.u, s.on_floor = u, on_floor
-            s._floor_impact(s._worlds(grounded), hit_floor)
-            u, on_floor = s.u, s.on_floor
+            u, on_floor = s._floor_rows(s._worlds(grounded), u, on_floor, hit_floor)
         R = (numpy_small.quat_to_rotmat_qpos(q) if 7 < q.size < BIG  # (the same bits, fewer calls)
              else numpy_small.quat_to_rotmat(q[..., 3:7]))
         return q, v, u, on_floor, hit_floor, R
@@ -309,8 +307,9 @@ class NumpyOps(ModelForms):
 
     def obstacles(self, pos: Any, vel: Any, omega: Any) -> dict[str, Any]:
         vel, omega = vel.copy(), omega.copy()  # the engine's stage writes them in place
-        new, changed = self.s._obstacle_stage(pos, vel, omega)
-        return {"vel": vel, "omega": omega, "obst_new": new, "obst_feats": self.s._obst_feats, "changed": changed}
+        new, changed, contact = self.s._obstacle_stage(pos, vel, omega)
+        return {"vel": vel, "omega": omega, "obst_new": new, "obst_contact": contact, "obst_feats": self.s._obst_feats,
+                "changed": changed}
 
 
 class AlwaysOn(ModelForms):
