@@ -210,7 +210,7 @@ def _obs_neighbor_bounds(self_dim: int, k: int, bound: tuple[float, ...],
 def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any,
               noise: dict[str, Any] | None, low: Any, high: Any, scale: Any | None = None,
               dist: Any | None = None, obstacles: Any | None = None, obstacle_feats: Any | None = None,
-              deck_draws: dict[str, Any] | None = None, rank_fn: Any = None) -> Any:
+              deck_draws: dict[str, Any] | None = None, rank_fn: Any = None, deck_fn: Any = None) -> Any:
     """Full observation (..., N, obs_dim): noisy own state + neighbours (+ the 9 obstacle features
     of the true ``pos`` when ``obstacles`` = (centres, valid, radius) of the map is given), clipped
     into [low, high] and divided by ``scale`` when normalization is on. ``dist``: optional
@@ -218,7 +218,8 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
     optional (..., N, 9) features of these ``pos`` already computed (the CPU engine's obstacle stage).
     With ``cfg.sensors`` on, the deck readings of the true state (:func:`quadswarm_mj.sensors.deck_part`,
     noise from ``deck_draws`` = draws of ``sensors.deck_draw_spec``, None: noise-free) come last.
-    ``rank_fn``: see :func:`neighbor_obs`.
+    ``rank_fn``: see :func:`neighbor_obs`; ``deck_fn``: an engine's same-values form of ``deck_part`` (its
+    signature; None: ``deck_part``).
 
     The neighbour clip of :func:`neighbor_obs` is folded into the final clip: clipping into one
     interval and then into another equals clipping into their intersection."""
@@ -242,9 +243,9 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
 
         parts.append(obstacle_feats if obstacle_feats is not None else obstacle_features(pos, *obstacles))
     if cfg.sensors.any:
-        from quadswarm_mj.sensors import deck_part
-
-        parts.append(deck_part(cfg, pos, vel, R, omega, obstacles, deck_draws))
+        if deck_fn is None:
+            from quadswarm_mj.sensors import deck_part as deck_fn
+        parts.append(deck_fn(cfg, pos, vel, R, omega, obstacles, deck_draws))
     if xp is np:
         obs = np.minimum(np.maximum(np.concatenate(parts, axis=-1), low), high)  # = clip into the bounds
     else:  # each part clipped into its bounds, then concatenated: the same values, and XLA:CPU then

@@ -320,11 +320,27 @@ def _depth_spheres_numpy(pos: np.ndarray, R: np.ndarray, t: np.ndarray, u: np.nd
     return t
 
 
+def sphere_pixel_hits(ob: list[Any], c: Any, uk: Any, vk: Any, norm2: Any) -> Any:
+    """(..., N, H W) the nearest of the other quads' hitboxes along each pixel ray of :func:`depth_hits`
+    (``jax.numpy``), as the parameter ``beta - sqrt(disc)`` along e = (1, -u_w, v_h) times |e| (divide by
+    |e| for metres; +inf: no hit), of the body-frame offsets ``ob`` = 3 arrays (..., N (i), N (j)), ``c``
+    (..., N, N) = |offset|^2 - r^2 (inf on the diagonal) and the pixels' ``uk``, ``vk``, ``norm2`` = |e|^2
+    (H W,). A hit ahead from outside: beta = |e| (d . offset) > 0 and disc = beta^2 - |e|^2 c >= 0; a
+    pair with c < 0 (inside) is the caller's to override. The engines may pass a same-values form."""
+    xp = array_namespace(c)
+    beta = ob[0][..., None] + uk * ob[1][..., None] + vk * ob[2][..., None]  # (..., N, N, H W)
+    disc = beta * beta - norm2 * c[..., None]
+    ts = xp.where((beta > 0.0) & (disc >= 0.0), beta - xp.sqrt(xp.maximum(disc, 0.0)), xp.inf)
+    return xp.min(ts, axis=-2)
+
+
 def depth_hits(pos: Any, R: Any, shape: tuple[int, int], fov_deg: tuple[float, float], room_low: Any,
-               room_high: Any, columns: Any = None, quad_radius: float | None = None) -> Any:
+               room_high: Any, columns: Any = None, quad_radius: float | None = None,
+               pixel_spheres: Any = None) -> Any:
     """(..., N, H W) range (m) along the depth camera's pixel rays (:func:`depth_directions`, row-major)
     from the quads' centres ``pos`` (..., N, 3), R (..., N, 3, 3) body -> world; otherwise as
-    :func:`cast_rays` (the same values to round-off).
+    :func:`cast_rays` (the same values to round-off). ``pixel_spheres``: the hitbox test under JAX
+    (:func:`sphere_pixel_hits`' signature and values; None: that function).
 
     The pixel rays are cast along e = (1, -u_w, v_h) (not normalized; |e| divided out per ray at the
     end): a component of e in another frame is ``x - u_w y + v_h z`` (two multiply-adds per ray instead
@@ -350,14 +366,9 @@ def depth_hits(pos: Any, R: Any, shape: tuple[int, int], fov_deg: tuple[float, f
         t = t * xp.asarray(norm, dtype=f)  # parameter along e -> range (m)
         if quad_radius is not None and pos.shape[-2] > 1 and xp is np:
             t = _depth_spheres_numpy(pos, R, t, u, v, uk, vk, norm, quad_radius)
-        elif quad_radius is not None and pos.shape[-2] > 1:
-            # a hit ahead from outside: beta = |e| (d . offset) > 0 and disc = beta^2 - |e|^2 c >= 0, at
-            # range (beta - sqrt(disc)) / |e|; over (..., N, N, H W) pairs and pixels, reduced over the
-            # neighbours (perf.depth_xla: the same values, in the form XLA:CPU runs fastest)
-            from quadswarm_mj.perf.depth_xla import sphere_pixel_hits
-
+        elif quad_radius is not None and pos.shape[-2] > 1:  # range (beta - sqrt(disc)) / |e| of the nearest
             ob, c, inside = _offsets(xp, pos, R, quad_radius)
-            ts = sphere_pixel_hits(ob, c, uk, vk, xp.asarray(norm * norm, dtype=f))
+            ts = (pixel_spheres or sphere_pixel_hits)(ob, c, uk, vk, xp.asarray(norm * norm, dtype=f))
             t = xp.minimum(t, ts * xp.asarray(1.0 / norm, dtype=f))
             t = xp.where(inside[..., None], 0.0, t)
         if columns is not None:

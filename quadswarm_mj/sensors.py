@@ -121,22 +121,20 @@ def _ndtri() -> Any:
     return ndtri
 
 
-def tof_normal(u: Any, dropout: float) -> Any:
+def tof_normal(u: Any, dropout: float, erf_inv: Any = None) -> Any:
     """The standard normal noise of the kept readings from the uniforms ``u`` on [0, 1) of
     :func:`deck_draw_spec`: ``Phi^-1(w)``, w = (u - dropout) / (1 - dropout) (uniform on [0, 1) given
     u >= dropout, so one uniform gives both the dropout and an exact N(0, 1) noise; two draws per ray
     cost twice the random numbers). w is kept >= 2^-24 (the noise >= -5.3; w = 0 would give -inf).
-    NumPy: ``scipy.special.ndtri``; JAX float32: sqrt(2) erfinv(2 w - 1) with the engine's erfinv
-    (:func:`quadswarm_mj.perf.fused_draws.erf_inv_f32`, a few float32 ulp)."""
+    NumPy: ``scipy.special.ndtri``; JAX: ``jax.scipy.special.ndtri``, or for float32 sqrt(2) erfinv(2 w -
+    1) with ``erf_inv`` when given (the JAX engine passes its own float32 erfinv, a few ulp apart)."""
     xp = array_namespace(u)
     scale = 1.0 / (1.0 - dropout) if dropout < 1.0 else 0.0
     w = xp.maximum((u - dropout) * scale, 2.0 ** -24)
     if xp is np:
         return _ndtri()(w)
-    if w.dtype == xp.float32:
-        from quadswarm_mj.perf.fused_draws import erf_inv_f32
-
-        return np.float32(math.sqrt(2.0)) * erf_inv_f32(2.0 * w - 1.0)
+    if erf_inv is not None and w.dtype == xp.float32:
+        return np.float32(math.sqrt(2.0)) * erf_inv(2.0 * w - 1.0)
     import jax.scipy.special
 
     return jax.scipy.special.ndtri(w)
@@ -198,12 +196,12 @@ def _own_buffer(t: Any, parts: tuple[Any, ...]) -> tuple[Any, ...]:
     return tuple(out[i] for i in range(len(parts)))
 
 
-def deck_ranges(cfg: Any, pos: Any, R: Any, obstacles: Any = None) -> Any:
+def deck_ranges(cfg: Any, pos: Any, R: Any, obstacles: Any = None, pixel_spheres: Any = None) -> Any:
     """(..., N, K) true ranges (m) along :func:`ray_directions` (multi-ranger, flow deck down, depth
     pixels) from the quads' centres ``pos`` (..., N, 3), R (..., N, 3, 3) body -> world, against the
     room, the column map ``obstacles`` = (centres, valid, radius) or None, and the other quads'
     hitboxes: the body-frame casters :func:`axis_hits` and :func:`depth_hits` (= :func:`cast_rays` of
-    :func:`world_rays`, to round-off)."""
+    :func:`world_rays`, to round-off); ``pixel_spheres``: see :func:`depth_hits`."""
     xp = array_namespace(pos, R)
     s = cfg.sensors
     parts = []
@@ -211,12 +209,13 @@ def deck_ranges(cfg: Any, pos: Any, R: Any, obstacles: Any = None) -> Any:
         t6 = axis_hits(pos, R, cfg.room_low, cfg.room_high, obstacles, cfg.hitbox)
         parts.append(t6 if s.multiranger and s.flow else t6[..., :5] if s.multiranger else t6[..., 5:])
     if s.depth is not None:
-        parts.append(depth_hits(pos, R, s.depth, s.depth_fov, cfg.room_low, cfg.room_high, obstacles, cfg.hitbox))
+        parts.append(depth_hits(pos, R, s.depth, s.depth_fov, cfg.room_low, cfg.room_high, obstacles, cfg.hitbox,
+                                pixel_spheres))
     return parts[0] if len(parts) == 1 else xp.concatenate(parts, axis=-1)
 
 
 def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
-              draws: dict[str, Any] | None = None) -> Any:
+              draws: dict[str, Any] | None = None, erf_inv: Any = None, pixel_spheres: Any = None) -> Any:
     """(..., N, sensors.obs_dim) the deck sensors' observation part (:func:`deck_layout` order, flags
     as 0.0 / 1.0; :func:`deck_readings` gives it as named readings) from the TRUE state: ``pos`` (...,
     N, 3) m and ``vel`` (..., N, 3) m/s (world), R (..., N, 3, 3) body -> world, ``omega`` (..., N, 3)
@@ -227,10 +226,11 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
 
     Every ToF reading (VL53L1x model, all rays at once; true ranges :func:`deck_ranges`) is valid where
     the true range ``t`` is within its limit and not dropped (u >= dropout); a valid reading is
-    ``t + tof_std(t) z`` (z = :func:`tof_normal`) clipped to [0, limit], an invalid one reads the limit."""
+    ``t + tof_std(t) z`` (z = :func:`tof_normal`) clipped to [0, limit], an invalid one reads the limit.
+    ``erf_inv``, ``pixel_spheres``: an engine's same-values forms (:func:`tof_normal`, :func:`depth_hits`)."""
     xp = array_namespace(pos, vel, R)
     s = cfg.sensors
-    t = deck_ranges(cfg, pos, R, obstacles)
+    t = deck_ranges(cfg, pos, R, obstacles, pixel_spheres)
     if xp is np and (draws is None or "range_u" in draws):
         return _deck_part_numpy(s, t, vel, R, omega, draws)
     limit = ray_limits(s)
@@ -251,7 +251,7 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     r = t
     if u is not None:
         valid = valid & (u >= s.dropout)
-        r = t + tof_std(t) * tof_normal(u, s.dropout)
+        r = t + tof_std(t) * tof_normal(u, s.dropout, erf_inv)
     elif z is not None:
         valid = valid & (z == z)  # not NaN
         r = t + tof_std(t) * z
@@ -451,13 +451,16 @@ def deck_info(cfg: Any, obs: Any, scale: Any = None) -> dict[str, Any]:
     s = cfg.sensors
     if not s.any:
         return {}
-    xp = array_namespace(obs)
-    start = cfg.obs_dim - s.obs_dim
-    if xp is np:  # one fresh float32 array of the deck part; the entries are views of it (no alias of obs)
-        part = np.array(obs[..., start:], dtype=np.float32)
+    start = obs.shape[-1] - s.obs_dim  # = cfg.obs_dim - s.obs_dim
+    if type(obs) is np.ndarray:  # one fresh float32 array of the deck part and one of its flags; the entries
+        # are views of them (no alias of obs)
+        part = obs[..., start:].astype(np.float32)
         if scale is not None:
             part *= np.asarray(scale, dtype=np.float32)[start:]
-        return _split(s, part)
+        flags = part > 0.5
+        return {name: (flags if kind == 1 else part)[..., a:b] if kind != 2 else
+                part[..., a:b].reshape(part.shape[:-1] + s.depth) for name, a, b, kind in _split_plan(s)}
+    xp = array_namespace(obs)
     part = obs[..., start:]
     if scale is not None:
         part = part * xp.asarray(np.asarray(scale)[start:], dtype=part.dtype)

@@ -92,6 +92,44 @@ def test_speed_forms_numpy_equal_jit():
                                                           omap, c.hitbox), rtol=1e-4, atol=1e-4)
 
 
+def test_jax_engine_deck_forms_equal_the_model_under_jit():
+    """The JAX engine's forms (core.ops.jax_deck_part: perf.depth_xla's hitbox test, perf.fused_draws'
+    erfinv) give the model's plain values: the hitbox test the same hits (to float32 round-off), the deck
+    part with noise to round-off, with and without the depth camera."""
+    jax = pytest.importorskip("jax")
+    jnp = jax.numpy
+    from quadswarm_mj.core.ops import jax_deck_part
+    from quadswarm_mj.perf.depth_xla import sphere_pixel_hits as fast
+    from quadswarm_mj.sensor_rays import _offsets, _pixel_constants, sphere_pixel_hits
+    from quadswarm_mj.sensors import deck_part
+
+    pos, R, omap = _scene(6)
+    f32 = lambda x: jnp.asarray(x, jnp.float32) if np.asarray(x).dtype.kind == "f" else jnp.asarray(x)  # noqa: E731
+    _, _, uk, vk, norm = _pixel_constants((8, 8), (45.0, 45.0))
+
+    def hits(form):
+        def f(p, r):
+            ob, c, inside = _offsets(jnp, p, r, 0.1)
+            return form(ob, c, f32(uk), f32(vk), f32(norm * norm)), inside
+        t, inside = jax.jit(jax.vmap(f))(f32(pos), f32(R))
+        return np.asarray(t)[~np.asarray(inside)]  # a quad inside another's hitbox: the caller's 0
+
+    a, b = hits(sphere_pixel_hits), hits(fast)
+    assert np.isfinite(a).any() and np.isinf(a).any() and a.shape[0] < 40
+    np.testing.assert_array_equal(np.isinf(b), np.isinf(a))
+    np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-6)
+    rng = np.random.default_rng(3)
+    for s in (SensorConfig(multiranger=True, flow=True, depth=(8, 8), dropout=0.1),
+              SensorConfig(multiranger=True, flow=True, dropout=0.1)):
+        c = EnvConfig(num_quads=8, room_size=(6.0, 5.0, 3.0), sensors=s)
+        d = {"range_u": f32(rng.uniform(size=(5, 8, s.num_rays))), "flow_noise": f32(rng.normal(size=(5, 8, 2)))}
+        args = (f32(pos), f32(rng.normal(size=(5, 8, 3))), f32(R), f32(rng.normal(size=(5, 8, 3))),
+                tuple(f32(x) for x in omap), d)
+        plain = np.asarray(jax.jit(jax.vmap(lambda *a, c=c: deck_part(c, *a)))(*args))
+        engine = np.asarray(jax.jit(jax.vmap(lambda *a, c=c: jax_deck_part()(c, *a)))(*args))
+        np.testing.assert_allclose(engine, plain, rtol=1e-5, atol=1e-5)
+
+
 def test_sensor_config_rays_match_the_speed_forms():
     from quadswarm_mj.sensors import ray_directions
 
@@ -213,3 +251,38 @@ def test_numpy_deck_part_is_the_plain_model_bit_for_bit(noise):
     got = deck_part(c, pos, vel, R, omega, None, d)
     assert (~valid).any() and got.shape == want.shape
     assert got.tobytes() == want.astype(float).tobytes()
+
+
+@pytest.mark.parametrize("sensors", [{"multiranger": True, "flow": True}, {"multiranger": True}, {"flow": True},
+                                     {"multiranger": True, "flow": True, "noise": False},
+                                     {"multiranger": True, "flow": True, "light_lux": 10.0, "dropout": 0.2}])
+def test_numpy_deck_speed_form_is_the_model_bit_for_bit(sensors):
+    """perf.numpy_deck.deck_part (the MuJoCo engine's form, through core.ops.NumpyOps) gives the model's
+    bits: crowded scenes (a quad inside another's hitbox, rays meeting hitboxes), level quads on the floor
+    (rays parallel to the room's planes), columns, one world, three worlds, one quad, no leading dims."""
+    from quadswarm_mj.perf import numpy_deck
+    from quadswarm_mj.sensors import deck_part
+
+    s = SensorConfig(**sensors)
+    hit_rays = 0
+    for seed in range(6):
+        for n, lead in ((8, (1,)), (8, (3,)), (1, (1,)), (3, ())):
+            c = EnvConfig(num_quads=n, room_size=(6.0, 5.0, 3.0), sensors=s)
+            pos, R, omap = _scene(seed, n=n, lead=lead, crowded=n >= 5)
+            rng = np.random.default_rng(seed)
+            vel, omega = 2.0 * rng.normal(size=lead + (n, 3)), 3.0 * rng.normal(size=lead + (n, 3))
+            if seed % 2:  # level quads on the floor
+                pos[..., 2], R[...] = 0.046, np.eye(3)
+            draws = None
+            if s.noise:
+                draws = {"range_u": rng.uniform(size=lead + (n, s.num_rays))}
+                if s.flow:
+                    draws["flow_noise"] = rng.normal(size=lead + (n, 2))
+            for cols in (None, omap):
+                want = deck_part(c, pos, vel, R, omega, cols, draws)
+                assert numpy_deck.deck_part(c, pos, vel, R, omega, cols, draws).tobytes() == want.tobytes()
+            if n > 1:
+                free = axis_hits(pos, R, c.room_low, c.room_high)
+                hit_rays += np.count_nonzero((axis_hits(pos, R, c.room_low, c.room_high, None, c.hitbox) < free) & (
+                    axis_hits(pos, R, c.room_low, c.room_high, None, c.hitbox) > 0.0))
+    assert hit_rays > 0  # the hitbox hits are exercised

@@ -170,9 +170,11 @@ def part_timings(worlds: int = 512, reps: int = 30, jax_rows: bool = True) -> li
     """(label, microseconds) of the deck part alone: NumPy (one world of 8 quads, best of 5 x ``reps``
     calls, wall time) and ``jax.jit(jax.vmap(...))`` over ``worlds`` worlds (CPU time of this process per
     call, best of 5 x ``reps``), for the deck part with noise and for the casters against the reference
-    caster (``cast_rays`` of ``world_rays``). ``jax_rows=False``: the NumPy rows only."""
+    caster (``cast_rays`` of ``world_rays``); NumPy also the MuJoCo engine's form (``perf.numpy_deck``), JAX
+    the JAX engine's forms (``core.ops.jax_deck_part``). ``jax_rows=False``: the NumPy rows only."""
     import timeit
 
+    from quadswarm_mj.perf import numpy_deck
     from quadswarm_mj.random_draws import NumpySampler
     from quadswarm_mj.sensor_rays import AXIS_DIRS, axis_hits, cast_rays, depth_directions, depth_hits, world_rays
     from quadswarm_mj.sensors import deck_draw_spec, deck_part
@@ -181,7 +183,7 @@ def part_timings(worlds: int = 512, reps: int = 30, jax_rows: bool = True) -> li
     sets = (("multiranger + flow", {"multiranger": True, "flow": True}), ("depth 8 x 8", {"depth": (8, 8)}))
     axis_dirs, pix_dirs = np.asarray(AXIS_DIRS), depth_directions((8, 8), (45.0, 45.0)).reshape(-1, 3)
 
-    def casters(cfg: Any) -> dict[str, Callable[..., Any]]:
+    def casters(cfg: Any, pixel_spheres: Any = None) -> dict[str, Callable[..., Any]]:
         lo, hi, hb = cfg.room_low, cfg.room_high, cfg.hitbox
         def ref(dirs: np.ndarray) -> Callable[..., Any]:
             return lambda p, r: cast_rays(p, world_rays(r, dirs), lo, hi, None, hb)
@@ -189,7 +191,8 @@ def part_timings(worlds: int = 512, reps: int = 30, jax_rows: bool = True) -> li
         return {"reference caster, 6 body-axis rays": ref(axis_dirs),
                 "axis_hits": lambda p, r: axis_hits(p, r, lo, hi, None, hb),
                 "reference caster, 8 x 8 pixel rays": ref(pix_dirs),
-                "depth_hits 8 x 8": lambda p, r: depth_hits(p, r, (8, 8), (45.0, 45.0), lo, hi, None, hb)}
+                "depth_hits 8 x 8": lambda p, r: depth_hits(p, r, (8, 8), (45.0, 45.0), lo, hi, None, hb,
+                                                            pixel_spheres)}
 
     pos, vel, R, om = _scene(1)
     for name, s in sets:
@@ -197,6 +200,10 @@ def part_timings(worlds: int = 512, reps: int = 30, jax_rows: bool = True) -> li
         draws = NumpySampler(np.random.default_rng(1)).draw(deck_draw_spec(cfg), (1,))
         f = lambda: deck_part(cfg, pos, vel, R, om, None, draws)  # noqa: B023,E731
         out.append((f"NumPy, 1 x 8, deck part, {name}", min(timeit.repeat(f, number=reps, repeat=5)) / reps * 1e6))
+        if cfg.sensors.depth is None:  # the MuJoCo engine's form (core.ops.NumpyOps)
+            f = lambda: numpy_deck.deck_part(cfg, pos, vel, R, om, None, draws)  # noqa: B023,E731
+            out.append((f"NumPy, 1 x 8, deck part (perf.numpy_deck), {name}",
+                        min(timeit.repeat(f, number=reps, repeat=5)) / reps * 1e6))
     for label, g in casters(_cfg({}, 8)).items():
         f = lambda: g(pos, R)  # noqa: B023,E731
         out.append((f"NumPy, 1 x 8, {label}", min(timeit.repeat(f, number=reps, repeat=5)) / reps * 1e6))
@@ -204,6 +211,9 @@ def part_timings(worlds: int = 512, reps: int = 30, jax_rows: bool = True) -> li
         return out
     import jax
     import jax.numpy as jnp
+
+    from quadswarm_mj.core.ops import jax_deck_part
+    from quadswarm_mj.perf.depth_xla import sphere_pixel_hits
 
     pos, vel, R, om = (jnp.asarray(x, jnp.float32) for x in _scene(worlds))
 
@@ -226,8 +236,8 @@ def part_timings(worlds: int = 512, reps: int = 30, jax_rows: bool = True) -> li
         draws = {"range_u": jnp.asarray(rng.uniform(size=(worlds, 8, k)), jnp.float32)}
         if cfg.sensors.flow:
             draws["flow_noise"] = jnp.asarray(rng.normal(size=(worlds, 8, 2)), jnp.float32)
-        t = cpu_time(lambda p, v, r, o, d: deck_part(cfg, p, v, r, o, None, d), pos, vel, R, om, draws)  # noqa: B023
+        t = cpu_time(lambda p, v, r, o, d: jax_deck_part()(cfg, p, v, r, o, None, d), pos, vel, R, om, draws)  # noqa: B023
         out.append((f"JAX jit(vmap), {worlds} x 8, deck part, {name} (CPU time)", t))
-    for label, g in casters(_cfg({}, 8)).items():
+    for label, g in casters(_cfg({}, 8), sphere_pixel_hits).items():  # the JAX engine's depth form
         out.append((f"JAX jit(vmap), {worlds} x 8, {label} (CPU time)", cpu_time(g, pos, R)))
     return out

@@ -24,6 +24,7 @@ forms of :mod:`quadswarm_mj.perf` are reached only here).
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -31,7 +32,7 @@ import numpy as np
 from quadswarm_mj import actuation, collisions, observations, rewards, spatial
 from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj.collisions import expand_per_quad, quad_collisions, quad_collisions_budgeted
-from quadswarm_mj.perf import numpy_floor, numpy_small, one_quad, xla_cpu
+from quadswarm_mj.perf import numpy_deck, numpy_floor, numpy_small, one_quad, xla_cpu
 from quadswarm_mj.spatial import BIG
 
 ALL = slice(None)
@@ -159,11 +160,11 @@ class NumpyOps(ModelForms):
             low: Any, high: Any, scale: Any | None = None, dist: Any | None = None, obstacles: Any | None = None,
             obstacle_feats: Any | None = None, deck_draws: dict[str, Any] | None = None) -> Any:
         """:func:`quadswarm_mj.observations.build_obs` (one quad without neighbours, obstacles or decks:
-        ``perf.one_quad.build_obs``, same values)."""
+        ``perf.one_quad.build_obs``, same values; the decks' part: ``perf.numpy_deck``, same bits)."""
         if self._one_obs and one_quad.ENABLED and pos.shape == (1, 1, 3):
             return one_quad.build_obs(pos, vel, R, omega, goals, noise, low, high, scale, self._obs_floor)
         return observations.build_obs(cfg, pos, vel, R, omega, goals, noise, low, high, scale, dist, obstacles,
-                                      obstacle_feats, deck_draws)
+                                      obstacle_feats, deck_draws, deck_fn=numpy_deck.deck_part)
 
 
     def floor_wrench(self, cfg: Any, on_floor: np.ndarray, force: np.ndarray, torque: np.ndarray, v: np.ndarray,
@@ -329,6 +330,18 @@ class AlwaysOn(ModelForms):
         return value
 
 
+@functools.cache
+def jax_deck_part() -> Any:
+    """:func:`quadswarm_mj.sensors.deck_part` with the JAX engine's same-values forms: the float32 erfinv of
+    its random numbers (:func:`quadswarm_mj.perf.fused_draws.erf_inv_f32`) and the depth camera's hitbox
+    test for XLA:CPU (:func:`quadswarm_mj.perf.depth_xla.sphere_pixel_hits`); ``build_obs``' ``deck_fn``."""
+    from quadswarm_mj.perf.depth_xla import sphere_pixel_hits
+    from quadswarm_mj.perf.fused_draws import erf_inv_f32
+    from quadswarm_mj.sensors import deck_part
+
+    return functools.partial(deck_part, erf_inv=erf_inv_f32, pixel_spheres=sphere_pixel_hits)
+
+
 class JaxOps(AlwaysOn):
     """Always-on stages with the step's budgeted draws ``rnd`` (one world, ``jax.numpy``)."""
 
@@ -347,8 +360,9 @@ class JaxOps(AlwaysOn):
         return collisions.pairwise_contacts(pos, hitbox, self._k["pair_dist"])
 
     def obs(self, *args: Any, **kw: Any) -> Any:
-        """:func:`quadswarm_mj.observations.build_obs` with the worlds-last neighbour ranks."""
-        return observations.build_obs(*args, rank_fn=self._k["rank_fn"], **kw)
+        """:func:`quadswarm_mj.observations.build_obs` with the worlds-last neighbour ranks and the engine's
+        deck part (:func:`jax_deck_part`)."""
+        return observations.build_obs(*args, rank_fn=self._k["rank_fn"], deck_fn=jax_deck_part(), **kw)
 
     def loop(self, body: Any, carry: Any, n: int) -> Any:
         """``lax.scan`` over the sub-steps, each given its floor-landing yaw slots (cos, sin) (n, slots)."""

@@ -48,7 +48,7 @@ from quadswarm_mj.collisions import (
     wall_draw_spec,
 )
 from quadswarm_mj.config import EnvConfig
-from quadswarm_mj.core.ops import JaxOps
+from quadswarm_mj.core.ops import JaxOps, jax_deck_part
 from quadswarm_mj.core.ops import sub as _sub
 from quadswarm_mj.core.reset import reset_state, start_accumulators, start_flags, start_state
 from quadswarm_mj.core.state import State
@@ -287,7 +287,7 @@ class MjxQuadSwarmEnv:
         return build_obs(self.cfg, pos, vel, R, omega, goals, noise, jnp.asarray(self._obs_low, f),
                          jnp.asarray(self._obs_high, f), scale, dist=dist,
                          obstacles=None if omap is None else tuple(omap), deck_draws=deck,
-                         rank_fn=xla_cpu.neighbor_rank())
+                         rank_fn=xla_cpu.neighbor_rank(), deck_fn=jax_deck_part())
 
     def _deck_info(self, obs: jax.Array) -> dict[str, jax.Array]:
         """``multiranger``, ``flow``, ``depth`` (and their ``*_valid`` flags) from the observation's deck

@@ -1,5 +1,6 @@
-"""The depth camera's hitbox test in the form XLA:CPU runs fastest (same values as the plain form of
-:func:`quadswarm_mj.sensor_rays.depth_hits`; ``tests/test_sensors_speed.py``).
+"""The depth camera's hitbox test in the form XLA:CPU runs fastest (same values as the model's plain form
+:func:`quadswarm_mj.sensor_rays.sphere_pixel_hits`, ``tests/test_sensors_speed.py``; the JAX engine passes
+it to ``depth_hits`` as ``pixel_spheres``, :func:`quadswarm_mj.core.ops.jax_deck_part`).
 
 The plain form materializes an (..., N, N, H W) array of hit distances and reduces it over the
 neighbours: XLA:CPU writes it out and reads it back in a separate (YNNPACK) reduction. Here:
