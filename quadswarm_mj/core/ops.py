@@ -32,6 +32,7 @@ from quadswarm_mj import actuation, collisions, observations, rewards, spatial
 from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj.collisions import expand_per_quad, quad_collisions, quad_collisions_budgeted
 from quadswarm_mj.perf import numpy_floor, numpy_small, one_quad, xla_cpu
+from quadswarm_mj.perf.one_quad_step import OneQuadLoop, OneQuadTask
 from quadswarm_mj.spatial import BIG
 
 ALL = slice(None)
@@ -112,6 +113,22 @@ class NumpyOps(ModelForms):
         self._sum_keys: dict[tuple, list[str]] = {}
         B, N = swarm.B, swarm.N  # the shapes of the step's draws: motor, scenario, sensor
         self._shapes = ((B, N, 4), (B, swarm._n_scn), (3, B, N, 3))
+        # one quad, the paper's chain and floor: the whole sub-step loop on floats (perf.one_quad_step)
+        self._loop = (OneQuadLoop(swarm) if self._one and cfg.collision_model == "paper" and swarm._act is None
+                      else None)
+        # ... and the task half of the step (scenario, rewards, metrics, observation) on floats
+        self._task = (OneQuadTask(cfg, swarm.obs_low, swarm.obs_high, swarm.obs_scale, swarm._zero_terms)
+                      if self._one_obs and cfg.control_mode == "rotor" else None)
+
+    @property
+    def fused_loop(self) -> Any:
+        """``core.substeps.substep_loop``'s whole-loop form for this engine, or None (the per-sub-step ops)."""
+        return self._loop if one_quad.ENABLED else None
+
+    @property
+    def fused_task(self) -> Any:
+        """``core.control.task_step``'s one-quad float form for this engine, or None."""
+        return self._task if one_quad.ENABLED else None
 
     def command(self, action: np.ndarray) -> np.ndarray:
         """:func:`quadswarm_mj.actuation.action_to_command` (one quad: on floats, same bits)."""
