@@ -117,7 +117,8 @@ class NumpyOps(ModelForms):
         self._loop = (OneQuadLoop(swarm) if self._one and cfg.collision_model == "paper" and swarm._act is None
                       else None)
         # ... and the task half of the step (scenario, rewards, metrics, observation) on floats
-        self._task = (OneQuadTask(cfg, swarm.obs_low, swarm.obs_high, swarm.obs_scale, swarm._zero_terms)
+        sensor = (swarm._sensor_keys, swarm._sensor_std) if swarm._sensor_on else (None, None)
+        self._task = (OneQuadTask(cfg, swarm.obs_low, swarm.obs_high, swarm.obs_scale, swarm._zero_terms, *sensor)
                       if self._one_obs and cfg.control_mode == "rotor" else None)
 
     @property
@@ -315,7 +316,7 @@ class NumpyOps(ModelForms):
 
     def quad_quad(self, pos: Any, vel: Any, omega: Any, prev: Any, contact: Any, new: Any) -> dict[str, Any] | None:
         """The paper's response on the worlds with a new contact (None: there is none)."""
-        if not np.count_nonzero(new):  # (faster than .any() on small masks)
+        if self.s.N == 1 or not np.count_nonzero(new):  # (one quad: no pair; faster than .any() on small masks)
             return None
         s = self.s
         w = s._worlds(new.any(-1))

@@ -99,10 +99,12 @@ class OneQuadLoop:
 class OneQuadTask:
     """:func:`quadswarm_mj.core.control.task_step` for a one-quad, one-world CPU engine in "rotor" control
     without neighbours, obstacles or deck sensors (``obs_self`` "base" or "floor"); ``ops`` its
-    :class:`~quadswarm_mj.core.ops.NumpyOps` (the draws)."""
+    :class:`~quadswarm_mj.core.ops.NumpyOps` (the draws). ``sensor_keys``/``sensor_std``: the engine's
+    sensor-noise draw (its three keys in draw order, their std (3, ...)), None when the noise is off."""
 
     def __init__(self, cfg: Any, low: np.ndarray, high: np.ndarray, scale: np.ndarray | None,
-                 zero_terms: tuple[str, ...]) -> None:
+                 zero_terms: tuple[str, ...], sensor_keys: tuple[str, ...] | None = None,
+                 sensor_std: np.ndarray | None = None) -> None:
         self.cfg = cfg
         self.plan = reward_plan(rewards._term_factors(cfg.rewards, cfg.sim_dt, cfg.control_dt), rewards.ANNEALED)
         rows = dict(self.plan[3])
@@ -112,6 +114,10 @@ class OneQuadTask:
         self.scale = None if scale is None else scale.tolist()
         self.floor = cfg.obs_self == "floor"
         self.dt, self.episode_steps, self.grace = cfg.control_dt, cfg.episode_steps, cfg.grace_period_s
+        self.sensor: list[tuple[int, float]] | None = None  # (row of the draw, std) of pos, vel, omega; None: off
+        if sensor_keys is not None:
+            std = np.ravel(sensor_std).tolist()
+            self.sensor = [(sensor_keys.index(key), std[sensor_keys.index(key)]) for key in ("pos", "vel", "omega")]
 
     def __call__(self, cfg: Any, scenario: Any, s: dict[str, Any], k: dict[str, Any], action: Any,
                  consts: dict[str, Any], ops: Any) -> dict[str, Any] | None:
@@ -137,9 +143,11 @@ class OneQuadTask:
                              s["f_norm"].ravel().tolist(), bool(k["on_floor"].item()), n_new, hf, hw, hc, anneal, d)
         m = metrics_floats(s["metrics_acc"], t.item(), d, n_new, hf, hw, hc, jump, self.grace,
                            metrics_lib.MIN_SEGMENT_S, metrics_lib.REACH_DISTANCE)
-        noise = ops.draws("sensor", None, None)
-        if noise is not None:
-            noise = [noise[key].ravel().tolist() for key in ("pos", "vel", "omega")]
+        noise = None
+        sensor = self.sensor
+        if sensor is not None:  # = ops.draws("sensor", ...): 0.0 + std * N(0, 1), the same draw on floats
+            z = ops.s.rng.standard_normal((3, 1, 1, 3)).ravel().tolist()
+            noise = [[0.0 + std * x for x in z[3 * i:3 * i + 3]] for i, std in sensor]
         obs = obs_values(p, v, r, w, g, noise, self.low, self.high, self.scale, self.floor)
         rows = self.sum_rows
         total = vals[rows[0]]
