@@ -308,7 +308,7 @@ class NumpyOps(ModelForms):
         False and the distance ||p - p|| (0.0, NaN for a non-finite position, as the norm gives)."""
         if self._one:  # on floats: p - p is 0.0 (NaN for a non-finite p), as is its norm
             x, y, z = pos.ravel().tolist()
-            return np.zeros((1, 1, 1), bool), np.full((1, 1, 1), (x - x) + (y - y) + (z - z))
+            return np.zeros((1, 1, 1), bool), np.array([[[(x - x) + (y - y) + (z - z)]]])
         if self.s.N == 1:
             d = pos - pos
             return np.zeros(pos.shape[:-1] + (1,), bool), np.add.reduce(d * d, axis=-1, keepdims=True)

@@ -147,7 +147,11 @@ class OneQuadTask:
         sensor = self.sensor
         if sensor is not None:  # = ops.draws("sensor", ...): 0.0 + std * N(0, 1), the same draw on floats
             z = ops.s.rng.standard_normal((3, 1, 1, 3)).ravel().tolist()
-            noise = [[0.0 + std * x for x in z[3 * i:3 * i + 3]] for i, std in sensor]
+            (i, a), (j, b), (k_, c) = sensor
+            i, j, k_ = 3 * i, 3 * j, 3 * k_
+            noise = [[0.0 + a * z[i], 0.0 + a * z[i + 1], 0.0 + a * z[i + 2]],
+                     [0.0 + b * z[j], 0.0 + b * z[j + 1], 0.0 + b * z[j + 2]],
+                     [0.0 + c * z[k_], 0.0 + c * z[k_ + 1], 0.0 + c * z[k_ + 2]]]
         obs = obs_values(p, v, r, w, g, noise, self.low, self.high, self.scale, self.floor)
         rows = self.sum_rows
         total = vals[rows[0]]
