@@ -51,16 +51,9 @@ class SmallLoop:
         rows = np.empty(u.shape[:-1] + (4, 4))
         xfrc = phys.xfrc
         for i in range(cfg.substeps):
-            # perf.numpy_small.substep_wrench (motor lag, thrust, body wrench, world frame)
-            u = u + alpha * (root - u)
-            f = np.minimum(np.maximum(u * u + cn, 0.0), 1.0)
-            np.multiply((thrust_max * f)[..., None, :], mix, out=rows[..., :3, :])
-            np.multiply(spin, f, out=rows[..., 3, :])
-            sm = rows.sum(axis=-1)  # F_z, tau_x, tau_y, tau_z (body)
-            force, torque = sm[..., :1] * R[..., :, 2], sum_last(R * sm[..., None, 1:])
+            u, f, force, torque = substep_wrench(u, alpha, root, cn, thrust_max, spin, mix, R, rows)
             if s._any_on_floor:  # the floor's normal force and friction (NumpyOps.floor_wrench)
-                numpy_floor.floor_wrench_inplace(on_floor, force, torque, v, mass, params["gravity"], self.friction,
-                                                 self.dt, weight=weight)
+                floor_wrench(on_floor, force, torque, v, mass, params["gravity"], self.friction, self.dt, weight)
             xfrc[..., :3] = force
             xfrc[..., 3:] = torque
             phys.step(self.max_omega)
@@ -68,3 +61,22 @@ class SmallLoop:
             q, v, u, on_floor, hit_floor, R = ops.floor_impact(cfg, i, q, v, u, on_floor, hit_floor)
         return {"q": q, "v": v, "R": R, "u": u, "f_norm": f, "on_floor": on_floor, "hit_floor": hit_floor,
                 "aux": carry["aux"], "ctrl": carry["ctrl"]}
+
+
+def substep_wrench(u: np.ndarray, alpha: np.ndarray, root: np.ndarray, cn: np.ndarray, thrust_max: np.ndarray,
+                   spin: np.ndarray, mix: np.ndarray, R: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``perf.numpy_small.substep_wrench`` (paper chain) with the step's constants: ``root`` = sqrt(cmd),
+    ``alpha`` (..., N, 1), ``cn`` = cmd * noise; ``rows`` a (..., N, 4, 4) scratch array. Returns (u, f_norm,
+    world force, world torque)."""
+    u = u + alpha * (root - u)  # actuation.motor_lag
+    f = np.minimum(np.maximum(u * u + cn, 0.0), 1.0)  # actuation.rotor_thrust
+    np.multiply((thrust_max * f)[..., None, :], mix, out=rows[..., :3, :])
+    np.multiply(spin, f, out=rows[..., 3, :])
+    sm = rows.sum(axis=-1)  # F_z, tau_x, tau_y, tau_z (body)
+    return u, f, sm[..., :1] * R[..., :, 2], sum_last(R * sm[..., None, 1:])
+
+
+def floor_wrench(on_floor: np.ndarray, force: np.ndarray, torque: np.ndarray, v: np.ndarray, mass: Any,
+                 gravity: Any, friction: float, dt: float, weight: Any) -> None:
+    """``perf.numpy_floor.floor_wrench_inplace`` with the step's ``weight`` = mass * gravity."""
+    numpy_floor.floor_wrench_inplace(on_floor, force, torque, v, mass, gravity, friction, dt, weight=weight)
