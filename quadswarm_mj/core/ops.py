@@ -256,7 +256,7 @@ class NumpyOps(ModelForms):
                 return ALL
             return None
         out = (pos <= self.s._out_lo) | (pos >= self.s._out_hi)
-        if not (out.any() or at_wall.any() or at_ceiling.any()):
+        if not (np.count_nonzero(out) or np.count_nonzero(at_wall) or np.count_nonzero(at_ceiling)):  # (= .any())
             return None
         return self.s._worlds(out.any(-1) | at_wall | at_ceiling)
 
