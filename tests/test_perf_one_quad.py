@@ -335,3 +335,27 @@ def test_numpy_ops_contacts_of_single_quad_worlds_are_the_array_forms():
         got, want = ops.pairwise_contacts(pos, cfg.hitbox), collisions.pairwise_contacts(pos, cfg.hitbox)
     for a, b in zip(got, want):
         _same(a, b)
+
+
+@pytest.mark.parametrize("backend", ["mjdata", "batch"])
+def test_engine_one_quad_runs_are_the_array_forms_bitwise(backend):
+    """The one-quad engine (perf.one_quad_step's loop and task) on both physics back ends: a seeded run with
+    falls and lift-offs gives the array forms' bits."""
+    out = []
+    for enabled in (True, False):
+        one_quad.ENABLED = enabled
+        try:
+            core = CpuSwarm(EnvConfig(num_quads=1), 1, backend=backend, visual=False)
+            core.seed(3)
+            core.reset()
+            rng = np.random.default_rng(4)
+            run = []
+            for _ in range(400):
+                o = core.step(np.clip(-0.3 + rng.standard_normal((1, 1, 4)), -1, 1))
+                run += [o["obs"], o["rewards"], *o["terms"].values(), core.qpos.copy(), core.qvel.copy(),
+                        core.on_floor.copy(), *core.metrics.values()]
+            out.append(run)
+        finally:
+            one_quad.ENABLED = True
+    for a, b in zip(*out):
+        _same(a, b)
