@@ -1,4 +1,4 @@
-"""The CPU engine's sub-step loop for exactly one quad in one world, on Python floats.
+"""The CPU engine's control step for exactly one quad in one world on Python floats: sub-step loop and task stage.
 
 :func:`quadswarm_mj.core.substeps.substep_loop` calls, per sub-step, the engine's ops for the wrench, the
 paper's floor wrench, the physics step and the floor landing, each of which (for one quad, through
