@@ -250,8 +250,10 @@ def _pair_distances_jax(kernel: Any = None) -> Any:
 
 
 @functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=64)
 def off_diagonal(n: int) -> np.ndarray:
-    """Constant (n, n) bool mask, True off the diagonal (a NumPy constant: also fine under jit)."""
+    """Constant (n, n) bool mask, True off the diagonal (a NumPy constant: also fine under jit; read-only,
+    made once per n)."""
     m = ~np.eye(n, dtype=bool)
     m.setflags(write=False)
     return m

@@ -164,7 +164,11 @@ def _episode(seed: int, enabled: bool, **kw) -> list[np.ndarray]:
         one_quad.ENABLED = True
 
 
-@pytest.mark.parametrize("kw", [{}, {"randomize": True}])
+@pytest.mark.parametrize("kw", [{}, {"randomize": True},
+                                {"scenario": "dynamic_same_goal", "obs_self": "floor", "normalize_obs": True},
+                                {"scenario": "ep_lissajous3D", "rewards": {"anneal_steps": 500}, "sim_hz": 300},
+                                {"noise": {"stochastic_collisions": False, "sensor_pos_std": 0.0, "sensor_vel_std": 0.0,
+                                           "sensor_omega_std": 0.0, "motor_noise_ratio": 0.0}}])
 def test_single_env_episodes_are_the_array_forms_bitwise(kw):
     got, ref = _episode(3, True, **kw), _episode(3, False, **kw)
     assert len(got) == len(ref)
@@ -248,18 +252,28 @@ def test_build_obs_is_the_array_form_bitwise(obs_self, normalize):
 
 
 def test_numpy_ops_route_one_quad_only_to_the_float_forms(monkeypatch):
-    """The CPU engine's ops call perf.one_quad's task forms for one quad in one world, the model's own
-    functions otherwise (the model modules themselves know nothing of perf)."""
+    """The CPU engine's ops run perf.one_quad_step's whole-stage float forms (on perf.one_quad's bodies) for one
+    quad in one world, the model's own functions otherwise (the model modules themselves know nothing of perf)."""
+    from quadswarm_mj.perf import one_quad_step
+
     calls = []
-    for name in ("reward_terms", "total_reward", "metrics_update", "build_obs"):
-        real = getattr(one_quad, name)
-        monkeypatch.setattr(one_quad, name, lambda *a, _n=name, _r=real, **k: calls.append(_n) or _r(*a, **k))
-    for n, want in ((1, {"reward_terms", "total_reward", "metrics_update", "build_obs"}), (2, set())):
+    for name in ("reward_values", "metrics_floats", "obs_values", "wrench_floats", "rotmat_floats"):
+        real = getattr(one_quad_step, name)
+        monkeypatch.setattr(one_quad_step, name, lambda *a, _n=name, _r=real, **k: calls.append(_n) or _r(*a, **k))
+    for n, want in ((1, {"reward_values", "metrics_floats", "obs_values", "wrench_floats", "rotmat_floats"}),
+                    (2, set())):
         calls.clear()
         env = QuadSwarmEnv(EnvConfig(num_quads=n, num_neighbors=0))
         env.reset(seed=0)
         env.step(env.action_space.sample())
         assert set(calls) == want, (n, calls)
+        ops = env.core._ops
+        assert (isinstance(ops.fused_loop, one_quad_step.OneQuadLoop), ops.fused_task is not None) == (n == 1,) * 2
+        one_quad.ENABLED = False
+        try:
+            assert not isinstance(ops.fused_loop, one_quad_step.OneQuadLoop) and ops.fused_task is None
+        finally:
+            one_quad.ENABLED = True
 
 
 def test_numpy_ops_one_quad_wall_gate_and_contacts_are_the_array_forms():
@@ -320,4 +334,28 @@ def test_numpy_ops_contacts_of_single_quad_worlds_are_the_array_forms():
     with np.errstate(invalid="ignore"):
         got, want = ops.pairwise_contacts(pos, cfg.hitbox), collisions.pairwise_contacts(pos, cfg.hitbox)
     for a, b in zip(got, want):
+        _same(a, b)
+
+
+@pytest.mark.parametrize("backend", ["mjdata", "batch"])
+def test_engine_one_quad_runs_are_the_array_forms_bitwise(backend):
+    """The one-quad engine (perf.one_quad_step's loop and task) on both physics back ends: a seeded run with
+    falls and lift-offs gives the array forms' bits."""
+    out = []
+    for enabled in (True, False):
+        one_quad.ENABLED = enabled
+        try:
+            core = CpuSwarm(EnvConfig(num_quads=1), 1, backend=backend, visual=False)
+            core.seed(3)
+            core.reset()
+            rng = np.random.default_rng(4)
+            run = []
+            for _ in range(400):
+                o = core.step(np.clip(-0.3 + rng.standard_normal((1, 1, 4)), -1, 1))
+                run += [o["obs"], o["rewards"], *o["terms"].values(), core.qpos.copy(), core.qvel.copy(),
+                        core.on_floor.copy(), *core.metrics.values()]
+            out.append(run)
+        finally:
+            one_quad.ENABLED = True
+    for a, b in zip(*out):
         _same(a, b)

@@ -100,6 +100,29 @@ def test_init_from_single_policy_transfers_to_swarm(tmp_path):
         PPOTrainer([EnvConfig(num_quads=1)], PPOConfig(**TINY), init_from=str(tmp_path / "swarm.npz"))
 
 
+def test_warm_start_std_sets_a_constant_std_and_keeps_the_means(tmp_path):
+    """--warm-start-std: the warm-started policy's std is the given value in every state (pre-tanh,
+    Brax's softplus + 0.001), its greedy actions are the file's."""
+    from quadswarm_mj.training.learner import _dense_layers
+
+    src = PPOTrainer([EnvConfig(num_quads=1)], PPOConfig(**TINY), seed=1)
+    src.save(tmp_path / "src.npz")
+    warm = PPOTrainer([EnvConfig(num_quads=1)], PPOConfig(**TINY, warm_start_std=0.2), seed=2,
+                      init_from=str(tmp_path / "src.npz"))
+    obs = np.random.default_rng(0).normal(0, 1, (10, 18)).astype(np.float32)
+    h = obs
+    layers = _dense_layers(warm.state.params.policy)
+    for k, b in layers[:-1]:
+        h = np.tanh(h @ k + b)
+    out = h @ layers[-1][0] + layers[-1][1]
+    np.testing.assert_allclose(np.logaddexp(0.0, out[:, 4:]) + 0.001, 0.2, rtol=1e-5)
+    warm.save(tmp_path / "warm.npz")
+    greedy_warm, greedy_src = load_policy(str(tmp_path / "warm.npz")), load_policy(str(tmp_path / "src.npz"))
+    np.testing.assert_allclose(greedy_warm(obs), greedy_src(obs), atol=1e-6)
+    with pytest.raises(ValueError, match="warm_start_std"):
+        PPOConfig(warm_start_std=0.0)
+
+
 def test_ppo_config_validation():
     with pytest.raises(ValueError, match="num_worlds"):
         PPOConfig(num_worlds=0)

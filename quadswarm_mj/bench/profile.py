@@ -18,17 +18,26 @@ from quadswarm_mj.bench.envs import bench_vector
 PROFILE_GROUPS = [  # (label, [(file suffix, function name)]); builtins have file "~" and match by substring
     ("MuJoCo physics step (C)", [("~", "mj_step"), ("~", "_batch.step")]),
     # the CPU engine calls the model through its ops (core/ops.py's NumpyOps: the model's functions, the
-    # fewest-NumPy-calls forms of perf/numpy_small.py, or for one quad perf/one_quad.py's float forms)
+    # fewest-NumPy-calls forms of perf/numpy_small.py, the sub-step loop of perf/numpy_loop.py, or for one quad
+    # perf/one_quad_step.py's float forms on perf/one_quad.py's bodies)
     ("actuation: command, motor noise, lag, thrusts, wrench", [("numpy_small.py", "substep_wrench"),
+                                                               ("numpy_loop.py", "substep_wrench"),
+                                                               ("one_quad.py", "wrench_floats"),
                                                                ("ops.py", "motor_noise"), ("ops.py", "command")]),
-    ("rotation matrices from quaternions", [("numpy_small.py", "quat_to_rotmat"), ("one_quad.py", "quat_to_rotmat")]),
-    ("floor model (friction wrench + impact)", [("ops.py", "floor_wrench"), ("ops.py", "floor_impact")]),
+    ("rotation matrices from quaternions", [("numpy_small.py", "quat_to_rotmat"),
+                                            ("numpy_small.py", "quat_to_rotmat_qpos"),
+                                            ("one_quad.py", "quat_to_rotmat"), ("one_quad.py", "rotmat_floats")]),
+    ("floor model (friction wrench + impact)", [("ops.py", "floor_wrench"), ("ops.py", "floor_impact"),
+                                                ("numpy_loop.py", "floor_wrench"),
+                                                ("one_quad.py", "floor_wrench_floats"),
+                                                ("one_quad.py", "floor_impact_qv")]),
     ("walls, ceiling, quad-quad response", [("collisions.py", "wall_collisions"),
                                             ("collisions.py", "quad_collisions")]),
     ("pairwise distances and contacts", [("ops.py", "pairwise_contacts")]),
-    ("reward terms and total", [("ops.py", "reward_terms"), ("ops.py", "total_reward")]),
-    ("episode metrics", [("ops.py", "metrics_update"), ("metrics.py", "goal_jump")]),
-    ("observations (own state, K nearest)", [("ops.py", "obs")]),
+    ("reward terms and total", [("ops.py", "reward_terms"), ("ops.py", "total_reward"),
+                                ("one_quad.py", "reward_values")]),
+    ("episode metrics", [("ops.py", "metrics_update"), ("metrics.py", "goal_jump"), ("one_quad.py", "metrics_floats")]),
+    ("observations (own state, K nearest)", [("ops.py", "obs"), ("one_quad.py", "obs_values")]),
     ("scenario goals", [("scenarios/static.py", "step"), ("scenarios/base.py", "step")]),
     ("env wrapper: action check, info / output arrays", [("validation.py", "check_action"), ("gym_env.py", "_info"),
                                                          ("vector_env.py", "_info"),
@@ -38,7 +47,8 @@ PROFILE_GROUPS = [  # (label, [(file suffix, function name)]); builtins have fil
 
 def profile_breakdown(fn: Callable[[], None]) -> tuple[float, list[tuple[str, float]]]:
     """Run ``fn`` under cProfile; return its total time and the cumulative time of each group (the
-    groups are disjoint calls, except that the floor model computes rotations too)."""
+    groups are disjoint calls, except that the floor model computes rotations too; a group's function
+    called by another of the same group is counted once)."""
     pr = cProfile.Profile()
     pr.enable()
     fn()
@@ -47,12 +57,15 @@ def profile_breakdown(fn: Callable[[], None]) -> tuple[float, list[tuple[str, fl
     total = max(v[3] for v in st.stats.values())
     out = []
     for label, keys in PROFILE_GROUPS:
+        def match(func: tuple, keys: list = keys) -> bool:
+            file, _line, name = func
+            return any((suffix == "~" and file == "~" and fname in name) or (
+                suffix != "~" and file.endswith(suffix) and name == fname) for suffix, fname in keys)
+
         t = 0.0
-        for (file, _line, name), (_cc, _nc, _tt, ct, _callers) in st.stats.items():
-            for suffix, fname in keys:
-                if (suffix == "~" and file == "~" and fname in name) or (
-                        suffix != "~" and file.endswith(suffix) and name == fname):
-                    t += ct
+        for func, (_cc, _nc, _tt, ct, callers) in st.stats.items():
+            if match(func):  # its time, less what a matched caller of the same group already counts
+                t += ct - sum(edge[3] for caller, edge in callers.items() if match(caller))
         out.append((label, t))
     return total, out
 
@@ -89,8 +102,8 @@ def gym_profile(steps: int = 3000) -> list[str]:
     total, groups = profile_breakdown(run)
     env.close()
     lines = ["gym.make('QuadSwarm-v0', num_quads=1), random actions (the quad lies on the floor most of the time; "
-             f"perf/one_quad.py's forms run), {steps} steps under cProfile: {total / steps * 1e6:.0f} us/step "
-             "profiled:", ""]
+             f"perf/one_quad_step.py's float forms run), {steps} steps under cProfile: "
+             f"{total / steps * 1e6:.0f} us/step profiled:", ""]
     return lines + _profile_table(total, groups)
 
 

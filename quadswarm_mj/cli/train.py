@@ -177,6 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--num-epochs", type=int)
     g.add_argument("--lr", "--learning-rate", dest="learning_rate", type=float)
     g.add_argument("--entropy-cost", type=float)
+    g.add_argument("--warm-start-std", type=float,
+                   help="with --init-from: the policy's action std (pre-tanh) set to this in every state")
     g.add_argument("--lr-schedule", choices=("constant", "linear"), help="linear (default): decay to 10 %% at the end")
     g.add_argument("--discounting", type=float)
     g.add_argument("--gae-lambda", type=float)
@@ -258,7 +260,7 @@ def main(argv: list[str] | None = None) -> int:
     ppo_kw = dict(preset["ppo"])
     for k in ("num_worlds", "unroll_length", "num_minibatches", "num_epochs", "learning_rate", "entropy_cost",
               "discounting", "gae_lambda", "clipping_epsilon", "reward_scaling", "activation", "lr_schedule", "arch",
-              "arch_width"):
+              "arch_width", "warm_start_std"):
         if getattr(args, k) is not None:
             ppo_kw[k] = getattr(args, k)
     if args.arch == "mlp":

@@ -60,7 +60,11 @@ def task_step(cfg: Any, scenario: Any, s: dict[str, Any], k: dict[str, Any], act
     ``zero_terms`` (reward terms that are exactly -0.0, left out of the sum: the same bits).
     Returns ``steps``, ``total_steps``, ``t`` (s), ``sstate``, ``goals``, ``goal_vel``, ``terms``,
     ``reward`` (..., N), ``metrics_acc``, ``obst_metrics``, ``obs`` (..., N, obs_dim) and ``done`` (the
-    time limit)."""
+    time limit). The engine's ``ops`` may offer a whole-stage form ``fused_task`` (same values; it returns
+    None where it does not apply)."""
+    fused = getattr(ops, "fused_task", None)
+    if fused is not None and (r := fused(cfg, scenario, s, k, action, consts, ops)) is not None:
+        return r
     steps, total_steps = s["steps"] + 1, s["total_steps"] + 1
     t = steps.astype(ops.dtype) * cfg.control_dt
     effort = action if cfg.control_mode == "rotor" else effort_action(cfg, action, k["ctrl"][0])

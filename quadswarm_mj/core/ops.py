@@ -32,7 +32,9 @@ import numpy as np
 from quadswarm_mj import actuation, collisions, observations, rewards, spatial
 from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj.collisions import expand_per_quad, quad_collisions, quad_collisions_budgeted
-from quadswarm_mj.perf import numpy_deck, numpy_floor, numpy_small, one_quad, xla_cpu
+from quadswarm_mj.perf import numpy_deck, numpy_floor, numpy_loop, numpy_small, one_quad, xla_cpu
+from quadswarm_mj.perf.numpy_loop import SmallLoop
+from quadswarm_mj.perf.one_quad_step import OneQuadLoop, OneQuadTask
 from quadswarm_mj.spatial import BIG
 
 ALL = slice(None)
@@ -113,6 +115,26 @@ class NumpyOps(ModelForms):
         self._sum_keys: dict[tuple, list[str]] = {}
         B, N = swarm.B, swarm.N  # the shapes of the step's draws: motor, scenario, sensor
         self._shapes = ((B, N, 4), (B, swarm._n_scn), (3, B, N, 3))
+        # one quad, the paper's chain and floor: the whole sub-step loop on floats (perf.one_quad_step)
+        # several quads or worlds, small arrays: the loop with the control step's constants computed once
+        # (perf.numpy_loop)
+        paper_chain = cfg.collision_model == "paper" and swarm._act is None
+        self._loop = (None if not paper_chain else OneQuadLoop(swarm) if self._one
+                      else SmallLoop(swarm) if 4 * B * N < BIG else None)
+        # ... and the task half of the step (scenario, rewards, metrics, observation) on floats
+        sensor = (swarm._sensor_keys, swarm._sensor_std) if swarm._sensor_on else (None, None)
+        self._task = (OneQuadTask(cfg, swarm.obs_low, swarm.obs_high, swarm.obs_scale, swarm._zero_terms, *sensor)
+                      if self._one_obs and cfg.control_mode == "rotor" else None)
+
+    @property
+    def fused_loop(self) -> Any:
+        """``core.substeps.substep_loop``'s whole-loop form for this engine, or None (the per-sub-step ops)."""
+        return self._loop if (one_quad.ENABLED if self._one else numpy_loop.ENABLED) else None
+
+    @property
+    def fused_task(self) -> Any:
+        """``core.control.task_step``'s one-quad float form for this engine, or None."""
+        return self._task if one_quad.ENABLED else None
 
     def command(self, action: np.ndarray) -> np.ndarray:
         """:func:`quadswarm_mj.actuation.action_to_command` (one quad: on floats, same bits)."""
@@ -202,9 +224,7 @@ class NumpyOps(ModelForms):
         if s._any_on_floor:
             grounded |= on_floor
         if np.count_nonzero(grounded):  # (faster than .any() on tiny masks)
-            s.u, s.on_floor = u, on_floor
-            s._floor_impact(s._worlds(grounded), hit_floor)
-            u, on_floor = s.u, s.on_floor
+            u, on_floor = s._floor_rows(s._worlds(grounded), u, on_floor, hit_floor)
         R = (numpy_small.quat_to_rotmat_qpos(q) if 7 < q.size < BIG  # (the same bits, fewer calls)
              else numpy_small.quat_to_rotmat(q[..., 3:7]))
         return q, v, u, on_floor, hit_floor, R
@@ -235,7 +255,7 @@ class NumpyOps(ModelForms):
                 return ALL
             return None
         out = (pos <= self.s._out_lo) | (pos >= self.s._out_hi)
-        if not (out.any() or at_wall.any() or at_ceiling.any()):
+        if not (np.count_nonzero(out) or np.count_nonzero(at_wall) or np.count_nonzero(at_ceiling)):  # (= .any())
             return None
         return self.s._worlds(out.any(-1) | at_wall | at_ceiling)
 
@@ -291,7 +311,7 @@ class NumpyOps(ModelForms):
         False and the distance ||p - p|| (0.0, NaN for a non-finite position, as the norm gives)."""
         if self._one:  # on floats: p - p is 0.0 (NaN for a non-finite p), as is its norm
             x, y, z = pos.ravel().tolist()
-            return np.zeros((1, 1, 1), bool), np.full((1, 1, 1), (x - x) + (y - y) + (z - z))
+            return np.zeros((1, 1, 1), bool), np.array([[[(x - x) + (y - y) + (z - z)]]])
         if self.s.N == 1:
             d = pos - pos
             return np.zeros(pos.shape[:-1] + (1,), bool), np.add.reduce(d * d, axis=-1, keepdims=True)
@@ -299,7 +319,7 @@ class NumpyOps(ModelForms):
 
     def quad_quad(self, pos: Any, vel: Any, omega: Any, prev: Any, contact: Any, new: Any) -> dict[str, Any] | None:
         """The paper's response on the worlds with a new contact (None: there is none)."""
-        if not np.count_nonzero(new):  # (faster than .any() on small masks)
+        if self.s.N == 1 or not np.count_nonzero(new):  # (one quad: no pair; faster than .any() on small masks)
             return None
         s = self.s
         w = s._worlds(new.any(-1))
@@ -310,8 +330,9 @@ class NumpyOps(ModelForms):
 
     def obstacles(self, pos: Any, vel: Any, omega: Any) -> dict[str, Any]:
         vel, omega = vel.copy(), omega.copy()  # the engine's stage writes them in place
-        new, changed = self.s._obstacle_stage(pos, vel, omega)
-        return {"vel": vel, "omega": omega, "obst_new": new, "obst_feats": self.s._obst_feats, "changed": changed}
+        new, changed, contact = self.s._obstacle_stage(pos, vel, omega)
+        return {"vel": vel, "omega": omega, "obst_new": new, "obst_contact": contact, "obst_feats": self.s._obst_feats,
+                "changed": changed}
 
 
 class AlwaysOn(ModelForms):

@@ -3,13 +3,15 @@ spawn and the given overrides: :func:`quadswarm_mj.pipeline.initial_state`; the 
 before the start is written into the physics, and :func:`start_flags` after it, on the positions as the
 physics stores them (both engines read the start back: the quaternion round trip). The engines make the
 draws (a seeded NumPy ``Generator`` in a fixed order, or one fused JAX draw) and keep the results
-(rows of the reset worlds, or a new ``State``). Arrays have leading dims (..., N): the reset worlds."""
+(rows of the reset worlds, or a new ``State``): :func:`reset_state` gathers the start into the
+:class:`~quadswarm_mj.core.swarm.SwarmState` of the reset worlds. Arrays have leading dims (..., N)."""
 
 from __future__ import annotations
 
 from typing import Any
 
 from quadswarm_mj import metrics as metrics_lib
+from quadswarm_mj.core.swarm import SwarmState
 from quadswarm_mj.pipeline import initial_flags, initial_state
 
 
@@ -52,3 +54,18 @@ def start_accumulators(cfg: Any, like: Any, lead: tuple[int, ...], n: int) -> di
 
         out["obst_metrics"] = metrics_init(like, lead, n)
     return out
+
+
+def reset_state(init: dict[str, Any], flags: dict[str, Any], fresh: dict[str, Any], step: Any, params: dict[str, Any],
+                rot: Any = None, ctrl_state: Any = None, omap: Any = None, total_steps: Any = None) -> SwarmState:
+    """The :class:`~quadswarm_mj.core.swarm.SwarmState` of the reset worlds from :func:`start_state`'s
+    ``init``, :func:`start_flags`' ``flags`` and :func:`start_accumulators`' ``fresh``: motors at
+    ``init["u0"]`` (thrust u0^2, no noise), the start's flags, no contact, zeroed accumulators, ``step``
+    (the zero step count), ``params`` (gravity excluded), ``rot`` (None: recompute from the physics),
+    ``ctrl_state`` (zeroed control-mode integrators or None), the column map ``omap`` or None and
+    ``total_steps`` (None: the engine keeps its count)."""
+    return SwarmState(rot=rot, motor_u=init["u0"], motor_eps=init["eps"], thrust=init["f_norm"],
+                      on_floor=flags["on_floor"], at_wall=flags["at_wall"], at_ceiling=flags["at_ceiling"],
+                      contact=flags["contact"], step=step, total_steps=total_steps, scenario=init["scenario"],
+                      metrics_acc=fresh["metrics_acc"], params=params, ctrl_state=ctrl_state, obstacles=omap,
+                      obstacle_contact=flags.get("obst_contact"), obstacle_metrics=fresh.get("obst_metrics"))

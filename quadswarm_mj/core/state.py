@@ -1,5 +1,7 @@
 """The JAX engine's state: :class:`State`, one world's pytree (``jax.vmap`` adds a leading worlds
-axis to every leaf). Also importable as ``quadswarm_mj.envs.mjx_env.State``."""
+axis to every leaf). Its ``info`` is the flat dict of the engines' shared
+:class:`~quadswarm_mj.core.swarm.SwarmState` plus read-outs (``State.swarm`` reads it back). Also
+importable as ``quadswarm_mj.envs.mjx_env.State``."""
 
 from __future__ import annotations
 
@@ -8,6 +10,10 @@ from typing import Any
 
 import jax
 from mujoco import mjx
+
+from quadswarm_mj.core.swarm import SwarmState, from_info, register_pytree
+
+register_pytree()
 
 
 @jax.tree_util.register_dataclass
@@ -61,3 +67,9 @@ class State:
 
     def replace(self, **changes: Any) -> State:
         return dataclasses.replace(self, **changes)
+
+    @property
+    def swarm(self) -> SwarmState:
+        """The :class:`~quadswarm_mj.core.swarm.SwarmState` held in ``info`` (its arrays, not copies;
+        leading worlds axis if the state is batched)."""
+        return from_info(self.info)

@@ -43,8 +43,8 @@ def substep_loop(cfg: Any, carry: dict[str, Any], inp: dict[str, Any], consts: d
     ``physics``: ``substep(q, v, force, torque, aux) -> (q, v, aux)`` (world force N and torque N m at
     the centre of mass), ``local_pos(q)``, ``velocities(v) -> (vel, omega)``; a back end that runs the
     whole loop as one kernel (:mod:`quadswarm_mj.perf`) offers ``fused_loop(cfg, carry, inp, consts,
-    ops)`` instead (same values)."""
-    fused = getattr(physics, "fused_loop", None)
+    ops)`` instead (same values), as may the engine's ``ops`` (the CPU engine's one-quad and small-array loops)."""
+    fused = getattr(physics, "fused_loop", None) or getattr(ops, "fused_loop", None)
     if fused is not None:
         return fused(cfg, carry, inp, consts, ops)
     paper_floor = cfg.collision_model == "paper"

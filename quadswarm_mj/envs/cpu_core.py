@@ -1,8 +1,10 @@
 """The CPU engine shared by every CPU front end: B worlds x N quads stepped by MuJoCo's C engine.
 
 All model math is batched over (B, N) with the pure functions of the package; MuJoCo integrates the
-rigid bodies. ``step`` is :func:`quadswarm_mj.core.control.control_step` (the control step both engines
-call) with :class:`~quadswarm_mj.core.ops.NumpyOps` and the MuJoCo back end as ``physics``.
+rigid bodies. ``step`` is :func:`quadswarm_mj.core.swarm.step_state` (the control step both engines
+call) with :class:`~quadswarm_mj.core.ops.NumpyOps` and the MuJoCo back end as ``physics``; the engine
+holds its dynamic state in one :class:`~quadswarm_mj.core.swarm.SwarmState` (``CpuSwarm.state``, leaves
+(B, N, ...), replaced every step; the attributes ``u``, ``on_floor``, ``sstate``... are views of it).
 ``QuadSwarmEnv`` is this engine with B = 1, ``QuadSwarmVectorEnv`` runs several of them (shards of
 worlds), ``QuadSwarmParallelEnv`` wraps ``QuadSwarmEnv``.
 
@@ -10,22 +12,16 @@ Two physics back ends hold the B worlds (``backend``: ``"mjdata"``, one ``MjData
 default; ``"batch"``, ``mujoco.batch`` chunks; :mod:`quadswarm_mj.physics.mujoco_c`); they give
 bit-identical results (with MuJoCo contacts, "mujoco"/"blend", only up to round-off).
 
-Random numbers come from one seeded ``numpy.random.Generator``; draws are taken in a fixed order,
-so seeded runs are bit-identical. Draws whose only use is an event (a new contact, a wall or floor
-hit) are made only for the worlds where the event happens, and the event model runs on those
-worlds only (with B = 1: exactly when it happens): the stream stays deterministic.
-
-Performance notes (the per-step path; see BENCHMARKS.md for the profile): the model functions are
-called once per step on whole (B, N) arrays; event models (floor, walls, quad-quad) run only where
-needed; the rotation of the last sub-step is kept for the next step's first sub-step; the
-distance matrix is computed once per step (contacts, proximity reward, neighbour observations);
-the distance to the goals once (reward and metrics); the three sensor-noise draws are one draw.
-None of this changes a value: with B = 1 seeded runs give the same numbers as the straightforward
-code (up to the sign of an exact zero); with B > 1 only the event draws are fewer (see above).
+Random numbers come from one seeded ``numpy.random.Generator`` in a fixed order, so seeded runs are
+bit-identical. Draws whose only use is an event (a new contact, a wall or floor hit) are made only for
+the worlds where the event happens, and the event model runs on those worlds only (with B = 1: exactly
+when it happens). The per-step speed choices (event gating, the rotation kept for the next step, one
+distance matrix per step) change no value: docs/engines.md.
 """
 
 from __future__ import annotations
 
+import operator
 from typing import Any
 
 import numpy as np
@@ -42,11 +38,11 @@ from quadswarm_mj.collisions import (
     collision_draw_specs,
 )
 from quadswarm_mj.config import EnvConfig
-from quadswarm_mj.core.control import control_step
 from quadswarm_mj.core.ops import ALL as _ALL
 from quadswarm_mj.core.ops import NumpyOps
 from quadswarm_mj.core.ops import put as _put
-from quadswarm_mj.core.reset import start_accumulators, start_flags, start_state
+from quadswarm_mj.core.reset import reset_state, start_accumulators, start_flags, start_state
+from quadswarm_mj.core.swarm import SwarmState, step_state
 from quadswarm_mj.downwash import downwash_draw_spec
 from quadswarm_mj.observations import obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.perf import numpy_floor
@@ -59,19 +55,62 @@ from quadswarm_mj.physics.mujoco_c import (  # noqa: F401  re-exported
 from quadswarm_mj.random_draws import MeanSampler, NumpySampler
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
 from quadswarm_mj.rewards import zero_terms
-from quadswarm_mj.scenarios import ScenarioState, get_scenario
+from quadswarm_mj.scenarios import get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
 from quadswarm_mj.spatial import rotmat_to_quat
+
+
+def _put_rows(old: Any, idx: Any, new: Any, B: int) -> Any:
+    """``old`` (a (B, ...) leaf, or a dict/tuple/NamedTuple of them; None: zeros) with rows ``idx``
+    replaced by ``new`` (:func:`~quadswarm_mj.core.ops.put` per leaf)."""
+    if isinstance(new, dict):
+        return {k: _put_rows(None if old is None else old[k], idx, v, B) for k, v in new.items()}
+    if isinstance(new, tuple):
+        vals = [_put_rows(None if old is None else o, idx, v, B) for o, v in zip(old or (None,) * len(new), new)]
+        return type(new)(*vals) if hasattr(new, "_fields") else tuple(vals)
+    if old is None:
+        if isinstance(idx, slice):
+            return new
+        a = np.asarray(new)
+        old = np.zeros((B,) + a.shape[1:], a.dtype)
+    return _put(old, idx, new)
+
+
+def _view(field: str, doc: str) -> property:
+    """An attribute that reads (and, assigned, replaces) the field ``field`` of ``self.state``."""
+    def set_(self: CpuSwarm, value: Any) -> None:
+        self.state = self.state.replace(**{field: value})
+
+    return property(operator.attrgetter(f"state.{field}"), set_, doc=doc)
 
 
 class CpuSwarm:
     """B worlds of N quads on CPU MuJoCo. State arrays are (B, N, ...), world-local frames.
 
-    The state changes only through :meth:`reset` and :meth:`step` (the engine keeps the rotation
-    matrices of the last step for the next one, and the "batch" back end copies qpos/qvel into
-    MuJoCo only after the engine changed them: code that writes ``qpos``/``qvel`` directly must
-    call :meth:`state_changed`).
+    The rigid bodies' state is in the physics (``qpos``/``qvel`` views), everything else in ``state``
+    (:class:`~quadswarm_mj.core.swarm.SwarmState`). The state changes only through :meth:`reset` and
+    :meth:`step` (the engine keeps the rotation matrices of the last step for the next one, and the
+    "batch" back end copies qpos/qvel into MuJoCo only after the engine changed them: code that writes
+    ``qpos``/``qvel`` directly must call :meth:`state_changed`).
     """
+
+    # views of ``state``'s fields (assigning one replaces the field)
+    u = _view("motor_u", "(B, N, 4) normalized rotor speeds.")
+    motor_eps = _view("motor_eps", "(B, N, 4) OU motor noise.")
+    f_norm = _view("thrust", "(B, N, 4) normalized rotor thrusts.")
+    on_floor = _view("on_floor", "(B, N) bool.")
+    at_wall = _view("at_wall", "(B, N) bool.")
+    at_ceiling = _view("at_ceiling", "(B, N) bool.")
+    contact = _view("contact", "(B, N, N) bool pairs in contact at the last step.")
+    steps = _view("step", "(B,) int control steps in the episode.")
+    total_steps = _view("total_steps", "Control steps across episodes (reward annealing).")
+    sstate = _view("scenario", "The scenario state (ScenarioState, (B, ...) leaves).")
+    metrics = _view("metrics_acc", "The episode metric accumulators.")
+    ctrl_state = _view("ctrl_state", "(B, N, 6) control-mode integrators (None in 'rotor' mode).")
+    cmd_s = _view("rotor_cmd", "(B, N, 4) rotor command of the last sub-step (extended actuation only).")
+    omap = _view("obstacles", "The column maps (ObstacleMap, (B, M_max, ...) leaves; None without obstacles).")
+    obst_contact = _view("obstacle_contact", "(B, N) bool quads touching a column.")
+    obst_metrics = _view("obstacle_metrics", "The obstacle metric accumulators.")
 
     def __init__(self, cfg: EnvConfig, num_worlds: int = 1, backend: str = "mjdata", visual: bool = True,
                  chunk_worlds: int = 64, nthread: int = 1):
@@ -105,7 +144,6 @@ class CpuSwarm:
         self._out_lo = np.array([cfg.room_low[0], cfg.room_low[1], -np.inf])
         self._out_hi = np.asarray(cfg.room_high, dtype=np.float64)
         self.rng = np.random.default_rng()
-        self.total_steps = 0  # across episodes, for reward annealing
         # draw specs, built once
         specs = collision_draw_specs(cfg)
         self._spec_quad, self._spec_wall, self._spec_floor = specs["quad"], specs["wall"], specs["floor"]
@@ -118,26 +156,19 @@ class CpuSwarm:
         self._motor_noise = cfg.noise.motor_noise_ratio > 0
         self._n_scn = scenario_num_uniforms(self.scenario, cfg)
         zeros = np.zeros((B, N))
-        self.params = pipeline.dynamics_params(cfg, nominal_draws(cfg, zeros, (B,)))
+        params = pipeline.dynamics_params(cfg, nominal_draws(cfg, zeros, (B,)))
+        self._params = params  # state.params with gravity, as the model functions read them (set at reset)
         self._act = pipeline.make_substep_actuation(cfg, NumpyOps.wrench)  # None: the paper's chain (no extra work)
         self._modes = cfg.control_mode != "rotor"
-        self.ctrl_state = np.zeros((B, N, 6)) if self._modes else None  # control-mode integrators
-        self.cmd_s = np.zeros((B, N, 4))  # rotor command of the last sub-step (with self._act only)
-        self._torque_spin = self.params["torque_max"] * SPIN
-        self.u = np.zeros((B, N, 4))
-        self.motor_eps = np.zeros((B, N, 4))
-        self.f_norm = np.zeros((B, N, 4))
-        self.prev_f_norm = np.zeros((B, N, 4))
-        self.on_floor = np.zeros((B, N), bool)
-        self.at_wall = np.zeros((B, N), bool)
-        self.at_ceiling = np.zeros((B, N), bool)
-        self._any_on_floor = False  # a Python mirror of on_floor.any()
-        self.contact = np.zeros((B, N, N), bool)
-        self.steps = np.zeros(B, np.int64)
-        self.sstate: ScenarioState | None = None
-        self.metrics = metrics_lib.init(zeros, (B,), N)
-        self._R: np.ndarray | None = None  # rotations of the current qpos (None: recompute)
-        self._obst_init()
+        self._torque_spin = params["torque_max"] * SPIN
+        self._any_on_floor = False  # a Python mirror of state.on_floor.any()
+        z4 = np.zeros((B, N, 4))
+        self.state = SwarmState(
+            rot=None, motor_u=z4, motor_eps=z4.copy(), thrust=z4.copy(), on_floor=np.zeros((B, N), bool),
+            at_wall=np.zeros((B, N), bool), at_ceiling=np.zeros((B, N), bool), contact=np.zeros((B, N, N), bool),
+            step=np.zeros(B, np.int64), total_steps=0, scenario=None, metrics_acc=metrics_lib.init(zeros, (B,), N),
+            params={k: v for k, v in params.items() if k != "gravity"},
+            ctrl_state=np.zeros((B, N, 6)) if self._modes else None, rotor_cmd=z4.copy(), **self._obst_init())
         self._ops = NumpyOps(self)
         # the constants of core.control.control_step
         self._consts = {"act": self._act, "rotor_pos": self.rotor_pos, "mix": self._mix, "obs_low": self.obs_low,
@@ -157,26 +188,26 @@ class CpuSwarm:
         self.qpos, self.qvel, self.xfrc = p.qpos, p.qvel, p.xfrc
 
     # ------------------------------------------------------------------ obstacles (SPEC_obstacles A)
-    def _obst_init(self) -> None:
-        """Per-world column maps ``omap`` (ObstacleMap (B, M_max, 2), (B, M_max), (B,); None without
-        obstacles), the previous step's contacts and the obstacle metric accumulators."""
+    def _obst_init(self) -> dict[str, Any]:
+        """The obstacle fields of the state: per-world column maps ``obstacles`` (ObstacleMap (B, M_max,
+        2), (B, M_max), (B,)), the previous step's contacts and the metric accumulators ({} without)."""
         o, B, N = self.cfg.obstacles, self.B, self.N
-        self.omap: Any = None
         self._obst_thr: Any = None
         if o is None:
-            return
+            return {}
         from quadswarm_mj import obstacles as ob
 
         m = o.slots
-        self.omap = ob.ObstacleMap(np.zeros((B, m, 2)), np.zeros((B, m), bool), np.full(B, 0.5 * o.size))
-        self.obst_contact = np.zeros((B, N), bool)
-        self.obst_metrics = ob.metrics_init(np.zeros(1), (B,), N)
+        fields = {"obstacles": ob.ObstacleMap(np.zeros((B, m, 2)), np.zeros((B, m), bool), np.full(B, 0.5 * o.size)),
+                  "obstacle_contact": np.zeros((B, N), bool),
+                  "obstacle_metrics": ob.metrics_init(np.zeros(1), (B,), N)}
         self._spec_obst = ob.response_draw_spec(N)
         self._spec_map = ob.map_draw_spec(o)
         self._obst_respond = self.cfg.collision_model == "paper"  # else MuJoCo's contacts resolve it
         # the success distance of the scenario (per world only for mix, which draws a sub-scenario)
         thr = getattr(self.scenario, "approach_goal_metric", 0.5)
         self._obst_thr = None if self.cfg.scenario == "mix" else np.full(B, float(thr))
+        return fields
 
     def _obst_new_maps(self, idx: Any, M: int, given: Any) -> Any:
         """Maps of the M reset worlds: ``given`` centres ((B, K, 2) or (K, 2) m, world-local), else drawn."""
@@ -193,10 +224,11 @@ class CpuSwarm:
         centres[:, :c.shape[1]] = c[..., :2]
         return ob.ObstacleMap(centres, np.repeat(one.valid[None], M, axis=0), np.full(M, float(one.radius)))
 
-    def _obstacle_stage(self, pos: np.ndarray, vel: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, bool]:
+    def _obstacle_stage(self, pos: np.ndarray, vel: np.ndarray,
+                        omega: np.ndarray) -> tuple[np.ndarray, bool, np.ndarray]:
         """Obstacle contacts of this step (pipeline.obstacle_stage, event-gated: the paper model's
         response runs, and draws, only for worlds with a new contact); writes vel/omega in place.
-        Returns (new contacts (B, N), whether vel/omega changed)."""
+        Returns (new contacts (B, N), whether vel/omega changed, contacts (B, N))."""
         from quadswarm_mj.obstacles import (
             features_from_grid,
             first_hit,
@@ -205,20 +237,19 @@ class CpuSwarm:
             obstacle_response,
         )
 
-        om = self.omap
+        om = self.state.obstacles
         grid = obstacle_grid(pos, om.centres, om.valid)  # one grid: this contact test and the observation's features
         hit = hits_from_grid(grid, om.radius, self.cfg.quad.arm)
         self._obst_feats = features_from_grid(grid, om.radius)  # of the step's final positions (kin["pos"])
         contact = hit.any(-1)
-        new = contact & ~self.obst_contact
-        self.obst_contact = contact
+        new = contact & ~self.state.obstacle_contact
         if not (self._obst_respond and np.count_nonzero(new)):
-            return new, False
+            return new, False, contact
         centre = first_hit(hit, om.centres)[1]
         w = self._worlds(new)
         draws = self._sampler(self.cfg.noise.stochastic_collisions).draw(self._spec_obst, (self._count(w),))
         vel[w], omega[w] = obstacle_response(pos[w], vel[w], omega[w], centre[w], om.radius[w], new[w], draws)
-        return new, True
+        return new, True, contact
 
     def obstacle_centres(self, world: int = 0) -> np.ndarray:
         """(M, 2) centres (m, world-local) of the columns in force in ``world`` (empty without obstacles)."""
@@ -236,23 +267,27 @@ class CpuSwarm:
 
     def state_changed(self) -> None:
         """Tell the engine that ``qpos``/``qvel`` were written from outside."""
-        self._R = None
+        self.state = self.state.replace(rot=None)
         self.phys.touch()
 
     # ------------------------------------------------------------------ state access
+    @property
+    def params(self) -> dict[str, np.ndarray]:
+        """The per-quad dynamics parameters in force (B, N, ...) with ``gravity`` (the step's; not copies)."""
+        return self._params
+
     def _rotations(self) -> np.ndarray:
-        if self._R is None:
-            self._R = NumpyOps.rotmat(self.qpos[..., 3:7])
-        return self._R
+        """(B, N, 3, 3) body->world rotations of the current qpos (``state.rot``, made if None)."""
+        st = self.state
+        if st.rot is None:
+            st = self.state = st.replace(rot=NumpyOps.rotmat(self.qpos[..., 3:7]))
+        return st.rot
 
     def kinematics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(pos, vel, R, omega) copies in world-local frames: pos m, vel m/s world, R body->world,
         omega rad/s body."""
         pos = self.qpos[..., :3] - self.offsets
         return pos, self.qvel[..., :3].copy(), self._rotations().copy(), self.qvel[..., 3:].copy()
-
-    def _sync_flags(self) -> None:
-        self._any_on_floor = np.count_nonzero(self.on_floor) > 0
 
     # ------------------------------------------------------------------ reset
     def reset(self, mask: np.ndarray | None = None, state: dict[str, Any] | None = None) -> None:
@@ -295,66 +330,43 @@ class CpuSwarm:
                       else None)
         init = start_state(cfg, self.scenario, draws, scenario_u, spawn_u, overrides, np, np.float64, aero_draws,
                            omap=new_map)
-        # 1. dynamics parameters
+        # the physics: dynamics parameters, start pose and velocities, column pool
         new_params = init["params"]
-        self.params = {k: (v if k == "gravity" else _put(self.params[k], idx, v)) for k, v in new_params.items()}
         self.phys.write_params(idx, new_params["mass"], new_params["inertia"])
-        self._torque_spin = self.params["torque_max"] * SPIN
-        # 2. scenario
-        s_new = init["scenario"]
-        if self.sstate is None or isinstance(idx, slice):
-            self.sstate = s_new if isinstance(idx, slice) else ScenarioState(
-                *(_put(np.zeros((B,) + np.shape(a)[1:], np.asarray(a).dtype), idx, a) for a in s_new))
-        else:
-            self.sstate = ScenarioState(*(_put(np.asarray(b), idx, a) for a, b in zip(s_new, self.sstate)))
-        # 3. start state
-        pos, vel, R, omega, u0 = init["pos"], init["vel"], init["rot"], init["omega"], init["u0"]
+        pos, vel, R, omega = init["pos"], init["vel"], init["rot"], init["omega"]
         offsets = self.offsets if self.offsets.shape[0] == 1 else self.offsets[idx]
         self.qpos[idx, :, :3] = pos + offsets
         self.qpos[idx, :, 3:7] = rotmat_to_quat(R)
         self.qvel[idx, :, :3] = vel
         self.qvel[idx, :, 3:] = omega
         self.phys.touch()
-        self._R = None
-        self.u = _put(self.u, idx, u0)
-        self.motor_eps = _put(self.motor_eps, idx, init["eps"])
-        if self._modes:
-            self.ctrl_state = _put(self.ctrl_state, idx, 0.0)
-        self.f_norm = _put(self.f_norm, idx, init["f_norm"])
-        self.prev_f_norm = self.f_norm.copy()
-        flags = start_flags(cfg, self.qpos[idx, :, :3] - offsets, np, new_map)  # as MuJoCo stores the start
-        self.on_floor = _put(self.on_floor, idx, flags["on_floor"])
-        self.at_wall = _put(self.at_wall, idx, flags["at_wall"])
-        self.at_ceiling = _put(self.at_ceiling, idx, flags["at_ceiling"])
-        self._sync_flags()
-        self.contact = _put(self.contact, idx, flags["contact"])
-        self.steps = _put(self.steps, idx, 0)
-        fresh = start_accumulators(cfg, np.zeros((M, N)), (M,), N)
-        self.metrics = {k: _put(v, idx, fresh["metrics_acc"][k]) for k, v in self.metrics.items()}
         if new_map is not None:
-            from quadswarm_mj import obstacles as ob
-
-            self.omap = ob.ObstacleMap(*(_put(a, idx, b) for a, b in zip(self.omap, new_map)))
             self.phys.set_obstacles(cfg, idx, new_map)
-            self.obst_contact = _put(self.obst_contact, idx, flags["obst_contact"])
-            self.obst_metrics = {k: _put(v, idx, fresh["obst_metrics"][k]) for k, v in self.obst_metrics.items()}
+        # the state's rows: the start as MuJoCo stores it (the shared reset math, core.reset)
+        flags = start_flags(cfg, self.qpos[idx, :, :3] - offsets, np, new_map)
+        fresh = start_accumulators(cfg, np.zeros((M, N)), (M,), N)
+        start = reset_state(init, flags, fresh, np.zeros(M, np.int64),
+                            {k: v for k, v in new_params.items() if k != "gravity"},
+                            ctrl_state=np.zeros((M, N, 6)) if self._modes else None, omap=new_map)
+        st = self.state
+        if isinstance(idx, slice):  # the scenario state of all worlds is the new one (no copy)
+            st = st.replace(scenario=None)
+        self.state = st.replace(rot=None, **{f: _put_rows(getattr(st, f), idx, v, B)
+                                             for f, v in start.__dict__.items() if v is not None})
+        self._params = {**self.state.params, "gravity": new_params["gravity"]}
+        self._torque_spin = self._params["torque_max"] * SPIN
+        self._any_on_floor = np.count_nonzero(self.state.on_floor) > 0
         self.xfrc[...] = 0.0
         self.phys.after_reset(idx)
 
     # ------------------------------------------------------------------ physics
     def _store(self, k: dict[str, Any], c: dict[str, Any]) -> None:
-        """Keep :func:`quadswarm_mj.core.control.physics_stage`'s results (``c``: after the sub-steps, whose
-        qpos/qvel are MuJoCo's own arrays, written there; ``k``: after the stages that follow them)."""
-        self.motor_eps, self.f_norm, self.u, self._R = k["eps"], k["f_norm"], c["u"], c["R"]
-        self.cmd_s, self.ctrl_state = k["ctrl"]
-        if not self.paper_floor and k["u"] is not c["u"]:  # the room guard ran
-            self.qpos[..., 3:7] = k["quat"]
-            self.u, self._R = k["u"], k["R"]
-        # the floor flags: with the paper's floor they (and their mirror) changed in the sub-steps
-        self.on_floor = k["on_floor"]
+        """Write the step's rigid-body results into MuJoCo (``c``: after the sub-steps, whose qpos/qvel
+        are MuJoCo's own arrays, written there; ``k``: after the stages that follow them)."""
         if not self.paper_floor:
-            self._sync_flags()
-        self.at_wall, self.at_ceiling, self.contact = k["at_wall"], k["at_ceiling"], k["contact"]
+            if k["u"] is not c["u"]:  # the room guard ran
+                self.qpos[..., 3:7] = k["quat"]
+            self._any_on_floor = np.count_nonzero(k["on_floor"]) > 0  # (the paper's floor: set in the sub-steps)
         if k["changed"] or not self._offsets_zero:  # otherwise qpos/qvel hold these values already
             self.qpos[..., :3] = k["pos"] + self.offsets
             self.qvel[..., :3] = k["vel"]
@@ -372,9 +384,16 @@ class CpuSwarm:
         return self.B if isinstance(w, slice) else len(w)
 
     def _floor_impact(self, w: Any, hit_floor: np.ndarray) -> None:
+        """:meth:`_floor_rows` on the state's ``motor_u`` and ``on_floor``, which it replaces."""
+        u, on_floor = self._floor_rows(w, self.state.motor_u, self.state.on_floor, hit_floor)
+        self.state = self.state.replace(motor_u=u, on_floor=on_floor)
+
+    def _floor_rows(self, w: Any, u: np.ndarray, on_floor: np.ndarray,
+                    hit_floor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The paper's floor model after a sub-step, on worlds ``w`` (those with a quad at or below
         the floor height or grounded; elsewhere it changes nothing): ``perf.numpy_floor.floor_impact_rows``
-        (same bits as the model, signs of zero included) as writes into qpos/qvel (one quad: ``NumpyOps``)."""
+        (same bits as the model, signs of zero included) as writes into qpos/qvel (one quad: ``NumpyOps``)
+        and ``hit_floor``; returns the new (u, on_floor) (B, N, 4), (B, N)."""
         cfg = self.cfg
         rows = isinstance(w, slice)  # views: write in place; else copies written back
         q, v = self.qpos[w], self.qvel[w]
@@ -382,37 +401,31 @@ class CpuSwarm:
         M, d = self._count(w), self._spec_floor["yaw"]  # = self._sampler(...).draw(self._spec_floor, (M,))["yaw"]
         yaw_draw = (self.rng.uniform(d.low, d.high, size=(M, self.N)) if cfg.noise.stochastic_collisions
                     else np.full((M, self.N), d.mean))
-        hit, grounded, any_hit = numpy_floor.floor_impact_rows(q, v, self.on_floor[w], self.floor_z, offsets,
-                                                               yaw_draw)
+        hit, grounded, any_hit = numpy_floor.floor_impact_rows(q, v, on_floor[w], self.floor_z, offsets, yaw_draw)
         if any_hit:  # a hit zeroes the motors (0.0 * u: signs kept)
-            self.u = _put(self.u, w, np.where(hit[..., None], 0.0 * self.u[w], self.u[w]))
+            u = _put(u, w, np.where(hit[..., None], 0.0 * u[w], u[w]))
             hit_floor[w] |= hit
         if not rows:
             self.qpos[w], self.qvel[w] = q, v
         self.phys.touch()
-        self.on_floor = _put(self.on_floor, w, grounded)
-        self._any_on_floor = np.count_nonzero(self.on_floor) > 0
+        on_floor = _put(on_floor, w, grounded)
+        self._any_on_floor = np.count_nonzero(on_floor) > 0
+        return u, on_floor
 
     # ------------------------------------------------------------------ step
     def step(self, action: np.ndarray) -> dict[str, Any]:
         """Advance all worlds one control step with validated actions (B, N, 4) of ``cfg.control_mode``
         (per-rotor in [-1, 1], or physical units clipped into ``control_action_bounds``):
-        :func:`quadswarm_mj.core.control.control_step` on MuJoCo (``self.phys``) with :class:`NumpyOps`."""
-        self.prev_f_norm = self.f_norm
-        s = {"q": self.qpos, "v": self.qvel, "R": self._rotations(), "u": self.u, "eps": self.motor_eps,
-             "f_norm": self.f_norm, "on_floor": self.on_floor, "at_wall": self.at_wall, "at_ceiling": self.at_ceiling,
-             "contact": self.contact, "params": self.params, "aux": None, "ctrl": (self.cmd_s, self.ctrl_state),
-             "steps": self.steps, "total_steps": self.total_steps, "sstate": self.sstate, "metrics_acc": self.metrics}
-        if self.omap is not None:
-            s.update(omap=self.omap, obst_metrics=self.obst_metrics, obst_threshold=self._obst_thr)
+        :func:`quadswarm_mj.core.swarm.step_state` on MuJoCo (``self.phys``) with :class:`NumpyOps`."""
+        st = self.state
+        if st.rot is None:  # the rotations of qpos (after a reset or a write from outside)
+            st = self.state = st.replace(rot=NumpyOps.rotmat(self.qpos[..., 3:7]))
         consts = self._consts
         consts["torque_spin"] = self._torque_spin  # (drawn at reset)
-        k, c, r = control_step(self.cfg, self.scenario, s, action, consts, self.phys, self._ops)
+        new, k, c, r = step_state(self.cfg, self.scenario, st, self.qpos, self.qvel, None, self._params,
+                                  action, consts, self.phys, self._ops, self._obst_thr)
         self._store(k, c)
-        self.steps, self.total_steps = r["steps"], r["total_steps"]
-        self.sstate, self.metrics = r["sstate"], r["metrics_acc"]
-        if self.omap is not None:
-            self.obst_metrics = r["obst_metrics"]
+        self.state = new
         k.setdefault("obst_new", None)
         k.setdefault("obst_feats", None)
         return {"obs": r["obs"], "rewards": r["reward"], "terms": r["terms"], "truncated": r["done"], "kin": k,
@@ -421,21 +434,22 @@ class CpuSwarm:
     def observe(self, kin: dict[str, Any] | None = None, worlds: Any = None) -> np.ndarray:
         """Observations (B, N, obs_dim) float64 (sensor noise drawn now), or (len(worlds), N,
         obs_dim) for the worlds ``worlds`` (an index array; noise drawn for those only)."""
+        st = self.state
         if kin is not None:
             pos, vel, R, omega, dist = kin["pos"], kin["vel"], kin["R"], kin["omega"], kin["dist"]
-            goals = self.sstate.goals
+            goals = st.scenario.goals
         else:
             pos, vel, R, omega = self.kinematics()
-            dist, goals = None, self.sstate.goals
+            dist, goals = None, st.scenario.goals
             if worlds is not None:
                 pos, vel, R, omega, goals = pos[worlds], vel[worlds], R[worlds], omega[worlds], goals[worlds]
         noise = None
         if self._sensor_on:  # = NumpySampler(rng).draw(sensor_noise_spec(cfg), (B,)): 0 + std * N(0, 1)
             z = 0.0 + self._sensor_std * self.rng.standard_normal((3,) + pos.shape)
             noise = dict(zip(self._sensor_keys, z))
-        obst = None
-        if self.omap is not None:
-            obst = tuple(self.omap) if worlds is None or kin is not None else tuple(a[worlds] for a in self.omap)
+        obst, om = None, st.obstacles
+        if om is not None:
+            obst = tuple(om) if worlds is None or kin is not None else tuple(a[worlds] for a in om)
         feats = kin.get("obst_feats") if kin is not None else None
         deck = None
         if self.cfg.sensors.any and self.cfg.sensors.noise:  # deck sensor noise (quadswarm_mj.sensors)
@@ -451,23 +465,24 @@ class CpuSwarm:
         out["vel"][...] = self.qvel[..., :3]
         out["rot"][...] = self._rotations()
         out["omega"][...] = self.qvel[..., 3:]
-        out["thrust"][...] = self.f_norm
+        out["thrust"][...] = self.state.thrust
 
     def episode_metrics(self) -> dict[str, np.ndarray]:
         """Per-world episode metrics (B,) so far."""
-        t_end = self.steps * self.cfg.control_dt
-        out = metrics_lib.finalize(self.metrics, t_end[:, None])
-        if self.omap is not None:
+        st = self.state
+        t_end = st.step * self.cfg.control_dt
+        out = metrics_lib.finalize(st.metrics_acc, t_end[:, None])
+        if st.obstacles is not None:
             from quadswarm_mj.obstacles import metrics_finalize
 
-            out.update(metrics_finalize(self.obst_metrics, self.metrics["collisions"]))
+            out.update(metrics_finalize(st.obstacle_metrics, st.metrics_acc["collisions"]))
         return out
 
     def state_dict(self, kin: dict[str, Any] | None = None) -> dict[str, np.ndarray]:
         """Fresh copies: pos, vel (world), rot (body->world), omega (body), thrust (normalized, (B, N, 4))."""
         pos, vel, R, omega = self.kinematics()
-        return {"pos": pos, "vel": vel, "rot": R, "omega": omega, "thrust": self.f_norm.copy()}
+        return {"pos": pos, "vel": vel, "rot": R, "omega": omega, "thrust": self.state.thrust.copy()}
 
     def params_dict(self) -> dict[str, np.ndarray]:
         """Copies of the per-quad dynamics parameters in force (B, N, ...)."""
-        return {k: np.array(v, copy=True) for k, v in self.params.items() if k != "gravity"}
+        return {k: np.array(v, copy=True) for k, v in self.state.params.items()}

@@ -191,11 +191,15 @@ class QuadSwarmEnv(gym.Env):
             rows = np.concatenate([out["rewards"], *terms.values()])  # (1 + terms, N): one copy of them all
         info["rewards"] = rows[0]
         info["reward_terms"] = dict(zip(terms, rows[1:]))
-        info["new_collisions"] = np.logical_or.reduce(out["kin"]["new_contact"][0], axis=-1)  # = .any(-1)
+        if self.single:  # one quad: no pair, so no collision; the mean of one value is that value
+            info["new_collisions"] = np.zeros(1, bool)
+            reward = rows[0, 0].item()
+        else:
+            info["new_collisions"] = np.logical_or.reduce(out["kin"]["new_contact"][0], axis=-1)  # = .any(-1)
+            reward = float(np.add.reduce(rows[0])) / self.cfg.num_quads  # = np.mean: the same sum and division
         if truncated:
             info["episode_metrics"] = {k: float(v[0]) for k, v in self.core.episode_metrics().items()}
             self._needs_reset = True
-        reward = float(np.add.reduce(rows[0])) / self.cfg.num_quads  # = np.mean: the same sum and division
         obs = self._obs(out["obs"])
         return obs, reward, False, truncated, self._info_out(info, obs)
 

@@ -48,11 +48,11 @@ from quadswarm_mj.collisions import (
     wall_draw_spec,
 )
 from quadswarm_mj.config import EnvConfig
-from quadswarm_mj.core.control import control_step
 from quadswarm_mj.core.ops import JaxOps, jax_deck_part
 from quadswarm_mj.core.ops import sub as _sub
-from quadswarm_mj.core.reset import start_accumulators, start_flags, start_state
+from quadswarm_mj.core.reset import reset_state, start_accumulators, start_flags, start_state
 from quadswarm_mj.core.state import State
+from quadswarm_mj.core.swarm import SwarmState, from_info, step_state, to_info
 from quadswarm_mj.devices import check_mjx_batch
 from quadswarm_mj.downwash import DOWNWASH_BUDGET, downwash_slot_spec
 from quadswarm_mj.envs.autoreset import AutoResetWrapper, _run_if, _select  # noqa: F401  re-exported
@@ -267,8 +267,8 @@ class MjxQuadSwarmEnv:
     def _write(self, data: mjx.Data, q: jax.Array, v: jax.Array) -> mjx.Data:
         return self._mjx_physics.write(data, q, v)
 
-    def _params(self, info: dict[str, Any]) -> dict[str, Any]:
-        return {**info["params"], "gravity": self.cfg.quad.gravity}
+    def _params(self, state: SwarmState) -> dict[str, Any]:
+        return {**state.params, "gravity": self.cfg.quad.gravity}
 
     def _substep_physics(self, params: dict[str, Any], obstacle_radius: Any = None) -> Any:
         """The ``physics`` of :func:`quadswarm_mj.core.substeps.substep_loop`: the whole loop on components
@@ -298,14 +298,13 @@ class MjxQuadSwarmEnv:
 
         return deck_info(self.cfg, obs, self._obs_scale)
 
-    def _omap(self, info: dict[str, Any]) -> Any:
-        """The world's column map (ObstacleMap) from ``info``."""
-        return _obst_lib().ObstacleMap(info["obstacles"], info["obstacles_valid"], info["obstacle_radius"])
-
-    def _episode_metrics(self, acc: dict[str, Any], om: dict[str, Any], t: Any) -> dict[str, Any]:
-        """Episode metrics with obstacles: the standard ones, then obstacle_collisions, collision_rate, success."""
+    def _episode_metrics(self, state: SwarmState, t: Any) -> dict[str, Any]:
+        """Episode metrics at ``t`` s: the standard ones, then with obstacles obstacle_collisions,
+        collision_rate, success."""
+        acc = state.metrics_acc
         out = metrics_lib.finalize(acc, t)
-        out.update(_obst_lib().metrics_finalize(om, acc["collisions"]))
+        if state.obstacles is not None:
+            out.update(_obst_lib().metrics_finalize(state.obstacle_metrics, acc["collisions"]))
         return out
 
     # ------------------------------------------------------------------ reset
@@ -343,7 +342,7 @@ class MjxQuadSwarmEnv:
         init = start_state(cfg, self.scenario, draws, rnd["scenario"], rnd["spawn"], init_state, jnp, f, aero_draws,
                            omap=omap)
         params, sstate, goals = init["params"], init["scenario"], init["scenario"].goals
-        pos, vel, R, omega, u0 = init["pos"], init["vel"], init["rot"], init["omega"], init["u0"]
+        pos, vel, R, omega = init["pos"], init["vel"], init["rot"], init["omega"]
         data = self._write(self._data0, jnp.concatenate([pos, rotmat_to_quat(R)], -1),
                            jnp.concatenate([vel, omega], -1))
         data = data.replace(time=jnp.zeros_like(data.time))
@@ -360,126 +359,87 @@ class MjxQuadSwarmEnv:
         flags = start_flags(cfg, pos, jnp, omap)
         _, dist = pairwise_contacts(pos, cfg.hitbox, xla_cpu.pair_distances())
         fresh = start_accumulators(cfg, jnp.zeros((n,), f), (), n)
-        acc, f_norm = fresh["metrics_acc"], init["f_norm"]
         obs = self._observe(pos, vel, R, omega, goals, rnd, dist, omap)
-        zero_n = jnp.zeros((n,), f)
-        info = {
-            "state": {"pos": pos, "vel": vel, "rot": R, "omega": omega, "thrust": f_norm},
-            "params": {k: jnp.asarray(v, f) for k, v in params.items() if k != "gravity"},
-            "goals": goals, "goal_vel": sstate.goal_vel,
-            "motor_u": u0, "motor_eps": init["eps"],
-            **{k: flags[k] for k in ("on_floor", "at_wall", "at_ceiling", "contact")},
-            "scenario": sstate, "metrics_acc": acc,
-            "episode_metrics": metrics_lib.finalize(acc, jnp.zeros((), f)),
-            "step": jnp.zeros((), jnp.int32), "time": jnp.zeros((), f), "total_steps": jnp.zeros((), jnp.int32),
-            "truncation": jnp.zeros((), f), "rng": k_next,
-            **self._next_numbers(k_next),
-            **({"ctrl_state": jnp.zeros((n, 6), f)} if self._modes else {}),  # control-mode integrators
-            **self._deck_info(obs),  # deck sensor readings ({} when off)
-        }
-        if omap is not None:
-            info.update({"obstacles": omap.centres, "obstacles_valid": omap.valid, "obstacle_radius": omap.radius,
-                         "obstacle_contact": flags["obst_contact"], "obstacle_metrics": fresh["obst_metrics"]})
-            info["episode_metrics"] = self._episode_metrics(acc, info["obstacle_metrics"], jnp.zeros((), f))
+        zero_n, zero_i, zero_t = jnp.zeros((n,), f), jnp.zeros((), jnp.int32), jnp.zeros((), f)
+        params = {k: jnp.asarray(v, f) for k, v in params.items() if k != "gravity"}
+        ctrl_state = jnp.zeros((n, 6), f) if self._modes else None  # control-mode integrators
+        ss = reset_state(init, flags, fresh, zero_i, params, R, ctrl_state, omap, total_steps=zero_i)
+        nxt = self._next_numbers(k_next)
+        ss = ss.replace(rng=nxt.get("rng", k_next), step_numbers=nxt.get("step_numbers"))
+        readouts = {"state": {"pos": pos, "vel": vel, "omega": omega}, "goals": goals, "goal_vel": sstate.goal_vel,
+                    "episode_metrics": self._episode_metrics(ss, zero_t), "time": zero_t, "truncation": zero_t,
+                    **self._deck_info(obs)}  # deck sensor readings ({} when off)
         metrics = {f"reward/{k}": zero_n for k in self._terms}
-        return State(data=data, obs=obs, reward=zero_n, done=jnp.zeros((), bool), metrics=metrics, info=info)
+        return State(data=data, obs=obs, reward=zero_n, done=jnp.zeros((), bool), metrics=metrics,
+                     info=to_info(ss, readouts))
 
     # ------------------------------------------------------------------ physics
-    def _step_inputs(self, data: mjx.Data, info: dict[str, Any], rnd: dict[str, Any]) -> tuple[dict, dict, Any, Any]:
-        """(state fields, constants, physics, ops) of :func:`quadswarm_mj.core.control.control_step` for one
-        world from ``data``/``info`` and the step's draws ``rnd``."""
+    def _step_inputs(self, ss: SwarmState, rnd: dict[str, Any]) -> tuple[dict, dict, Any, Any]:
+        """(dynamics parameters, constants, physics, ops) of :func:`quadswarm_mj.core.swarm.step_state` for
+        one world in state ``ss`` with the step's draws ``rnd``."""
         cfg, f = self.cfg, _float()
-        params = self._params(info)
-        obst = None if self._obst is None else functools.partial(self._obstacles, info, rnd)
-        ops = JaxOps(cfg, rnd, f, obst)
-        q0, v0 = self._read(data)
-        s = {"q": q0.astype(f), "v": v0.astype(f), "R": info["state"]["rot"], "u": info["motor_u"],
-             "eps": info["motor_eps"], "f_norm": info["state"]["thrust"], "params": params,
-             "aux": data if self.physics == "mjx" else None, "ctrl": self._ctrl0(info),
-             "steps": info["step"], "total_steps": info["total_steps"], "sstate": info["scenario"],
-             "metrics_acc": info["metrics_acc"],
-             **{k2: info[k2] for k2 in ("on_floor", "at_wall", "at_ceiling", "contact")}}
-        if self._obst is not None:
-            s.update(omap=self._omap(info), obst_metrics=info["obstacle_metrics"])
+        params = self._params(ss)
+        obst = None if self._obst is None else functools.partial(self._obstacles, ss, rnd)
         consts = {"act": self._act, "rotor_pos": jnp.asarray(self._rotor_pos, f), "mix": jnp.asarray(self._mix, f),
                   "torque_spin": params["torque_max"] * jnp.asarray(SPIN, f), "obs_low": jnp.asarray(self._obs_low, f),
                   "obs_high": jnp.asarray(self._obs_high, f),
                   "obs_scale": None if self._obs_scale is None else jnp.asarray(self._obs_scale, f), "zero_terms": ()}
-        return s, consts, self._substep_physics(params, info.get("obstacle_radius")), ops
+        radius = None if ss.obstacles is None else ss.obstacles.radius
+        return params, consts, self._substep_physics(params, radius), JaxOps(cfg, rnd, f, obst)
 
-    def _obstacles(self, info: dict[str, Any], rnd: dict[str, Any], pos: Any, vel: Any, omega: Any) -> dict[str, Any]:
+    def _obstacles(self, ss: SwarmState, rnd: dict[str, Any], pos: Any, vel: Any, omega: Any) -> dict[str, Any]:
         """The obstacle stage (after quad-quad): the budgeted response slots spread over this step's new
         column contacts (paper model), or detection only (MuJoCo contacts)."""
-        omap, draws = self._omap(info), None
+        omap, draws = ss.obstacles, None
         if self._obst_respond:
-            new = _obst_lib().detect(pos, *omap, self.cfg.quad.arm)[0] & ~info["obstacle_contact"]
+            new = _obst_lib().detect(pos, *omap, self.cfg.quad.arm)[0] & ~ss.obstacle_contact
             draws = expand_per_quad(new, _sub(rnd, "obst"))
-        r = pipeline.obstacle_stage(pos, vel, omega, info["obstacle_contact"], omap, self.cfg.quad.arm, draws,
+        r = pipeline.obstacle_stage(pos, vel, omega, ss.obstacle_contact, omap, self.cfg.quad.arm, draws,
                                     self._obst_respond)
         return {"vel": r["vel"], "omega": r["omega"], "obst_new": r["new_contact"], "obst_contact": r["contact"],
                 "changed": True}
-
-    def _ctrl0(self, info: dict[str, Any]) -> Any:
-        """The sub-step carry of :func:`pipeline.make_substep_actuation`: (last rotor command (N, 4),
-        controller state (N, 6)), None (no leaves) in the default configuration."""
-        if self._act is None:
-            return None
-        eps = info["motor_eps"]
-        return (jnp.zeros_like(eps), info["ctrl_state"] if self._modes else jnp.zeros(eps.shape[:-1] + (6,), eps.dtype))
 
     # ------------------------------------------------------------------ step
     def step(self, state: State, action: jax.Array) -> State:
         """Advance one control step with actions (N, 4) of ``cfg.control_mode`` (rotor: [-1, 1])."""
         cfg, n = self.cfg, self.N
         f = _float()
-        info = state.info
+        ss = from_info(state.info)
         if tuple(jnp.shape(action)) != (n, 4):
             raise ValueError(f"action has the wrong shape: expected shape {(n, 4)} per world, "
                              f"got shape {tuple(jnp.shape(action))}")
         action = jnp.asarray(action, f)
-        k_next = info["rng"]
-        if "step_numbers" in info:  # made by the previous step (or reset); the next ones at the end
-            rnd = FusedJaxSampler.from_numbers(self._step_spec, info["step_numbers"])
+        k_next = ss.rng
+        if ss.step_numbers is not None:  # made by the previous step (or reset); the next ones at the end
+            rnd = FusedJaxSampler.from_numbers(self._step_spec, ss.step_numbers)
             if self._tof_mask is not None:  # the deck rays' ToF noise (NaN: lost), not their uniforms
                 del rnd[_DECK_U]
-                rnd["deck/range_z"] = FusedJaxSampler.raw_entry(self._step_spec, info["step_numbers"], _DECK_U)
+                rnd["deck/range_z"] = FusedJaxSampler.raw_entry(self._step_spec, ss.step_numbers, _DECK_U)
             if self._step_mean_spec:
                 rnd.update(MeanSampler(dtype=f, xp=jnp).draw(self._step_mean_spec))
         else:
-            k_draw, k_next = jax.random.split(info["rng"])
+            k_draw, k_next = jax.random.split(ss.rng)
             rnd = self._draw(self._step_spec, k_draw, self._step_mean_spec)
-        s, consts, physics, ops = self._step_inputs(state.data, info, rnd)
-        k, c, r = control_step(cfg, self.scenario, s, action, consts, physics, ops)
+        if self._act is not None:  # nothing reads the rotor command before the first sub-step writes it
+            ss = ss.replace(rotor_cmd=jnp.zeros_like(ss.motor_eps))
+        params, consts, physics, ops = self._step_inputs(ss, rnd)
+        q0, v0 = self._read(state.data)
+        aux = state.data if self.physics == "mjx" else None
+        new, k, c, r = step_state(cfg, self.scenario, ss, q0.astype(f), v0.astype(f), aux, params, action, consts,
+                                  physics, ops)
         data = state.data if c["aux"] is None else c["aux"]  # mjx.step's data, else the state's
         q, v = jnp.concatenate([k["pos"], k["quat"]], -1), jnp.concatenate([k["vel"], k["omega"]], -1)
         data = self._write(data, q, v)
         if c["aux"] is None:
             data = data.replace(time=data.time + cfg.control_dt)
-        steps, total_steps, t, done = r["steps"], r["total_steps"], r["t"], r["done"]
-        sstate, goals, goal_vel, acc, terms, obs = (r[k2] for k2 in ("sstate", "goals", "goal_vel", "metrics_acc",
-                                                                      "terms", "obs"))
-        new_info = {
-            "state": {"pos": k["pos"], "vel": k["vel"], "rot": k["R"], "omega": k["omega"], "thrust": k["f_norm"]},
-            "params": info["params"],
-            "goals": goals, "goal_vel": goal_vel,
-            "motor_u": k["u"], "motor_eps": k["eps"],
-            "on_floor": k["on_floor"], "at_wall": k["at_wall"], "at_ceiling": k["at_ceiling"],
-            "contact": k["contact"], "scenario": sstate, "metrics_acc": acc,
-            "episode_metrics": metrics_lib.finalize(acc, t),
-            "step": steps, "time": t, "total_steps": total_steps,
-            "truncation": done.astype(f), "rng": k_next,
-            **({"ctrl_state": k["ctrl"][1]} if self._modes else {}),
-            **self._deck_info(obs),  # deck sensor readings ({} when off)
-        }
-        if "step_numbers" in info:
-            new_info.update(self._next_numbers(k_next))
-        if self._obst is not None:
-            om = r["obst_metrics"]
-            new_info.update({k2: info[k2] for k2 in ("obstacles", "obstacles_valid", "obstacle_radius")})
-            new_info.update({"obstacle_contact": k["obst_contact"], "obstacle_metrics": om,
-                             "episode_metrics": self._episode_metrics(acc, om, t)})
-        metrics = {f"reward/{name}": terms[name] for name in self._terms}
-        return State(data=data, obs=obs, reward=r["reward"], done=done, metrics=metrics, info=new_info)
+        t, done, obs = r["t"], r["done"], r["obs"]
+        nxt = self._next_numbers(k_next) if ss.step_numbers is not None else {}
+        new = new.replace(rotor_cmd=None, rng=nxt.get("rng", k_next), step_numbers=nxt.get("step_numbers"))
+        readouts = {"state": {"pos": k["pos"], "vel": k["vel"], "omega": k["omega"]}, "goals": r["goals"],
+                    "goal_vel": r["goal_vel"], "episode_metrics": self._episode_metrics(new, t), "time": t,
+                    "truncation": done.astype(f), **self._deck_info(obs)}  # deck sensor readings ({} when off)
+        metrics = {f"reward/{name}": r["terms"][name] for name in self._terms}
+        return State(data=data, obs=obs, reward=r["reward"], done=done, metrics=metrics, info=to_info(new, readouts))
 
 
 # ---------------------------------------------------------------------------------- benchmark

@@ -6,7 +6,9 @@ it through their ops (:mod:`quadswarm_mj.core.ops`), never the model.
   ``numpy_floor``: the paper's floor model on the grounded quads' rows only (same bits); ``numpy_deck``:
   the multi-ranger and flow decks' observation part on few, cheap calls (same bits).
 * ``one_quad``: one quad in one world on Python floats (wrench, floor, rotation, rewards, metrics,
-  observation), bit-identical to the array forms.
+  observation), bit-identical to the array forms; ``one_quad_step``: on those bodies, the whole sub-step
+  loop and the whole task stage of one quad (``NumpyOps.fused_loop``, ``fused_task``).
+* ``numpy_loop``: the sub-step loop for small arrays with the control step's constants computed once.
 * ``xla_cpu``: layouts and kernel boundaries for XLA:CPU (``worlds_last``, ``kernel_boundary``,
   integer sort keys); ``depth_xla``: the depth camera's hitbox test for XLA:CPU.
 * ``fused_draws``: a JAX step's random numbers from one unrolled threefry hash (``FusedJaxSampler``,

@@ -24,17 +24,18 @@ _THRESH = np.array([0.0, 1e-9])
 
 
 def floor_wrench_inplace(on_floor: np.ndarray, force: np.ndarray, torque: np.ndarray, v: np.ndarray,
-                         mass: Any, gravity: Any, friction: float, dt: float) -> None:
+                         mass: Any, gravity: Any, friction: float, dt: float, weight: Any = None) -> None:
     """:func:`quadswarm_mj.collisions.floor_wrench` written into ``force``/``torque`` (..., N, 3)
     (world, N and N m) at the quads flagged in ``on_floor`` (..., N) bool; ``v`` (..., N, >= 2) the
     world velocity (its first two entries horizontal, m/s), ``mass`` (kg) broadcastable to
-    ``on_floor``. The other quads' entries are left as they are (the model returns them unchanged)."""
+    ``on_floor``; ``weight`` = ``mass * gravity`` when the caller has it. The other quads' entries are left
+    as they are (the model returns them unchanged)."""
     every = np.count_nonzero(on_floor) == on_floor.size  # all grounded: computed in place
     f = force if every else force.copy()  # (..., 3) the new force where grounded
     h = np.concatenate((f[..., :2], v[..., :2]), axis=-1)  # F_x F_y v_x v_y
     sq = h * h
     mags = np.sqrt(sq[..., 0::2] + sq[..., 1::2])  # |F_h|, speed (sqrt(x x + y y) as norm_last)
-    normal = np.maximum(0.0, mass * gravity - f[..., 2])
+    normal = np.maximum(0.0, (mass * gravity if weight is None else weight) - f[..., 2])
     cap = friction * normal
     num = np.empty_like(mags)  # static: max(0, |F_h| - cap); kinetic: min(cap, m speed / dt)
     np.maximum(0.0, mags[..., 0] - cap, out=num[..., 0])

@@ -138,6 +138,22 @@ def init_params(networks: Any, ppo: PPOConfig, arch: dict[str, Any] | None, key:
     return ppo_losses.PPONetworkParams(policy=policy, value=value)
 
 
+def constant_action_std(policy: Any, std: float, arch: dict[str, Any] | None) -> Any:
+    """Policy parameters whose tanh-normal std is ``std`` (pre-tanh) in every state: the action layer's
+    std outputs get zero input weights and the bias softplus^-1(std - 0.001); the means are untouched."""
+    if arch is not None:
+        flat = enc_networks.flatten_params(policy)
+        k = np.array(flat["action/kernel"], np.float32)
+        k[..., 4:] = 0.0
+        flat["action/kernel"] = k
+        return enc_networks.set_action_std(enc_networks.unflatten_params(flat), std)
+    layers = _dense_layers(policy)
+    k_last, b_last = (np.array(a, np.float32) for a in layers[-1])
+    k_last[:, 4:] = 0.0
+    b_last[4:] = np.log(np.expm1(max(std - 0.001, 1e-4)))
+    return _to_tree(layers[:-1] + [(k_last, b_last)])
+
+
 #: Adam's arguments kept as constants (only the learning rate is an injected, per-update hyper-parameter)
 _ADAM_STATIC = ("b1", "b2", "eps", "eps_root", "nesterov")
 

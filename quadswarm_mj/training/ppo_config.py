@@ -45,6 +45,9 @@ class PPOConfig:
     lr_schedule: str = "linear"  # "constant", or "linear": decays to lr_final_fraction at the end of the budget
     lr_final_fraction: float = 0.1
     init_std: float = 0.6  # initial std of the pre-tanh Gaussian (Brax's default is softplus(0) = 0.69)
+    #: warm starts (--init-from): the action std set to this in every state (the std outputs' input weights
+    #: zeroed); None keeps the file's state-dependent std
+    warm_start_std: float | None = None
     desync_episodes: bool = True  # truncate each world's first episode after a random number of steps
     arch: str = "mlp"  # policy network: "mlp" (policy_hidden) or a quadswarm_mj.policies.ARCH_PRESETS name
     arch_width: int | None = None  # encoders: every hidden width of the preset set to this (heads: 2x); None: as is
@@ -59,6 +62,10 @@ class PPOConfig:
             v = getattr(self, n)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"ppo.{n} must be a finite number > 0, got {v!r}")
+        ws = self.warm_start_std
+        if ws is not None and not (isinstance(ws, (int, float)) and not isinstance(ws, bool) and math.isfinite(ws)
+                                   and 0.001 < ws <= 10):
+            raise ValueError(f"ppo.warm_start_std must be None or a number in (0.001, 10], got {ws!r}")
         if not (0 <= self.entropy_cost < 1):
             raise ValueError(f"ppo.entropy_cost must be in [0, 1), got {self.entropy_cost!r}")
         if self.discounting > 1 or self.gae_lambda > 1:
