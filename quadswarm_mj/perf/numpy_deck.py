@@ -152,10 +152,10 @@ def _axis_hits(p: _Scratch, pos: np.ndarray, R: np.ndarray) -> None:
 def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
               draws: dict[str, Any] | None = None) -> Any:
     """:func:`quadswarm_mj.sensors.deck_part` (same arguments, the same bits) for NumPy arrays with the
-    multi-ranger and/or flow deck (no depth camera); otherwise the model's function."""
+    multi-ranger and/or flow deck (no depth camera, float64); otherwise the model's function."""
     s = cfg.sensors
-    if (s.depth is not None or type(pos) is not np.ndarray or (draws is not None and "range_u" not in draws)
-            or not s.any):
+    if (s.depth is not None or type(pos) is not np.ndarray or pos.dtype != np.float64 or not s.any
+            or (draws is not None and "range_u" not in draws)):
         return sensors.deck_part(cfg, pos, vel, R, omega, obstacles, draws)
     p = _scratch(cfg, pos.shape)
     c = p.scalars
