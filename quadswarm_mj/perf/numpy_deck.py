@@ -158,14 +158,21 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
             or (draws is not None and "range_u" not in draws)):
         return sensors.deck_part(cfg, pos, vel, R, omega, obstacles, draws)
     p = _scratch(cfg, pos.shape)
-    c = p.scalars
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # (also the flow's unused third lane)
         _axis_hits(p, pos, R)
         t, d = p.t_rays, p.d
         if obstacles is not None:  # the rays' world x and y components: +-R[0, c], +-R[1, c] (as axis_hits)
             dx, dy = (np.stack([R[..., a, :], -R[..., a, :]], axis=-1).reshape(p.t6.shape) for a in range(2))
             t = np.minimum(p.t6, column_hits_xy(pos, dx, dy, *obstacles))[..., p.rays]
             d = t[..., p.kf:p.kf + 1]
+        return _readings(p, s, t, d, vel, R, omega, draws)
+
+
+def _readings(p: _Scratch, s: Any, t: np.ndarray, d: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray,
+              draws: dict[str, Any] | None) -> np.ndarray:
+    """``sensors._deck_part_numpy`` (the same bits) from the true ranges ``t`` (..., N, K) and the down
+    range ``d`` (..., N, 1): the deck part in :func:`sensors.deck_layout` order (a fresh array)."""
+    c = p.scalars
     buf = p.buf
     np.copyto(buf, p.template)  # invalid readings: the limit, flow 0
     valid = np.less_equal(t, c["limit"], out=p.valid)
