@@ -51,10 +51,10 @@ class SwarmState:
         bad = changes.keys() - _FIELDS
         if bad:
             raise TypeError(f"SwarmState has no field(s) {sorted(bad)}")
-        new = object.__new__(SwarmState)
-        d = new.__dict__
-        d.update(self.__dict__)
+        d = self.__dict__.copy()
         d.update(changes)
+        new = object.__new__(SwarmState)
+        object.__setattr__(new, "__dict__", d)
         return new
 
 
@@ -99,9 +99,7 @@ def step_state(cfg: Any, scenario: Any, state: SwarmState, q: Any, v: Any, aux: 
     if obstacles:
         s.update(omap=f["obstacles"], obst_metrics=f["obstacle_metrics"], obst_threshold=obst_threshold)
     k, c, r = control_step(cfg, scenario, s, action, consts, physics, ops)
-    new = object.__new__(SwarmState)  # = state.replace(...) without its checks
-    d = new.__dict__
-    d.update(f)
+    d = f.copy()  # the next state's fields (= state.replace(...) without its checks)
     d["rot"], d["motor_u"], d["motor_eps"], d["thrust"] = k["R"], k["u"], k["eps"], k["f_norm"]
     d["on_floor"], d["at_wall"], d["at_ceiling"] = k["on_floor"], k["at_wall"], k["at_ceiling"]
     d["contact"], d["step"], d["total_steps"] = k["contact"], r["steps"], r["total_steps"]
@@ -110,6 +108,8 @@ def step_state(cfg: Any, scenario: Any, state: SwarmState, q: Any, v: Any, aux: 
         d["rotor_cmd"], d["ctrl_state"] = k["ctrl"]
     if obstacles:
         d["obstacle_contact"], d["obstacle_metrics"] = k["obst_contact"], r["obst_metrics"]
+    new = object.__new__(SwarmState)
+    object.__setattr__(new, "__dict__", d)
     return new, k, c, r
 
 
