@@ -12,6 +12,7 @@ from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.envs.cpu_core import CpuSwarm
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv
 from quadswarm_mj.perf import numpy_loop
+from episode_record import record_random_run
 
 
 def _same(a, b):
@@ -25,19 +26,9 @@ def _episode(enabled: bool, seed: int, **kw) -> list:
     numpy_loop.ENABLED = enabled
     try:
         env = QuadSwarmEnv(EnvConfig(episode_seconds=3.0, **kw))
-        env.action_space.seed(seed)
-        obs, info = env.reset(seed=seed)
         assert (env.core._ops.fused_loop is not None) == enabled
-        out = [obs]
-        for t in range(500):  # random actions, full thrust now and then: falls, lift-offs, an episode end
-            a = env.action_space.sample() if t % 100 < 70 else np.ones(env.action_space.shape, np.float32)
-            obs, r, term, trunc, info = env.step(a)
-            out += [obs, np.float64(r), info["on_floor"], info["rewards"], *info["state"].values()]
-            if trunc:
-                out += list(info["episode_metrics"].values())
-                obs, info = env.reset()
-                out.append(obs)
-        return out
+        return record_random_run(env, seed, 500, lambda obs, r, info: [
+            obs, r, info["on_floor"], info["rewards"], *info["state"].values()])
     finally:
         numpy_loop.ENABLED = True
 

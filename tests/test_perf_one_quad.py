@@ -15,6 +15,8 @@ from quadswarm_mj.envs.gym_env import QuadSwarmEnv
 from quadswarm_mj.perf import numpy_small as small
 from quadswarm_mj.perf import one_quad
 
+from episode_record import record_random_run
+
 
 def _same(a, b):
     a, b = np.asarray(a), np.asarray(b)
@@ -146,20 +148,9 @@ def _episode(seed: int, enabled: bool, **kw) -> list[np.ndarray]:
     one_quad.ENABLED = enabled
     try:
         env = QuadSwarmEnv(EnvConfig(num_quads=1, episode_seconds=3.0, **kw))
-        env.action_space.seed(seed)
-        obs, info = env.reset(seed=seed)
-        out = [obs]
-        for t in range(700):  # random actions: falls, floor hits, staying, lift-offs; an episode end
-            a = env.action_space.sample() if t % 100 < 70 else np.ones(4, np.float32)
-            obs, r, term, trunc, info = env.step(a)
-            out += [obs, np.float64(r), info["state"]["pos"], info["state"]["vel"], info["state"]["rot"],
-                    info["state"]["omega"], info["state"]["thrust"], info["on_floor"], info["rewards"],
-                    *info["reward_terms"].values()]
-            if trunc:
-                out += list(info["episode_metrics"].values())
-                obs, info = env.reset()
-                out.append(obs)
-        return out
+        return record_random_run(env, seed, 700, lambda obs, r, info: [
+            obs, r, info["state"]["pos"], info["state"]["vel"], info["state"]["rot"], info["state"]["omega"],
+            info["state"]["thrust"], info["on_floor"], info["rewards"], *info["reward_terms"].values()])
     finally:
         one_quad.ENABLED = True
 
