@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from episode_record import record_random_run
 
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.envs.cpu_core import CpuSwarm
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv
 from quadswarm_mj.perf import numpy_loop
-from episode_record import record_random_run
 
 
 def _same(a, b):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from episode_record import record_random_run
 
 from quadswarm_mj import actuation, collisions
 from quadswarm_mj.config import EnvConfig
@@ -14,8 +15,6 @@ from quadswarm_mj.envs.cpu_core import CpuSwarm
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv
 from quadswarm_mj.perf import numpy_small as small
 from quadswarm_mj.perf import one_quad
-
-from episode_record import record_random_run
 
 
 def _same(a, b):
