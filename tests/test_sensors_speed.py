@@ -286,3 +286,29 @@ def test_numpy_deck_speed_form_is_the_model_bit_for_bit(sensors):
                 hit_rays += np.count_nonzero((axis_hits(pos, R, c.room_low, c.room_high, None, c.hitbox) < free) & (
                     axis_hits(pos, R, c.room_low, c.room_high, None, c.hitbox) > 0.0))
     assert hit_rays > 0  # the hitbox hits are exercised
+
+
+def test_deck_scratch_table_is_bounded_and_safe_across_threads():
+    """Threads making scratch arrays for many configs at once (more than the table keeps, so they evict
+    each other's entries): no error, and the table keeps at most 32."""
+    import threading
+
+    from quadswarm_mj.perf import numpy_deck
+
+    cfgs = [EnvConfig(num_quads=n % 4 + 1, sensors=SensorConfig(multiranger=True, flow=True)) for n in range(48)]
+    errors: list[BaseException] = []
+
+    def work(offset: int) -> None:
+        try:
+            for k in range(200):
+                cfg = cfgs[(k + offset) % len(cfgs)]
+                numpy_deck._scratch(cfg, (1, cfg.num_quads, 3))
+        except BaseException as e:  # noqa: BLE001
+            errors.append(e)
+
+    threads = [threading.Thread(target=work, args=(i * 7,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and len(numpy_deck._LAST) <= 32

@@ -101,6 +101,7 @@ class _Scratch:
 
 
 _LAST: dict[tuple[int, tuple[int, ...], int], tuple[Any, _Scratch]] = {}  # (id(cfg), shape, thread) -> (cfg, .)
+_LAST_LOCK = threading.Lock()
 
 
 def _scratch(cfg: Any, shape: tuple[int, ...]) -> _Scratch:
@@ -109,10 +110,11 @@ def _scratch(cfg: Any, shape: tuple[int, ...]) -> _Scratch:
     key = (id(cfg), shape, threading.get_ident())
     hit = _LAST.get(key)
     if hit is None or hit[0] is not cfg:
-        hit = _LAST[key] = (cfg, _Scratch(cfg.sensors, shape, tuple(cfg.room_low), tuple(cfg.room_high),
-                                                       cfg.hitbox))
-        if len(_LAST) > 32:
-            _LAST.pop(next(iter(_LAST)))
+        hit = (cfg, _Scratch(cfg.sensors, shape, tuple(cfg.room_low), tuple(cfg.room_high), cfg.hitbox))
+        with _LAST_LOCK:  # envs stepped in several threads share the table
+            _LAST[key] = hit
+            while len(_LAST) > 32:
+                _LAST.pop(next(iter(_LAST)))
     return hit[1]
 
 
