@@ -12,7 +12,7 @@ from episode_record import record_random_run
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.envs.cpu_core import CpuSwarm
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv
-from quadswarm_mj.perf import numpy_loop
+from quadswarm_mj.perf import numpy_loop, numpy_swarm
 
 
 def _same(a, b):
@@ -23,14 +23,14 @@ def _same(a, b):
 
 
 def _episode(enabled: bool, seed: int, **kw) -> list:
-    numpy_loop.ENABLED = enabled
+    numpy_loop.ENABLED, numpy_swarm.ENABLED = enabled, False  # SmallLoop (numpy_swarm: tests/test_numpy_swarm.py)
     try:
         env = QuadSwarmEnv(EnvConfig(episode_seconds=3.0, **kw))
         assert (env.core._ops.fused_loop is not None) == enabled
         return record_random_run(env, seed, 500, lambda obs, r, info: [
             obs, r, info["on_floor"], info["rewards"], *info["state"].values()])
     finally:
-        numpy_loop.ENABLED = True
+        numpy_loop.ENABLED = numpy_swarm.ENABLED = True
 
 
 @pytest.mark.parametrize("kw", [{"num_quads": 8}, {"num_quads": 3, "randomize": True, "downwash": True},

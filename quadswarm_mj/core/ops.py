@@ -32,8 +32,9 @@ import numpy as np
 from quadswarm_mj import actuation, collisions, observations, rewards, spatial
 from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj.collisions import expand_per_quad, quad_collisions, quad_collisions_budgeted
-from quadswarm_mj.perf import numpy_deck, numpy_floor, numpy_loop, numpy_small, one_quad, xla_cpu
+from quadswarm_mj.perf import numpy_deck, numpy_floor, numpy_loop, numpy_small, numpy_swarm, one_quad, xla_cpu
 from quadswarm_mj.perf.numpy_loop import SmallLoop
+from quadswarm_mj.perf.numpy_swarm import SwarmLoop
 from quadswarm_mj.perf.one_quad_step import OneQuadLoop, OneQuadTask
 from quadswarm_mj.spatial import BIG
 
@@ -118,9 +119,12 @@ class NumpyOps(ModelForms):
         # one quad, the paper's chain and floor: the whole sub-step loop on floats (perf.one_quad_step)
         # several quads or worlds, small arrays: the loop with the control step's constants computed once
         # (perf.numpy_loop)
+        # one world of several quads: the same loop on work arrays made once (perf.numpy_swarm)
         paper_chain = cfg.collision_model == "paper" and swarm._act is None
         self._loop = (None if not paper_chain else OneQuadLoop(swarm) if self._one
                       else SmallLoop(swarm) if 4 * B * N < BIG else None)
+        self._swarm_loop = (SwarmLoop(swarm) if paper_chain and not self._one and B == 1 and swarm._offsets_zero
+                            and 4 * N < BIG else None)
         # ... and the task half of the step (scenario, rewards, metrics, observation) on floats
         sensor = (swarm._sensor_keys, swarm._sensor_std) if swarm._sensor_on else (None, None)
         self._task = (OneQuadTask(cfg, swarm.obs_low, swarm.obs_high, swarm.obs_scale, swarm._zero_terms, *sensor)
@@ -129,7 +133,11 @@ class NumpyOps(ModelForms):
     @property
     def fused_loop(self) -> Any:
         """``core.substeps.substep_loop``'s whole-loop form for this engine, or None (the per-sub-step ops)."""
-        return self._loop if (one_quad.ENABLED if self._one else numpy_loop.ENABLED) else None
+        if self._one:
+            return self._loop if one_quad.ENABLED else None
+        if self._swarm_loop is not None and numpy_swarm.ENABLED:
+            return self._swarm_loop
+        return self._loop if numpy_loop.ENABLED else None
 
     @property
     def fused_task(self) -> Any:
