@@ -13,8 +13,9 @@ from episode_record import record_random_run
 
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv
-from quadswarm_mj.perf import numpy_loop, numpy_swarm
+from quadswarm_mj.perf import numpy_loop, numpy_swarm, numpy_swarm_task
 from quadswarm_mj.perf.numpy_swarm import SwarmLoop
+from quadswarm_mj.perf.numpy_swarm_task import SwarmTask
 
 
 def _same(a, b):
@@ -62,3 +63,56 @@ def test_deep_copy_steps_as_the_original():
         _same(o1, o2)
         assert r1 == r2
     assert not np.shares_memory(env.core.qpos, twin.core.qpos)
+
+
+def _task_episode(enabled: bool, seed: int, **kw) -> list:
+    numpy_swarm_task.ENABLED = enabled
+    try:
+        env = QuadSwarmEnv(EnvConfig(**{"episode_seconds": 2.0, **kw}))
+        assert isinstance(env.core._ops.fused_task, SwarmTask) == enabled
+        return record_random_run(env, seed, 450, lambda obs, r, info: [
+            obs, r, info["rewards"], *info["reward_terms"].values(), info["new_collisions"]])
+    finally:
+        numpy_swarm_task.ENABLED = True
+
+
+@pytest.mark.parametrize("kw", [
+    {"num_quads": 8},
+    {"num_quads": 8, "scenario": "swap_goals", "room_size": (3.0, 3.0, 3.0)},  # goal jumps, collisions
+    {"num_quads": 3, "obs_self": "floor", "normalize_obs": True, "num_neighbors": 1, "scenario": "dynamic_same_goal",
+     "rewards": {"vel": 0.5, "action_change": 0.2, "yaw": 0.1, "rot": 0.3, "floor_hit": 1.0, "anneal_steps": 300}},
+    {"num_quads": 4, "noise": {"sensor_pos_std": 0.0, "sensor_vel_std": 0.0, "sensor_omega_std": 0.0},
+     "rewards": {"pos": 0.0, "proximity": 0.0}, "num_neighbors": 0},
+    {"num_quads": 6, "room_size": (2.0, 2.0, 2.0)},  # crowded: proximity and collisions
+    {"num_quads": 4, "scenario": "run_away", "episode_seconds": 4.0},  # goal jumps (metric segments)
+])
+def test_task_episodes_are_the_model_functions_bitwise(kw):
+    got, ref = _task_episode(True, 4, **kw), _task_episode(False, 4, **kw)
+    assert len(got) == len(ref)
+    for a, b in zip(got, ref):
+        _same(a, b)
+
+
+def test_task_several_worlds_are_the_model_functions_bitwise():
+    from quadswarm_mj.envs.cpu_core import CpuSwarm
+
+    out = []
+    for enabled in (True, False):
+        numpy_swarm_task.ENABLED = enabled
+        try:
+            core = CpuSwarm(EnvConfig(num_quads=4, scenario="swap_goals"), num_worlds=3, visual=False)
+            assert isinstance(core._ops.fused_task, SwarmTask) == enabled
+            core.seed(5)
+            core.reset()
+            rng = np.random.default_rng(6)
+            run = []
+            for t in range(300):
+                o = core.step(np.clip(-0.2 + 0.8 * rng.standard_normal((3, 4, 4)), -1, 1))
+                run += [o["obs"], o["rewards"], *o["terms"].values(), *core.episode_metrics().values()]
+                if t == 150:
+                    core.reset(mask=np.array([False, True, False]))
+            out.append(run)
+        finally:
+            numpy_swarm_task.ENABLED = True
+    for a, b in zip(*out):
+        _same(a, b)

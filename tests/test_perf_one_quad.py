@@ -258,10 +258,12 @@ def test_numpy_ops_route_one_quad_only_to_the_float_forms(monkeypatch):
         env.step(env.action_space.sample())
         assert set(calls) == want, (n, calls)
         ops = env.core._ops
-        assert (isinstance(ops.fused_loop, one_quad_step.OneQuadLoop), ops.fused_task is not None) == (n == 1,) * 2
+        assert (isinstance(ops.fused_loop, one_quad_step.OneQuadLoop),
+                isinstance(ops.fused_task, one_quad_step.OneQuadTask)) == (n == 1,) * 2
         one_quad.ENABLED = False
         try:
-            assert not isinstance(ops.fused_loop, one_quad_step.OneQuadLoop) and ops.fused_task is None
+            assert not isinstance(ops.fused_loop, one_quad_step.OneQuadLoop)
+            assert not isinstance(ops.fused_task, one_quad_step.OneQuadTask)
         finally:
             one_quad.ENABLED = True
 

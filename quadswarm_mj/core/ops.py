@@ -32,7 +32,16 @@ import numpy as np
 from quadswarm_mj import actuation, collisions, observations, rewards, spatial
 from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj.collisions import expand_per_quad, quad_collisions, quad_collisions_budgeted
-from quadswarm_mj.perf import numpy_deck, numpy_floor, numpy_loop, numpy_small, numpy_swarm, one_quad, xla_cpu
+from quadswarm_mj.perf import (
+    numpy_deck,
+    numpy_floor,
+    numpy_loop,
+    numpy_small,
+    numpy_swarm,
+    numpy_swarm_task,
+    one_quad,
+    xla_cpu,
+)
 from quadswarm_mj.perf.numpy_loop import SmallLoop
 from quadswarm_mj.perf.numpy_swarm import SwarmLoop
 from quadswarm_mj.perf.one_quad_step import OneQuadLoop, OneQuadTask
@@ -129,6 +138,9 @@ class NumpyOps(ModelForms):
         sensor = (swarm._sensor_keys, swarm._sensor_std) if swarm._sensor_on else (None, None)
         self._task = (OneQuadTask(cfg, swarm.obs_low, swarm.obs_high, swarm.obs_scale, swarm._zero_terms, *sensor)
                       if self._one_obs and cfg.control_mode == "rotor" else None)
+        # several quads: the task half in few NumPy calls (perf.numpy_swarm_task)
+        self._swarm_task = (numpy_swarm_task.SwarmTask(swarm) if not self._one and 4 * B * N < BIG
+                            and numpy_swarm_task.applies(cfg, B, N) else None)
 
     @property
     def fused_loop(self) -> Any:
@@ -141,8 +153,11 @@ class NumpyOps(ModelForms):
 
     @property
     def fused_task(self) -> Any:
-        """``core.control.task_step``'s one-quad float form for this engine, or None."""
-        return self._task if one_quad.ENABLED else None
+        """``core.control.task_step``'s whole-stage form for this engine (one quad: on floats; several quads:
+        ``perf.numpy_swarm_task``), or None."""
+        if self._one:
+            return self._task if one_quad.ENABLED else None
+        return self._swarm_task if numpy_swarm_task.ENABLED else None
 
     def command(self, action: np.ndarray) -> np.ndarray:
         """:func:`quadswarm_mj.actuation.action_to_command` (one quad: on floats, same bits)."""

@@ -1,0 +1,273 @@
+"""The task half of the CPU engine's control step for several quads, in few NumPy calls.
+
+:func:`quadswarm_mj.core.control.task_step` (scenario step, reward terms, episode metrics, observation,
+reward sum) calls the model's functions, which on small (B, N, .) arrays spend most of their time in
+NumPy's fixed cost per call (about 100 calls a step for 8 quads). :class:`SwarmTask` computes the same
+values with the same operations in the same order (the same bits, signs of zero included;
+``tests/test_numpy_swarm.py`` checks seeded episodes against the model's functions):
+
+* the five Euclidean norms of the reward (goal distance, clipped action, body rates, velocity, thrust
+  change) as one product and left-to-right sums over a zero-padded (5, 4, B, N) block (adding +0.0 to a
+  sum of squares changes no bit; NumPy sums an axis shorter than 8 left to right);
+* the reward terms as one product of a (T, B, N) cost block with the per-term factors -dt * scale (the
+  terms that are exactly -0.0 keep a zero cost: -0.0 * 0.0), the reward as their running sum in
+  ``rewards.TERMS`` order (adding a -0.0 term changes no bit, so none is skipped);
+* event gating with exact bits: the proximity term is +0.0 when no pair is within the falloff, the
+  collision count is 0.0 without a new contact, and the metric accumulators that only events change are
+  kept (x + 0.0 is x for these non-negative sums) when there is no event;
+* the observation written part by part into one fresh (B, N, D) array, clipped into the bounds (the
+  neighbour bounds folded in once).
+
+Used for the "rotor" control mode without obstacles or deck sensors, "base"/"floor" own-state layouts,
+neighbours sorted by distance without neighbour noise, on more than one quad. NumPy only.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from quadswarm_mj import metrics as metrics_lib
+from quadswarm_mj import rewards
+from quadswarm_mj.collisions import off_diagonal
+from quadswarm_mj.observations import _gather_index, _neighbor_bounds, _obs_neighbor_bounds
+from quadswarm_mj.pipeline import _no_jump
+
+#: set to False for the model's functions (the same-values tests compare the two)
+ENABLED = True
+
+# rows of the norm block: goal offset, clipped action, omega, velocity, thrust change
+_NORM_TERMS = ("pos", "effort", "spin", "vel", "action_change")
+
+
+def applies(cfg: Any, B: int, N: int) -> bool:
+    """Whether :class:`SwarmTask` covers an engine of B worlds of N quads with ``cfg``."""
+    return (B * N > 1 and cfg.control_mode == "rotor" and cfg.obstacles is None and not cfg.sensors.any
+            and cfg.obs_self in ("base", "floor") and not cfg.noise.neighbor_obs_noise
+            and (cfg.neighbors == 0 or cfg.neighbor_sort == "distance"))
+
+
+class SwarmTask:
+    """``fused_task`` of :func:`quadswarm_mj.core.control.task_step` for a CPU engine of B worlds of N quads
+    (:func:`applies`); ``swarm`` the :class:`~quadswarm_mj.envs.cpu_core.CpuSwarm` (bounds, scale, draws)."""
+
+    def __init__(self, swarm: Any) -> None:
+        cfg = swarm.cfg
+        B, N = swarm.B, swarm.N
+        self.cfg, self.B, self.N = cfg, B, N
+        self.zero_terms = swarm._zero_terms
+        self.dt, self.episode_steps, self.grace = cfg.control_dt, cfg.episode_steps, cfg.grace_period_s
+        factors = rewards._term_factors(cfg.rewards, cfg.sim_dt, cfg.control_dt)
+        self.terms = tuple(k for k, _, _ in factors)
+        self.T = len(self.terms)
+        self.factors = factors
+        self.row = {k: i for i, k in enumerate(self.terms)}
+        self.live = {k for k, _, base in factors if base is not None}  # terms whose cost is computed
+        self.annealed = any(k in rewards.ANNEALED and k in self.live for k in self.terms) and \
+            cfg.rewards.anneal_steps > 0
+        self.coef = self._coef(1.0)
+        self.norm_rows = [i for i, k in enumerate(_NORM_TERMS) if k in self.live]
+        self.falloff = cfg.rewards.proximity_falloff_arms * cfg.quad.arm
+        self.offdiag = off_diagonal(N)
+        # observation layout and bounds (the neighbour bounds folded in, as build_obs does every step)
+        self.K, self.self_dim, self.D = cfg.neighbors, cfg.self_obs_dim, cfg.obs_dim
+        low, high = swarm.obs_low, swarm.obs_high
+        if self.K > 0:
+            nb_lo, nb_hi = _obs_neighbor_bounds(cfg.self_obs_dim, self.K, tuple(_neighbor_bounds(cfg)),
+                                                cfg.obs_dim - cfg.self_obs_dim - 6 * self.K)
+            low, high = np.maximum(np.asarray(low), nb_lo), np.minimum(np.asarray(high), nb_hi)
+            self.first, self.own = _gather_index(B * N, N, self.K)
+        self.low, self.high, self.scale = low, high, swarm.obs_scale
+        self.floor = cfg.obs_self == "floor"
+        self._alloc()
+
+    def _alloc(self) -> None:
+        """Work blocks and their views (made again in a copy: a deep copy does not keep views)."""
+        B, N, T = self.B, self.N, self.T
+        self.V = np.zeros((5, 4, B, N))  # the norm block, components on axis 1 (padding stays 0.0)
+        self.V_goal = self.V[0, :3].transpose(1, 2, 0)  # (B, N, 3) views of the rows
+        self.V_act = self.V[1].transpose(1, 2, 0)
+        self.V_omega, self.V_vel = self.V[2, :3].transpose(1, 2, 0), self.V[3, :3].transpose(1, 2, 0)
+        self.V_df = self.V[4].transpose(1, 2, 0)
+        self.SQ = np.empty((5, 4, B, N))
+        self.S = np.empty((5, B, N))
+        self.C = np.zeros((T, B, N))  # costs, rewards.TERMS order (rows of -0.0 terms stay 0.0)
+        self.C_norm3 = self.C[0:3]  # pos, effort, spin
+        self.C_norm2 = self.C[5:7]  # vel, action_change
+        self.acc = np.empty((T, B, N))
+        self.key = np.empty((B, N, N))
+        self.pv = np.empty((B * N, 6))
+        self.pv_p, self.pv_v = self.pv[:, :3].reshape(B, N, 3), self.pv[:, 3:].reshape(B, N, 3)
+        self.mpos = np.empty((B, N, 3))
+
+    _KEEP = ("cfg", "B", "N", "zero_terms", "dt", "episode_steps", "grace", "terms", "T", "factors", "row", "live",
+             "annealed", "coef", "norm_rows", "falloff", "offdiag", "K", "self_dim", "D", "low", "high", "scale",
+             "floor", "first", "own")
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {k: self.__dict__[k] for k in self._KEEP if k in self.__dict__}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._alloc()
+
+    def _coef(self, anneal: Any) -> np.ndarray:
+        """(T, 1, 1) factors: -dt * scale (annealed: -dt * (scale * anneal)), -0.0 for the -0.0 terms."""
+        out = []
+        for k, neg_dt, base in self.factors:
+            if base is None:
+                out.append(-0.0)
+            elif k in rewards.ANNEALED:
+                out.append(neg_dt * (base * anneal))
+            else:
+                out.append(neg_dt * base)
+        return np.array(out, dtype=np.float64).reshape(-1, 1, 1)
+
+    def __call__(self, cfg: Any, scenario: Any, s: dict[str, Any], k: dict[str, Any], action: Any,
+                 consts: dict[str, Any], ops: Any) -> dict[str, Any] | None:
+        """``task_step``'s result (the same values), or None where this form does not apply (a float32
+        action, other constants than this engine's: the caller runs ``task_step``)."""
+        if cfg is not self.cfg or action.dtype != np.float64 or consts["zero_terms"] != self.zero_terms:
+            return None
+        steps, total_steps = s["steps"] + 1, s["total_steps"] + 1
+        t = steps.astype(np.float64) * self.dt
+        anneal = rewards.anneal_factor(cfg, total_steps)
+        prev = s["sstate"]
+        pos, vel, R, omega = k["pos"], k["vel"], k["R"], k["omega"]
+        sstate = scenario.step(cfg, prev, t, pos, ops.draws("scenario", None, None))
+        goals, goal_vel = sstate.goals, sstate.goal_vel
+        if goals is prev.goals:
+            jump = _no_jump(goals.shape[:-1])
+        else:
+            jump = metrics_lib.goal_jump(prev.goals, goals, goal_vel, self.dt)
+        live, C, V = self.live, self.C, self.V
+        # the norms (rewards.reward_terms' norm_last costs and task_stage's goal distance)
+        np.subtract(goals, pos, out=self.V_goal)
+        if "effort" in live:
+            np.maximum(action, -1.0, out=self.V_act)
+            np.minimum(self.V_act, 1.0, out=self.V_act)
+        if "spin" in live:
+            self.V_omega[...] = omega
+        if "vel" in live:
+            self.V_vel[...] = vel
+        if "action_change" in live:
+            np.subtract(k["f_norm"], s["f_norm"], out=self.V_df)
+        SQ, S = self.SQ, self.S
+        np.multiply(V, V, out=SQ)
+        np.add(SQ[:, 0], SQ[:, 1], out=S)
+        S += SQ[:, 2]
+        S += SQ[:, 3]
+        np.sqrt(S[:3], out=self.C_norm3)
+        if "vel" in live or "action_change" in live:
+            np.sqrt(S[3:], out=self.C_norm2)
+        dist_goal = C[0].copy()
+        if "pos" not in live:  # a -0.0 term: its cost stays 0.0
+            C[0] = 0.0
+        on_floor = k["on_floor"]
+        row = self.row
+        if "crash" in live:
+            np.copyto(C[row["crash"]], on_floor)
+        if "orient" in live:
+            o = C[row["orient"]]
+            np.negative(R[..., 2, 2], out=o)
+            np.copyto(o, 1.0, where=on_floor)
+        if "yaw" in live:
+            np.negative(R[..., 0, 0], out=C[row["yaw"]])
+        if "rot" in live:
+            C[row["rot"]] = -(R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0
+        new_contact = k["new_contact"]
+        any_new = np.count_nonzero(new_contact) > 0
+        if "quad_collision" in live:
+            qc = C[row["quad_collision"]]
+            if any_new:
+                np.add.reduce(new_contact, axis=-1, dtype=np.float64, out=qc)
+            else:
+                qc[...] = 0.0
+        key = self.key
+        if "proximity" in live or self.K > 0:
+            np.copyto(key, np.inf)
+            np.copyto(key, k["dist"], where=self.offdiag)
+        if "proximity" in live:
+            pr = C[row["proximity"]]
+            if np.count_nonzero(key >= self.falloff) == key.size:  # no pair within the falloff: +0.0
+                pr[...] = 0.0
+            else:
+                np.add.reduce(np.maximum(1.0 - key / self.falloff, 0.0), axis=-1, out=pr)
+        hf, hw, hc = k["hit_floor"], k["hit_wall"], k["hit_ceiling"]
+        for name, flag in (("floor_hit", hf), ("wall_hit", hw), ("ceiling_hit", hc)):
+            if name in live:
+                np.copyto(C[row[name]], flag)
+        coef = self._coef(anneal) if self.annealed else self.coef
+        out = np.empty((self.T + 1,) + C.shape[1:])  # reward, then the terms
+        terms = out[1:]
+        np.multiply(C, coef, out=terms)
+        np.add.accumulate(terms, axis=0, out=self.acc)  # rewards.total_reward's running sum, TERMS order
+        out[0] = self.acc[-1]
+        m = self._metrics(s["metrics_acc"], t[..., None], dist_goal, new_contact, any_new, hf, hw, hc, jump)
+        obs = self._obs(pos, vel, R, omega, goals, ops.draws("sensor", None, None), k["dist"])
+        return {"steps": steps, "total_steps": total_steps, "t": t, "sstate": sstate, "goals": goals,
+                "goal_vel": goal_vel, "terms": dict(zip(self.terms, terms)), "reward": out[0], "metrics_acc": m,
+                "obst_metrics": None, "obs": obs, "done": steps >= self.episode_steps, "rows": out}
+
+    def _metrics(self, m: dict[str, Any], t: Any, dist: np.ndarray, new_contact: np.ndarray, any_new: bool,
+                 hit_floor: np.ndarray, hit_wall: np.ndarray, hit_ceiling: np.ndarray, jump: np.ndarray
+                 ) -> dict[str, Any]:
+        """:func:`quadswarm_mj.metrics.update` (same values); accumulators no event changes are kept."""
+        out = dict(m)
+        if any_new:
+            out["collisions"] = m["collisions"] + new_contact.sum(axis=-1, dtype=np.float64) * (t >= self.grace)
+        for name, flag in (("floor_hits", hit_floor), ("wall_hits", hit_wall), ("ceiling_hits", hit_ceiling)):
+            if np.count_nonzero(flag):
+                out[name] = m[name] + flag
+        out["dist_sum"] = m["dist_sum"] + dist
+        out["steps"] = m["steps"] + 1.0
+        last = m["last_dist"]
+        new_last = np.empty_like(last)
+        new_last[..., :-1, :] = last[..., 1:, :]
+        new_last[..., -1, :] = dist
+        out["last_dist"] = new_last
+        reached = m["seg_reached"]
+        near = dist < metrics_lib.REACH_DISTANCE
+        if np.count_nonzero(jump):
+            close = jump & ((t - m["seg_start"]) >= metrics_lib.MIN_SEGMENT_S - 1e-9)
+            out["seg_count"] = m["seg_count"] + close
+            out["seg_success"] = m["seg_success"] + (close & reached)
+            out["seg_start"] = np.where(jump, t, m["seg_start"])
+            out["seg_reached"] = near | (reached & ~jump)
+        else:
+            out["seg_reached"] = near | reached
+        return out
+
+    def _obs(self, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray, goals: np.ndarray,
+             noise: dict[str, Any] | None, dist: np.ndarray) -> np.ndarray:
+        """:func:`quadswarm_mj.observations.build_obs` (same values) for this layout."""
+        B, N = self.B, self.N
+        obs = np.empty((B, N, self.D))
+        mpos = self.mpos
+        if noise is not None:
+            np.add(pos, noise["pos"], out=mpos)
+            np.subtract(mpos, goals, out=obs[..., 0:3])
+            np.add(vel, noise["vel"], out=obs[..., 3:6])
+            obs[..., 6:15] = R.reshape(B, N, 9)
+            np.add(omega, noise["omega"], out=obs[..., 15:18])
+        else:
+            mpos = pos
+            np.subtract(pos, goals, out=obs[..., 0:3])
+            obs[..., 3:6] = vel
+            obs[..., 6:15] = R.reshape(B, N, 9)
+            obs[..., 15:18] = omega
+        if self.floor:
+            obs[..., 18] = mpos[..., 2]
+        K = self.K
+        if K > 0:  # observations.neighbor_obs: the K nearest others by distance (key: self.key, set above)
+            self.pv_p[...] = pos
+            self.pv_v[...] = vel
+            idx = np.argsort(self.key, axis=-1)[..., :K]
+            d0 = self.self_dim
+            np.subtract(self.pv.take((idx.reshape(B * N, K) + self.first).reshape(-1), axis=0).reshape(B, N, K, 6),
+                        self.pv.take(self.own, axis=0).reshape(B, N, K, 6),
+                        out=obs[..., d0:d0 + 6 * K].reshape(B, N, K, 6))
+        np.maximum(obs, self.low, out=obs)
+        np.minimum(obs, self.high, out=obs)
+        return obs if self.scale is None else obs / self.scale
