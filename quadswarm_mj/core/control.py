@@ -42,7 +42,10 @@ def physics_stage(cfg: Any, s: dict[str, Any], action: Any, consts: dict[str, An
            "u": c["u"], "on_floor": c["on_floor"], "hit_floor": c["hit_floor"]}
     # the floor flags after the sub-steps (they change there only with the paper's floor, which does not read them)
     prev = {"on_floor": c["on_floor"], "at_wall": s["at_wall"], "at_ceiling": s["at_ceiling"], "contact": s["contact"]}
-    k = velocity_stages(cfg, kin, prev, ops)
+    fused = getattr(ops, "fused_stages", None)  # an engine's event-free form (None where an event happens)
+    k = fused(cfg, kin, prev) if fused is not None else None
+    if k is None:
+        k = velocity_stages(cfg, kin, prev, ops)
     k.update(f_norm=c["f_norm"], eps=inp["eps"], ctrl=c["ctrl"])
     return k, c
 

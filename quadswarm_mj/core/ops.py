@@ -152,6 +152,11 @@ class NumpyOps(ModelForms):
         return self._loop if numpy_loop.ENABLED else None
 
     @property
+    def fused_stages(self) -> Any:
+        """``core.step.velocity_stages``' event-free form for this engine (``perf.numpy_swarm``), or None."""
+        return self._swarm_loop.stages if self._swarm_loop is not None and numpy_swarm.ENABLED else None
+
+    @property
     def fused_task(self) -> Any:
         """``core.control.task_step``'s whole-stage form for this engine (one quad: on floats; several quads:
         ``perf.numpy_swarm_task``), or None."""

@@ -416,7 +416,9 @@ class CpuSwarm:
     def step(self, action: np.ndarray) -> dict[str, Any]:
         """Advance all worlds one control step with validated actions (B, N, 4) of ``cfg.control_mode``
         (per-rotor in [-1, 1], or physical units clipped into ``control_action_bounds``):
-        :func:`quadswarm_mj.core.swarm.step_state` on MuJoCo (``self.phys``) with :class:`NumpyOps`."""
+        :func:`quadswarm_mj.core.swarm.step_state` on MuJoCo (``self.phys``) with :class:`NumpyOps`. Returns ``obs``,
+        ``rewards``, ``terms``, ``truncated``, ``kin``, ``t`` and ``rows``: a fresh (1 + terms, B, N) block holding
+        the rewards and the terms (which are its rows) when the task's fused form made them, else None."""
         st = self.state
         if st.rot is None:  # the rotations of qpos (after a reset or a write from outside)
             st = self.state = st.replace(rot=NumpyOps.rotmat(self.qpos[..., 3:7]))
@@ -429,7 +431,7 @@ class CpuSwarm:
         k.setdefault("obst_new", None)
         k.setdefault("obst_feats", None)
         return {"obs": r["obs"], "rewards": r["reward"], "terms": r["terms"], "truncated": r["done"], "kin": k,
-                "t": r["t"]}
+                "t": r["t"], "rows": r.get("rows")}
 
     def observe(self, kin: dict[str, Any] | None = None, worlds: Any = None) -> np.ndarray:
         """Observations (B, N, obs_dim) float64 (sensor noise drawn now), or (len(worlds), N,

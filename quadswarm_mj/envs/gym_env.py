@@ -187,6 +187,8 @@ class QuadSwarmEnv(gym.Env):
         terms = out["terms"]
         if self.single:  # (1, 1) arrays: their values into one fresh (1 + terms, 1) array
             rows = np.array([out["rewards"].item(), *[v.item() for v in terms.values()]]).reshape(-1, 1)
+        elif out["rows"] is not None:  # the task's fresh (1 + terms, 1, N) block of the reward and the terms
+            rows = out["rows"].reshape(len(terms) + 1, -1)
         else:
             rows = np.concatenate([out["rewards"], *terms.values()])  # (1 + terms, N): one copy of them all
         info["rewards"] = rows[0]
@@ -195,7 +197,9 @@ class QuadSwarmEnv(gym.Env):
             info["new_collisions"] = np.zeros(1, bool)
             reward = rows[0, 0].item()
         else:
-            info["new_collisions"] = np.logical_or.reduce(out["kin"]["new_contact"][0], axis=-1)  # = .any(-1)
+            new = out["kin"]["new_contact"][0]
+            info["new_collisions"] = (np.logical_or.reduce(new, axis=-1) if np.count_nonzero(new)  # = .any(-1)
+                                      else np.zeros(self.cfg.num_quads, bool))
             reward = float(np.add.reduce(rows[0])) / self.cfg.num_quads  # = np.mean: the same sum and division
         if truncated:
             info["episode_metrics"] = {k: float(v[0]) for k, v in self.core.episode_metrics().items()}

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from quadswarm_mj.collisions import off_diagonal
 from quadswarm_mj.constants import FLOOR_TOL
 from quadswarm_mj.perf.numpy_small import (
     _Q_BASE,
@@ -28,6 +29,7 @@ from quadswarm_mj.perf.numpy_small import (
     _YAW_BASE,
     _YAW_SCALE,
 )
+from quadswarm_mj.spatial import BIG
 
 #: set to False for ``perf.numpy_loop.SmallLoop`` (the same-values tests compare the two)
 ENABLED = True
@@ -59,6 +61,10 @@ class SwarmLoop:
         self.yaw = (d.low, d.high) if cfg.noise.stochastic_collisions else None
         self.yaw_mean = d.mean
         self.n = n
+        # the velocity stages' event-free form applies to the paper's walls without obstacles or downwash
+        self.stages_apply = cfg.obstacles is None and not cfg.downwash and 3 * n * n < BIG
+        self.out_lo, self.out_hi, self.hitbox = swarm._out_lo, swarm._out_hi, cfg.hitbox
+        self.offdiag = off_diagonal(n)
         self._alloc()
 
     def _alloc(self) -> None:
@@ -104,7 +110,8 @@ class SwarmLoop:
         self.t18 = np.empty((n, 18))
         self.t18_a, self.t18_b = self.t18[:, :9], self.t18[:, 9:]
 
-    _KEEP = ("s", "friction", "dt", "max_omega", "floor_z", "floor_top", "yaw", "yaw_mean", "n")
+    _KEEP = ("s", "friction", "dt", "max_omega", "floor_z", "floor_top", "yaw", "yaw_mean", "n", "stages_apply",
+             "out_lo", "out_hi", "hitbox", "offdiag")
 
     def __getstate__(self) -> dict[str, Any]:
         """For copy/pickle: the settings only (the work rows and views are made again)."""
@@ -252,6 +259,28 @@ class SwarmLoop:
         s.phys.touch()
         s._any_on_floor = np.count_nonzero(grounded) > 0
         return grounded
+
+
+    def stages(self, cfg: Any, kin: dict[str, Any], prev: dict[str, Any]) -> dict[str, Any] | None:
+        """:func:`quadswarm_mj.core.step.velocity_stages` (paper model, no obstacles, no downwash) when no quad is
+        at or beyond a wall or the ceiling (now or at the last step) and no contact starts: the same flags and
+        pair distances (``NumpyOps.wall_gate``'s compares, ``collisions.pairwise_contacts``' expressions); None
+        otherwise (the caller runs ``velocity_stages``, which makes the events' draws)."""
+        if not self.stages_apply or cfg is not self.s.cfg:
+            return None
+        pos, at_wall, at_ceiling = kin["pos"], prev["at_wall"], prev["at_ceiling"]
+        out = (pos <= self.out_lo) | (pos >= self.out_hi)
+        if np.count_nonzero(out) or np.count_nonzero(at_wall) or np.count_nonzero(at_ceiling):
+            return None
+        rel = pos[..., :, None, :] - pos[..., None, :, :]
+        dist = np.sqrt((rel * rel).sum(axis=-1))  # spatial.norm_last below spatial.BIG elements
+        contact = (dist <= self.hitbox) & self.offdiag
+        new = contact & ~prev["contact"]
+        if np.count_nonzero(new):  # a new contact: the paper's response (and its draws)
+            return None
+        hit = np.zeros(at_wall.shape, bool)
+        return {**kin, "at_wall": at_wall, "at_ceiling": at_ceiling, "hit_wall": hit, "hit_ceiling": hit,
+                "contact": contact, "new_contact": new, "dist": dist, "changed": False}
 
 
 # thresholds of (|F_h|, |v_h|) (numpy_floor): the static ratio divides by |F_h| where > 0, the kinetic by the speed
