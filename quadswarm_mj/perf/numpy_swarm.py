@@ -42,7 +42,7 @@ class _Views:
         self.src = (qpos, qvel, xfrc)
         q, v, x = qpos[0], qvel[0], xfrc[0]
         self.q, self.v = q, v
-        self.z, self.qw, self.qxy, self.qz, self.qp = q[:, 2], q[:, 3], q[:, 4:6], q[:, 6], q[:, :3]
+        self.z2, self.zq, self.qp = q[:, 2:3], q[:, 2:7], q[:, :3]
         self.v_h, self.v_stay = v[:, :2], v[:, 2:5]
         self.force, self.torque, self.f_h, self.f_z, self.t_xy = x[:, :3], x[:, 3:], x[:, :2], x[:, 2], x[:, 3:5]
 
@@ -57,6 +57,7 @@ class SwarmLoop:
         self.friction, self.dt, self.max_omega = cfg.collision.floor_friction, cfg.sim_dt, cfg.quad.max_omega
         self.floor_z = swarm.floor_z
         self.floor_top = swarm.floor_z + FLOOR_TOL
+        self.z_bounds = np.array([self.floor_z, self.floor_top])
         d = swarm._spec_floor["yaw"]
         self.yaw = (d.low, d.high) if cfg.noise.stochastic_collisions else None
         self.yaw_mean = d.mean
@@ -72,46 +73,31 @@ class SwarmLoop:
         n = self.n
         self._v: _Views | None = None
         # work rows (N, .), reused every sub-step (nothing in them outlives a control step)
-        self.rows = np.empty((n, 4, 4))  # thrust x mix rows (F_z, tau_x, tau_y) and yaw reaction per rotor
-        self.rows3, self.rows_spin = self.rows[:, :3, :], self.rows[:, 3, :]
-        self.tf = np.empty((n, 4))  # thrust_max * f
-        self.tf_row = self.tf[:, None, :]
-        self.sm = np.empty((n, 4))  # F_z, tau_x, tau_y, tau_z (body)
-        self.sm_fz, self.sm_tau = self.sm[:, :1], self.sm[:, None, 1:]
-        self.rt = np.empty((n, 3, 3))  # R * tau
+        rows = np.empty((n, 4, 4))  # thrust x mix rows (F_z, tau_x, tau_y) and yaw reaction per rotor
+        tf = np.empty((n, 4))  # thrust_max * f
+        sm = np.empty((n, 4))  # F_z, tau_x, tau_y, tau_z (body)
         self.R = np.empty((n, 3, 3))
         self.R9 = self.R.reshape(n, 9)
-        self.R_z = self.R[:, :, 2]
-        self.d4 = np.empty((n, 4))  # motor lag step
+        self._wrench_rows = (rows, rows[:, :3, :], rows[:, 3, :], tf, tf[:, None, :], sm, sm[:, :1], sm[:, None, 1:],
+                             np.empty((n, 3, 3)), self.R[:, :, 2], np.empty((n, 4)))
         # the floor wrench's rows: h = (F_x, F_y, v_x, v_y), their squares, (|F_h|, speed), ...
-        self.h = np.empty((n, 4))
-        self.h_f, self.h_v = self.h[:, :2], self.h[:, 2:]
-        self.sq = np.empty((n, 4))
-        self.sq_a, self.sq_b = self.sq[:, 0::2], self.sq[:, 1::2]
-        self.mags = np.empty((n, 2))
-        self.mag_f, self.mag_v = self.mags[:, 0], self.mags[:, 1]
-        self.num = np.empty((n, 2))
-        self.num_s, self.num_k = self.num[:, 0], self.num[:, 1]
-        self.ratio = np.empty((n, 2))
-        self.ratio_s, self.ratio_k = self.ratio[:, :1], self.ratio[:, 1:]
-        self.den = np.empty((n, 2))
-        self.pos_ = np.empty((n, 2), bool)
-        self.pos_k = self.pos_[:, 1:]
-        self.normal, self.cap, self.tmp = np.empty(n), np.empty(n), np.empty(n)
-        self.fh2, self.kv = np.empty((n, 2)), np.empty((n, 2))
-        self.fcopy = np.empty((n, 3))
-        self.fcopy_h, self.fcopy_z = self.fcopy[:, :2], self.fcopy[:, 2]
+        h, sq, mags, num, ratio = np.empty((n, 4)), np.empty((n, 4)), np.empty((n, 2)), np.empty((n, 2)), \
+            np.empty((n, 2))
+        fcopy = np.empty((n, 3))
+        self._floor_rows = (h, h[:, :2], h[:, 2:], sq, sq[:, 0::2], sq[:, 1::2], mags, mags[:, 0], mags[:, 1],
+                            num[:, 0], num[:, 1], ratio, ratio[:, :1], ratio[:, 1:], np.empty(n), np.empty(n),
+                            np.empty(n), np.empty((n, 2)), num, fcopy, fcopy[:, :2], fcopy[:, 2])
         # the landing's rows
-        self.le, self.stay_le = np.empty(n, bool), np.empty(n, bool)
-        self.p6 = np.empty((n, 6))
-        self.p6_a, self.p6_b = self.p6[:, :3], self.p6[:, 3:]
-        self.e = np.empty((n, 3))
-        self.e0, self.e1, self.e2 = self.e[:, 0], self.e[:, 1], self.e[:, 2]
+        le2, p6, e = np.empty((n, 2), bool), np.empty((n, 6)), np.empty((n, 3))
+        q5 = np.zeros((n, 5))  # (floor_z, cos h, 0, 0, sin h)
+        q5[:, 0] = self.floor_z
+        self._landing_rows = (le2, le2[:, 0], le2[:, 1], p6, p6[:, :3], p6[:, 3:], e, e[:, 0], e[:, 1], e[:, 2], q5,
+                              q5[:, 1], q5[:, 4])
         self.t18 = np.empty((n, 18))
         self.t18_a, self.t18_b = self.t18[:, :9], self.t18[:, 9:]
 
-    _KEEP = ("s", "friction", "dt", "max_omega", "floor_z", "floor_top", "yaw", "yaw_mean", "n", "stages_apply",
-             "out_lo", "out_hi", "hitbox", "offdiag")
+    _KEEP = ("s", "friction", "dt", "max_omega", "floor_z", "floor_top", "z_bounds", "yaw", "yaw_mean", "n",
+             "stages_apply", "out_lo", "out_hi", "hitbox", "offdiag")
 
     def __getstate__(self) -> dict[str, Any]:
         """For copy/pickle: the settings only (the work rows and views are made again)."""
@@ -151,115 +137,112 @@ class SwarmLoop:
         on_floor = carry["on_floor"][0]
         hit_floor = carry["hit_floor"]
         hit_row = hit_floor[0]
-        self.R[...] = carry["R"][0]
+        R = self.R
+        R[...] = carry["R"][0]
         u = carry["u"][0]
         f = np.empty((n, 4))
-        R, rows, tf, sm, rt, d4 = self.R, self.rows, self.tf, self.sm, self.rt, self.d4
-        fric, dt = self.friction, self.dt
+        rows, rows3, rows_spin, tf, tf_row, sm, sm_fz, sm_tau, rt, R_z, d4 = self._wrench_rows
+        force, torque, max_omega = V.force, V.torque, self.max_omega
+        mul, add, sub, maximum, minimum, reduce = np.multiply, np.add, np.subtract, np.maximum, np.minimum, \
+            np.add.reduce
         for i in range(cfg.substeps):
             # the rotor wrench (numpy_loop.substep_wrench), written into xfrc_applied
-            np.subtract(root, u, out=d4)
+            sub(root, u, d4)
             d4 *= alpha
-            u = u + d4 if i == 0 else np.add(u, d4, out=u)  # a fresh u for this step, then in place
-            np.multiply(u, u, out=f)
+            u = u + d4 if i == 0 else add(u, d4, u)  # a fresh u for this step, then in place
+            mul(u, u, f)
             f += cn
-            np.maximum(f, 0.0, out=f)
-            np.minimum(f, 1.0, out=f)
-            np.multiply(thrust_max, f, out=tf)
-            np.multiply(self.tf_row, mix, out=self.rows3)
-            np.multiply(spin, f, out=self.rows_spin)
-            np.add.reduce(rows, axis=-1, out=sm)
-            np.multiply(self.sm_fz, self.R_z, out=V.force)
-            np.multiply(R, self.sm_tau, out=rt)
-            np.add.reduce(rt, axis=-1, out=V.torque)
+            maximum(f, 0.0, out=f)
+            minimum(f, 1.0, out=f)
+            mul(thrust_max, f, tf)
+            mul(tf_row, mix, rows3)
+            mul(spin, f, rows_spin)
+            reduce(rows, -1, None, sm)
+            mul(sm_fz, R_z, force)
+            mul(R, sm_tau, rt)
+            reduce(rt, -1, None, torque)
             if s._any_on_floor:  # the floor's normal force and friction (numpy_floor.floor_wrench_inplace)
-                self._floor_wrench(V, on_floor, mass, weight, fric, dt)
-            phys.step(self.max_omega)
+                self._floor_wrench(V, on_floor, mass, weight)
+            phys.step(max_omega)
             on_floor = self._landing(V, u, on_floor, hit_row)
             self.rotmat()
         return {"q": phys.qpos, "v": phys.qvel, "R": R.copy().reshape(1, n, 3, 3), "u": u.reshape(1, n, 4),
                 "f_norm": f.reshape(1, n, 4), "on_floor": on_floor.reshape(1, n), "hit_floor": hit_floor,
                 "aux": carry["aux"], "ctrl": carry["ctrl"]}
 
-    def _floor_wrench(self, V: _Views, on_floor: np.ndarray, mass: np.ndarray, weight: np.ndarray, friction: float,
-                      dt: float) -> None:
+    def _floor_wrench(self, V: _Views, on_floor: np.ndarray, mass: np.ndarray, weight: np.ndarray) -> None:
         """``numpy_floor.floor_wrench_inplace`` on xfrc_applied's rows (the same expressions and order)."""
-        every = np.count_nonzero(on_floor) == self.n
+        every = _count_nonzero(on_floor) == self.n
+        h, h_f, h_v, sq, sq_a, sq_b, mags, mag_f, mag_v, num_s, num_k, ratio, ratio_s, ratio_k, normal, cap, tmp, kv, \
+            num, fcopy, fcopy_h, fcopy_z = self._floor_rows
         if every:
             f_h, f_z = V.f_h, V.f_z
         else:
-            np.copyto(self.fcopy, V.force)
-            f_h, f_z = self.fcopy_h, self.fcopy_z
-        h, sq, mags, num, normal, cap = self.h, self.sq, self.mags, self.num, self.normal, self.cap
-        self.h_f[...] = f_h
-        self.h_v[...] = V.v_h
-        np.multiply(h, h, out=sq)
-        np.add(self.sq_a, self.sq_b, out=mags)
-        np.sqrt(mags, out=mags)
-        np.subtract(weight, f_z, out=normal)
+            np.copyto(fcopy, V.force)
+            f_h, f_z = fcopy_h, fcopy_z
+        mul, sub = np.multiply, np.subtract
+        h_f[...] = f_h
+        h_v[...] = V.v_h
+        mul(h, h, sq)
+        np.add(sq_a, sq_b, mags)
+        np.sqrt(mags, mags)
+        sub(weight, f_z, normal)
         np.maximum(0.0, normal, out=normal)
-        np.multiply(friction, normal, out=cap)
-        np.subtract(self.mag_f, cap, out=self.tmp)
-        np.maximum(0.0, self.tmp, out=self.num_s)
-        np.multiply(mass, self.mag_v, out=self.tmp)
-        self.tmp /= dt
-        np.minimum(cap, self.tmp, out=self.num_k)
-        positive = self.pos_
-        np.greater(mags, _THRESH, out=positive)
-        np.copyto(self.den, 1.0)
-        np.copyto(self.den, mags, where=positive)
-        np.divide(num, self.den, out=self.ratio)
-        np.multiply(self.h_f, self.ratio_s, out=f_h)  # static friction
-        np.multiply(self.ratio_k, self.h_v, out=self.kv)
-        np.subtract(self.h_f, self.kv, out=f_h, where=self.pos_k)  # kinetic
+        mul(self.friction, normal, cap)
+        sub(mag_f, cap, tmp)
+        np.maximum(0.0, tmp, out=num_s)
+        mul(mass, mag_v, tmp)
+        tmp /= self.dt
+        np.minimum(cap, tmp, out=num_k)
+        positive = mags > _THRESH
+        np.divide(num, np.where(positive, mags, 1.0), ratio)
+        mul(h_f, ratio_s, f_h)  # static friction
+        mul(ratio_k, h_v, kv)
+        sub(h_f, kv, out=f_h, where=positive[:, 1:])  # kinetic
         f_z += normal
         if every:
             V.t_xy[...] = 0.0
         else:
             mask = on_floor[:, None]
-            np.copyto(V.force, self.fcopy, where=mask)
+            np.copyto(V.force, fcopy, where=mask)
             np.copyto(V.t_xy, 0.0, where=mask)
 
     def _landing(self, V: _Views, u: np.ndarray, on_floor: np.ndarray, hit_row: np.ndarray) -> np.ndarray:
         """``numpy_loop.SmallLoop.floor_impact`` of the one world (``numpy_floor.floor_impact_rows``, offsets
         zero): written into qpos/qvel, ``u`` and ``hit_row`` in place; returns the new on_floor (N,)."""
         s = self.s
-        le = self.le
-        np.less_equal(V.z, self.floor_z, out=le)
+        le2, le, stay_le, p6, p6_a, p6_b, e, e0, e1, e2, q5, q5_cos, q5_sin = self._landing_rows
+        np.less_equal(V.z2, self.z_bounds, le2)  # z <= floor_z, z <= floor_z + FLOOR_TOL
         grounded = le | on_floor if s._any_on_floor else le
-        if not np.count_nonzero(grounded):
+        if not _count_nonzero(grounded):
             return on_floor
         n = self.n
         yaw_draw = s.rng.uniform(*self.yaw, size=(1, n))[0] if self.yaw is not None else np.full(n, self.yaw_mean)
         hit = le > on_floor  # at or below the floor and airborne
-        np.less_equal(V.z, self.floor_top, out=self.stay_le)
-        staying = on_floor & self.stay_le
+        staying = on_floor & stay_le
         grounded = hit | staying
-        any_hit = np.count_nonzero(hit) > 0
-        q, v = V.q, V.v
-        p = self.p6  # numpy_small.yaw_entries_qpos: R10, R00, R22 of the old rotation
-        np.multiply(q.take(_QPOS_YAW_1, axis=-1), q.take(_QPOS_YAW_2, axis=-1), out=p)
-        p *= _YAW_SCALE
-        e = self.e
-        np.add(self.p6_a, self.p6_b, out=e)
+        any_hit = _count_nonzero(hit) > 0
+        q = V.q  # numpy_small.yaw_entries_qpos: R10, R00, R22 of the old rotation
+        np.multiply(q.take(_QPOS_YAW_1, axis=-1), q.take(_QPOS_YAW_2, axis=-1), p6)
+        p6 *= _YAW_SCALE
+        np.add(p6_a, p6_b, e)
         e += _YAW_BASE
-        yaw = np.arctan2(self.e0, self.e1)
-        yaw += np.where(hit & (self.e2 < 0), yaw_draw, 0.0) if any_hit else 0.0
+        yaw = np.arctan2(e0, e1)
+        yaw += np.where(hit & (e2 < 0), yaw_draw, 0.0) if any_hit else 0.0
         half = 0.5 * yaw
-        np.cos(half, out=V.qw, where=grounded)
-        np.copyto(V.qxy, 0.0, where=grounded[:, None])
-        np.sin(half, out=V.qz, where=grounded)
-        np.copyto(V.z, self.floor_z, where=grounded)
+        # (z, the yaw-only quaternion) where grounded: (floor_z, cos h, 0, 0, sin h) in one masked write
+        np.cos(half, q5_cos)
+        np.sin(half, q5_sin)
+        np.copyto(V.zq, q5, where=grounded[:, None])
         V.qp += 0.0  # (p - 0.0) + 0.0 of the frame round trip
         if any_hit:  # a hit zeroes vel and omega, and the motors (0.0 * x: signs kept)
-            np.multiply(v, 0.0, out=v, where=hit[:, None])
+            np.multiply(V.v, 0.0, out=V.v, where=hit[:, None])
             np.multiply(u, 0.0, out=u, where=hit[:, None])
             hit_row |= hit
         np.copyto(V.v_stay, 0.0, where=staying[:, None])
         s.phys.touch()
-        s._any_on_floor = np.count_nonzero(grounded) > 0
+        s._any_on_floor = _count_nonzero(grounded) > 0
         return grounded
-
 
     def stages(self, cfg: Any, kin: dict[str, Any], prev: dict[str, Any]) -> dict[str, Any] | None:
         """:func:`quadswarm_mj.core.step.velocity_stages` (paper model, no obstacles, no downwash) when no quad is
@@ -283,5 +266,8 @@ class SwarmLoop:
                 "contact": contact, "new_contact": new, "dist": dist, "changed": False}
 
 
+#: ``np.count_nonzero`` without its Python-level wrapper (the same function)
+_count_nonzero = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "count_nonzero",
+                         np.count_nonzero)
 # thresholds of (|F_h|, |v_h|) (numpy_floor): the static ratio divides by |F_h| where > 0, the kinetic by the speed
 _THRESH = np.array([0.0, 1e-9])
