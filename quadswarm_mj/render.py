@@ -145,7 +145,9 @@ class SwarmRenderer:
                 raise ValueError(f"{name} must be an int in [16, 8192] pixels, got {v!r}")
         if not isinstance(trail_length, int) or trail_length < 0:
             raise ValueError(f"trail_length must be an int >= 0, got {trail_length!r}")
-        arena = core.arena
+        # the engine's arena and model, or their visual twin (CpuSwarm.visual_arena: the same bodies and qpos)
+        arena, model = core.visual_arena() if hasattr(core, "visual_arena") else (core.arena, core.model)
+        self.arena = arena
         if not 0 <= world < arena.num_worlds:
             raise ValueError(f"world must be in [0, {arena.num_worlds}), got {world!r}")
         if not 0 <= chase_quad < arena.num_quads:
@@ -158,7 +160,7 @@ class SwarmRenderer:
         self.trail_length, self.smooth_camera, self.chase_quad = trail_length, smooth_camera, chase_quad
         self.colors = quad_colors(self.num_quads)
         # private model (tints, framebuffer size) and data: the simulation is never touched
-        self.model = copy.deepcopy(core.model)
+        self.model = copy.deepcopy(model)
         self.model.vis.global_.offwidth = max(width, self.model.vis.global_.offwidth)
         self.model.vis.global_.offheight = max(height, self.model.vis.global_.offheight)
         self.model.vis.quality.offsamples = 4 if antialias else 0
@@ -182,7 +184,7 @@ class SwarmRenderer:
     # ------------------------------------------------------------------ set-up
     def _show_world(self, world: int) -> None:
         """Tint world ``world``'s quads and hide the other worlds' quads and columns."""
-        arena = self.core.arena
+        arena = self.arena
         self.world = world
         self.body_ids = np.asarray(arena.body_ids[world])
         self.world_offset = np.asarray(arena.world_offsets[world], dtype=np.float64)
@@ -194,8 +196,8 @@ class SwarmRenderer:
 
     def set_world(self, world: int) -> None:
         """Draw world ``world`` from now on (its trails and camera smoothing are kept separately)."""
-        if not 0 <= world < self.core.arena.num_worlds:
-            raise ValueError(f"world must be in [0, {self.core.arena.num_worlds}), got {world!r}")
+        if not 0 <= world < self.arena.num_worlds:
+            raise ValueError(f"world must be in [0, {self.arena.num_worlds}), got {world!r}")
         if world == self.world:
             return
         self._states[self.world] = (self._trail, self._trail_count, self._cam_state, self._chase_yaw,

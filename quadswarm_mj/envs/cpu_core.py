@@ -124,6 +124,7 @@ class CpuSwarm:
         self.phys: Any = (MjDataPhysics(cfg, self.B, visual) if backend == "mjdata"
                           else BatchPhysics(cfg, self.B, chunk_worlds, nthread))
         self.arena, self.model, self.data = self.phys.arena, self.phys.model, self.phys.data
+        self.visual = visual
         self.qpos, self.qvel, self.xfrc = self.phys.qpos, self.phys.qvel, self.phys.xfrc  # (B, N, .) views
         self.offsets = self.phys.offsets
         self._offsets_zero = not np.any(self.offsets)
@@ -179,13 +180,28 @@ class CpuSwarm:
         """For copy/pickle: the state without the aliases of the physics' arrays (views into MuJoCo's
         data, which the physics maps again in the copy): a copy is independent and steps exactly as
         the original from here."""
-        return {k: v for k, v in self.__dict__.items() if k not in ("arena", "model", "data", "qpos", "qvel", "xfrc")}
+        return {k: v for k, v in self.__dict__.items()
+                if k not in ("arena", "model", "data", "qpos", "qvel", "xfrc", "_visual_arena")}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         p = self.phys
         self.arena, self.model, self.data = p.arena, p.model, p.data
         self.qpos, self.qvel, self.xfrc = p.qpos, p.qvel, p.xfrc
+
+    def visual_arena(self) -> tuple[Any, Any]:
+        """(arena, model) to draw this engine with (:class:`quadswarm_mj.render.SwarmRenderer`): its own, or for
+        an engine built without the Crazyflie's visual geoms (``visual=False``, which halves MuJoCo's kinematics
+        per step) and without columns, a visual arena of the same worlds built on first use (the same bodies
+        and qpos layout; the geoms carry no mass, so only the drawing differs)."""
+        if self.visual or self.backend != "mjdata" or self.cfg.obstacles is not None:
+            return self.arena, self.model
+        va = self.__dict__.get("_visual_arena")
+        if va is None:
+            from quadswarm_mj.arena import build_arena
+
+            va = self._visual_arena = build_arena(self.cfg, self.B)
+        return va, va.model
 
     # ------------------------------------------------------------------ obstacles (SPEC_obstacles A)
     def _obst_init(self) -> dict[str, Any]:

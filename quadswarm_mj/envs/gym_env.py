@@ -73,7 +73,10 @@ class QuadSwarmEnv(gym.Env):
 
             self._jax = JaxSingleBackend(self.cfg)
         else:
-            self.core = CpuSwarm(self.cfg, num_worlds=1)
+            # without columns or deck sensors the engine steps a model without the visual geoms (half MuJoCo's
+            # kinematics; the same dynamics), and the renderer draws a visual twin (CpuSwarm.visual_arena)
+            lean = self.cfg.obstacles is None and not self.cfg.sensors.any
+            self.core = CpuSwarm(self.cfg, num_worlds=1, visual=not lean)
         n, d = self.cfg.num_quads, self.cfg.obs_dim
         low, high = obs_bounds(self.cfg)
         if self.cfg.normalize_obs:
