@@ -253,14 +253,17 @@ class SwarmLoop:
             return None
         pos, at_wall, at_ceiling = kin["pos"], prev["at_wall"], prev["at_ceiling"]
         out = (pos <= self.out_lo) | (pos >= self.out_hi)
-        if np.count_nonzero(out) or np.count_nonzero(at_wall) or np.count_nonzero(at_ceiling):
+        if _count_nonzero(out) or _count_nonzero(at_wall) or _count_nonzero(at_ceiling):
             return None
         rel = pos[..., :, None, :] - pos[..., None, :, :]
         dist = np.sqrt((rel * rel).sum(axis=-1))  # spatial.norm_last below spatial.BIG elements
         contact = (dist <= self.hitbox) & self.offdiag
-        new = contact & ~prev["contact"]
-        if np.count_nonzero(new):  # a new contact: the paper's response (and its draws)
-            return None
+        if _count_nonzero(contact):
+            new = contact & ~prev["contact"]
+            if _count_nonzero(new):  # a new contact: the paper's response (and its draws)
+                return None
+        else:  # no contact: none new (contact & ~prev is all False)
+            new = contact
         hit = np.zeros(at_wall.shape, bool)
         return {**kin, "at_wall": at_wall, "at_ceiling": at_ceiling, "hit_wall": hit, "hit_ceiling": hit,
                 "contact": contact, "new_contact": new, "dist": dist, "changed": False}

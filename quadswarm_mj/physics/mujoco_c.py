@@ -30,6 +30,8 @@ from quadswarm_mj.arena import build_arena
 from quadswarm_mj.config import EnvConfig
 
 BACKENDS = ("mjdata", "batch")
+#: NumPy's clip ufunc (min(max(x, lo), hi) elementwise, as np.minimum(np.maximum(...)) gives it), None if absent
+_clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", None)
 #: MuJoCo's mjMAXVAL: a qpos, qvel or qacc entry beyond it (or NaN) is what MuJoCo calls unstable
 _MJ_MAXVAL = 1e10
 #: MuJoCo's instability warnings (mjWARN_BADQPOS, mjWARN_BADQVEL, mjWARN_BADQACC), contiguous
@@ -173,7 +175,10 @@ class MjDataPhysics(_SubstepAdapter):
                     v[i] = -max_omega
             return
         w = self.qvel[..., 3:]
-        np.minimum(np.maximum(w, -max_omega, out=w), max_omega, out=w)  # = clip
+        if _clip is not None:  # the clip ufunc: min(max(w, -m), m) in one call (NaN stays NaN)
+            _clip(w, -max_omega, max_omega, out=w)
+        else:
+            np.minimum(np.maximum(w, -max_omega, out=w), max_omega, out=w)  # = clip
 
     def write_params(self, idx: Any, mass: np.ndarray, inertia: np.ndarray) -> None:
         ids = self.arena.body_ids[idx].ravel()
