@@ -94,6 +94,7 @@ class QuadSwarmEnv(gym.Env):
         self._params: dict[str, np.ndarray] = {}  # world 0's dynamics parameters of the episode (set by reset)
         self.closed = False
         self._flat = gym_flattener(self.cfg) if self.cfg.info_mode == "flat" else None  # envs/flat_info.py
+        self._control_dt = self.cfg.control_dt
 
     # ------------------------------------------------------------------ helpers
     def _obs(self, obs: np.ndarray) -> np.ndarray:
@@ -105,14 +106,17 @@ class QuadSwarmEnv(gym.Env):
         another call's info)."""
         c = self.core
         q, v = c.qpos[0], c.qvel[0]  # world 0's (N, 7), (N, 6) views: c.state_dict()'s values, world 0 only
+        rot = c._rotations()[0].copy()
+        st = c.state
+        scn = st.scenario
         return {
-            "state": {"pos": q[:, :3] - c.offsets[0], "vel": v[:, :3].copy(), "rot": c._rotations()[0].copy(),
-                      "omega": v[:, 3:].copy(), "thrust": c.f_norm[0].copy()},
-            "goals": c.sstate.goals[0].copy(),
-            "goal_vel": c.sstate.goal_vel[0].copy(),
+            "state": {"pos": q[:, :3] - c.offsets[0], "vel": v[:, :3].copy(), "rot": rot, "omega": v[:, 3:].copy(),
+                      "thrust": st.thrust[0].copy()},
+            "goals": scn.goals[0].copy(),
+            "goal_vel": scn.goal_vel[0].copy(),
             "params": {k: v.copy() for k, v in self._params.items()},
-            "on_floor": c.on_floor[0].copy(),
-            "time": int(c.steps[0]) * self.cfg.control_dt,
+            "on_floor": st.on_floor[0].copy(),
+            "time": int(st.step[0]) * self._control_dt,
             **({"obstacles": c.obstacle_centres(0)} if c.omap is not None else {}),
         }
 

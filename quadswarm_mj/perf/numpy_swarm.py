@@ -74,12 +74,13 @@ class SwarmLoop:
         self._v: _Views | None = None
         # work rows (N, .), reused every sub-step (nothing in them outlives a control step)
         rows = np.empty((n, 4, 4))  # thrust x mix rows (F_z, tau_x, tau_y) and yaw reaction per rotor
-        tf = np.empty((n, 4))  # thrust_max * f
         sm = np.empty((n, 4))  # F_z, tau_x, tau_y, tau_z (body)
         self.R = np.empty((n, 3, 3))
         self.R9 = self.R.reshape(n, 9)
-        self._wrench_rows = (rows, rows[:, :3, :], rows[:, 3, :], tf, tf[:, None, :], sm, sm[:, :1], sm[:, None, 1:],
-                             np.empty((n, 3, 3)), self.R[:, :, 2], np.empty((n, 4)))
+        mix4 = np.ones((4, 4))  # the mix rows (F_z, tau_x, tau_y) and 1.0 for the yaw reaction (set per call)
+        self._ts_src: tuple | None = None
+        self._wrench_rows = (rows, np.empty((n, 4, 4)), mix4, sm, sm[:, :1], sm[:, None, 1:], np.empty((n, 3, 3)),
+                             self.R[:, :, 2], np.empty((n, 4)))
         # the floor wrench's rows: h = (F_x, F_y, v_x, v_y), their squares, (|F_h|, speed), ...
         h, sq, mags, num, ratio = np.empty((n, 4)), np.empty((n, 4)), np.empty((n, 2)), np.empty((n, 2)), \
             np.empty((n, 2))
@@ -141,10 +142,18 @@ class SwarmLoop:
         R[...] = carry["R"][0]
         u = carry["u"][0]
         f = np.empty((n, 4))
-        rows, rows3, rows_spin, tf, tf_row, sm, sm_fz, sm_tau, rt, R_z, d4 = self._wrench_rows
+        rows, ts, mix4, sm, sm_fz, sm_tau, rt, R_z, d4 = self._wrench_rows
+        src = self._ts_src  # ts = (thrust_max x 3 rows, torque_spin) per quad, made again when they change
+        if src is None or src[0] is not params["thrust_max"] or src[1] is not consts["torque_spin"] \
+                or src[2] is not mix:
+            ts[:, :3, :] = thrust_max[:, None, :]
+            ts[:, 3, :] = spin
+            mix4[:3] = mix
+            self._ts_src = (params["thrust_max"], consts["torque_spin"], mix)
+        f_row = f[:, None, :]
         force, torque, max_omega = V.force, V.torque, self.max_omega
-        mul, add, sub, maximum, minimum, reduce = np.multiply, np.add, np.subtract, np.maximum, np.minimum, \
-            np.add.reduce
+        mul, add, sub, reduce = np.multiply, np.add, np.subtract, np.add.reduce
+        clip = _clip if _clip is not None else _clip_pair
         for i in range(cfg.substeps):
             # the rotor wrench (numpy_loop.substep_wrench), written into xfrc_applied
             sub(root, u, d4)
@@ -152,11 +161,9 @@ class SwarmLoop:
             u = u + d4 if i == 0 else add(u, d4, u)  # a fresh u for this step, then in place
             mul(u, u, f)
             f += cn
-            maximum(f, 0.0, out=f)
-            minimum(f, 1.0, out=f)
-            mul(thrust_max, f, tf)
-            mul(tf_row, mix, rows3)
-            mul(spin, f, rows_spin)
+            clip(f, 0.0, 1.0, out=f)  # = min(max(f, 0), 1): u u + c n is never -0.0
+            mul(ts, f_row, rows)  # (thrust_max f) mix for F_z, tau_x, tau_y; (spin f) 1.0 for tau_z
+            rows *= mix4
             reduce(rows, -1, None, sm)
             mul(sm_fz, R_z, force)
             mul(R, sm_tau, rt)
@@ -267,6 +274,15 @@ class SwarmLoop:
         hit = np.zeros(at_wall.shape, bool)
         return {**kin, "at_wall": at_wall, "at_ceiling": at_ceiling, "hit_wall": hit, "hit_ceiling": hit,
                 "contact": contact, "new_contact": new, "dist": dist, "changed": False}
+
+
+#: NumPy's clip ufunc (None if absent: :func:`_clip_pair`)
+_clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", None)
+
+
+def _clip_pair(x: np.ndarray, lo: float, hi: float, out: np.ndarray) -> np.ndarray:
+    """``np.minimum(np.maximum(x, lo), hi)`` into ``out``."""
+    return np.minimum(np.maximum(x, lo, out=out), hi, out=out)
 
 
 #: ``np.count_nonzero`` without its Python-level wrapper (the same function)
