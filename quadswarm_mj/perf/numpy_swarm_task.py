@@ -37,6 +37,8 @@ from quadswarm_mj.pipeline import _no_jump
 #: set to False for the model's functions (the same-values tests compare the two)
 ENABLED = True
 
+#: NumPy's clip ufunc (None if absent)
+_clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", None)
 # rows of the norm block: goal offset, clipped action, omega, velocity, thrust change
 _NORM_TERMS = ("pos", "effort", "spin", "vel", "action_change")
 
@@ -145,8 +147,11 @@ class SwarmTask:
         # the norms (rewards.reward_terms' norm_last costs and task_stage's goal distance)
         np.subtract(goals, pos, out=self.V_goal)
         if "effort" in live:
-            np.maximum(action, -1.0, out=self.V_act)
-            np.minimum(self.V_act, 1.0, out=self.V_act)
+            if _clip is not None:  # = min(max(a, -1), 1) (the bounds are not zero: the same bits)
+                _clip(action, -1.0, 1.0, out=self.V_act)
+            else:
+                np.maximum(action, -1.0, out=self.V_act)
+                np.minimum(self.V_act, 1.0, out=self.V_act)
         if "spin" in live:
             self.V_omega[...] = omega
         if "vel" in live:
