@@ -116,3 +116,11 @@ def test_task_several_worlds_are_the_model_functions_bitwise():
             numpy_swarm_task.ENABLED = True
     for a, b in zip(*out):
         _same(a, b)
+
+
+def test_action_to_command_is_the_model_form_bitwise():
+    from quadswarm_mj.actuation import action_to_command
+
+    rng = np.random.default_rng(0)
+    a = np.concatenate([rng.uniform(-3, 3, 400), [-0.0, 0.0, -1.0, 1.0, -1.5, 1.5, 1e-300, -1e-300, np.inf, -np.inf]])
+    _same(numpy_swarm.action_to_command(a.reshape(-1, 2, 1)), action_to_command(a.reshape(-1, 2, 1)))

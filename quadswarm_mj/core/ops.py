@@ -168,6 +168,8 @@ class NumpyOps(ModelForms):
         """:func:`quadswarm_mj.actuation.action_to_command` (one quad: on floats, same bits)."""
         if self._one and one_quad.ENABLED and action.dtype == np.float64:
             return one_quad.action_to_command(action)
+        if numpy_swarm.ENABLED and type(action) is np.ndarray and action.dtype == np.float64:
+            return numpy_swarm.action_to_command(action)  # (the clip as one call, same bits)
         return actuation.action_to_command(action)
 
     def motor_noise(self, eps: np.ndarray, sigma: np.ndarray, theta: float, normal: np.ndarray) -> np.ndarray:

@@ -285,6 +285,17 @@ def _clip_pair(x: np.ndarray, lo: float, hi: float, out: np.ndarray) -> np.ndarr
     return np.minimum(np.maximum(x, lo, out=out), hi, out=out)
 
 
+def action_to_command(action: np.ndarray) -> np.ndarray:
+    """:func:`quadswarm_mj.actuation.action_to_command` (0.5 (clip(a, -1, 1) + 1)) with the clip as one ufunc: the
+    same bits (the bounds are not zero, so no sign of zero can differ; NaN stays NaN)."""
+    if _clip is None:
+        return 0.5 * (np.minimum(np.maximum(action, -1.0), 1.0) + 1.0)
+    c = _clip(action, -1.0, 1.0)
+    c += 1.0
+    c *= 0.5
+    return c
+
+
 #: ``np.count_nonzero`` without its Python-level wrapper (the same function)
 _count_nonzero = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "count_nonzero",
                          np.count_nonzero)
