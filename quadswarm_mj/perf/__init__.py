@@ -8,10 +8,7 @@ it through their ops (:mod:`quadswarm_mj.core.ops`), never the model.
 * ``one_quad``: one quad in one world on Python floats (wrench, floor, rotation, rewards, metrics,
   observation), bit-identical to the array forms; ``one_quad_step``: on those bodies, the whole sub-step
   loop and the whole task stage of one quad (``NumpyOps.fused_loop``, ``fused_task``).
-* ``numpy_loop``: the sub-step loop for small arrays with the control step's constants computed once;
-  ``numpy_swarm``: the same loop for one world of several quads on work arrays made once, and the velocity
-  stages' event-free form; ``numpy_swarm_task``: the task half (scenario, rewards, metrics, observation) of
-  several quads in few NumPy calls (``NumpyOps.fused_loop``, ``fused_stages``, ``fused_task``).
+* ``numpy_loop``, ``numpy_swarm``, ``numpy_swarm_task``: the sub-step loop and the task half of several quads.
 * ``xla_cpu``: layouts and kernel boundaries for XLA:CPU (``worlds_last``, ``kernel_boundary``,
   integer sort keys); ``depth_xla``: the depth camera's hitbox test for XLA:CPU.
 * ``fused_draws``: a JAX step's random numbers from one unrolled threefry hash (``FusedJaxSampler``,
