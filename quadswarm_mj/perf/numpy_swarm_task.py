@@ -1,25 +1,16 @@
 """The task half of the CPU engine's control step for several quads, in few NumPy calls.
 
-:func:`quadswarm_mj.core.control.task_step` (scenario step, reward terms, episode metrics, observation,
-reward sum) calls the model's functions, which on small (B, N, .) arrays spend most of their time in
-NumPy's fixed cost per call (about 100 calls a step for 8 quads). :class:`SwarmTask` computes the same
-values with the same operations in the same order (the same bits, signs of zero included;
-``tests/test_numpy_swarm.py`` checks seeded episodes against the model's functions):
-
-* the five Euclidean norms of the reward (goal distance, clipped action, body rates, velocity, thrust
-  change) as one product and left-to-right sums over a zero-padded (5, 4, B, N) block (adding +0.0 to a
-  sum of squares changes no bit; NumPy sums an axis shorter than 8 left to right);
-* the reward terms as one product of a (T, B, N) cost block with the per-term factors -dt * scale (the
-  terms that are exactly -0.0 keep a zero cost: -0.0 * 0.0), the reward as their running sum in
-  ``rewards.TERMS`` order (adding a -0.0 term changes no bit, so none is skipped);
-* event gating with exact bits: the proximity term is +0.0 when no pair is within the falloff, the
-  collision count is 0.0 without a new contact, and the metric accumulators that only events change are
-  kept (x + 0.0 is x for these non-negative sums) when there is no event;
-* the observation written part by part into one fresh (B, N, D) array, clipped into the bounds (the
-  neighbour bounds folded in once).
-
-Used for the "rotor" control mode without obstacles or deck sensors, "base"/"floor" own-state layouts,
-neighbours sorted by distance without neighbour noise, on more than one quad. NumPy only.
+:func:`quadswarm_mj.core.control.task_step` (scenario, reward terms, metrics, observation, reward sum) spends
+most of its time in NumPy's fixed cost per call on small (B, N, .) arrays. :class:`SwarmTask` computes the
+same values with the same operations in the same order (the same bits, signs of zero included;
+``tests/test_numpy_swarm.py`` checks seeded episodes against the model's functions): the reward's five norms
+as one product and left-to-right sums over a zero-padded (5, 4, B, N) block (adding +0.0 to a sum of squares
+changes no bit); the terms as one product of a (T, B, N) cost block with the factors -dt * scale (the -0.0
+terms keep a zero cost) and the reward as their running sum in ``rewards.TERMS`` order (adding -0.0 changes
+no bit); the proximity term (+0.0 with no pair within the falloff), the collision count and the metric
+accumulators that only events change gated on their events (x + 0.0 is x for these non-negative sums); the
+observation written part by part into one fresh array. Used for the "rotor" mode without obstacles or deck
+sensors, "base"/"floor" own state, neighbours by distance without neighbour noise, several quads. NumPy only.
 """
 
 from __future__ import annotations
