@@ -142,7 +142,7 @@ class SwarmLoop:
         R[...] = carry["R"][0]
         u = carry["u"][0]
         f = np.empty((n, 4))
-        rows, ts, mix4, sm, sm_fz, sm_tau, rt, R_z, d4 = self._wrench_rows
+        ts, mix4 = self._wrench_rows[1:3]
         src = self._ts_src  # ts = (thrust_max x 3 rows, torque_spin) per quad, made again when they change
         if src is None or src[0] is not params["thrust_max"] or src[1] is not consts["torque_spin"] \
                 or src[2] is not mix:
@@ -152,22 +152,9 @@ class SwarmLoop:
             self._ts_src = (params["thrust_max"], consts["torque_spin"], mix)
         f_row = f[:, None, :]
         force, torque, max_omega = V.force, V.torque, self.max_omega
-        mul, add, sub, reduce = np.multiply, np.add, np.subtract, np.add.reduce
-        clip = _clip if _clip is not None else _clip_pair
+        wrench = self._wrench
         for i in range(cfg.substeps):
-            # the rotor wrench (numpy_loop.substep_wrench), written into xfrc_applied
-            sub(root, u, d4)
-            d4 *= alpha
-            u = u + d4 if i == 0 else add(u, d4, u)  # a fresh u for this step, then in place
-            mul(u, u, f)
-            f += cn
-            clip(f, 0.0, 1.0, out=f)  # = min(max(f, 0), 1): u u + c n is never -0.0
-            mul(ts, f_row, rows)  # (thrust_max f) mix for F_z, tau_x, tau_y; (spin f) 1.0 for tau_z
-            rows *= mix4
-            reduce(rows, -1, None, sm)
-            mul(sm_fz, R_z, force)
-            mul(R, sm_tau, rt)
-            reduce(rt, -1, None, torque)
+            u = wrench(i, u, f, f_row, root, alpha, cn, force, torque)  # written into xfrc_applied
             if s._any_on_floor:  # the floor's normal force and friction (numpy_floor.floor_wrench_inplace)
                 self._floor_wrench(V, on_floor, mass, weight)
             phys.step(max_omega)
@@ -176,6 +163,29 @@ class SwarmLoop:
         return {"q": phys.qpos, "v": phys.qvel, "R": R.copy().reshape(1, n, 3, 3), "u": u.reshape(1, n, 4),
                 "f_norm": f.reshape(1, n, 4), "on_floor": on_floor.reshape(1, n), "hit_floor": hit_floor,
                 "aux": carry["aux"], "ctrl": carry["ctrl"]}
+
+    def _wrench(self, i: int, u: np.ndarray, f: np.ndarray, f_row: np.ndarray, root: np.ndarray, alpha: np.ndarray,
+                cn: np.ndarray, force: np.ndarray, torque: np.ndarray) -> np.ndarray:
+        """Sub-step ``i``'s rotor wrench (``numpy_loop.substep_wrench``: motor lag, thrusts ``f`` written in place,
+        force and torque written into xfrc_applied's ``force``/``torque`` rows); returns u (fresh at i = 0)."""
+        rows, ts, mix4, sm, sm_fz, sm_tau, rt, R_z, d4 = self._wrench_rows
+        mul, reduce = np.multiply, np.add.reduce
+        np.subtract(root, u, d4)
+        d4 *= alpha
+        u = u + d4 if i == 0 else np.add(u, d4, u)  # a fresh u for this step, then in place
+        mul(u, u, f)
+        f += cn
+        if _clip is not None:  # = min(max(f, 0), 1): u u + c n is never -0.0, so no sign of zero differs
+            _clip(f, 0.0, 1.0, out=f)
+        else:
+            np.minimum(np.maximum(f, 0.0, out=f), 1.0, out=f)
+        mul(ts, f_row, rows)  # (thrust_max f) mix for F_z, tau_x, tau_y; (spin f) 1.0 for tau_z
+        rows *= mix4
+        reduce(rows, -1, None, sm)
+        mul(sm_fz, R_z, force)
+        mul(self.R, sm_tau, rt)
+        reduce(rt, -1, None, torque)
+        return u
 
     def _floor_wrench(self, V: _Views, on_floor: np.ndarray, mass: np.ndarray, weight: np.ndarray) -> None:
         """``numpy_floor.floor_wrench_inplace`` on xfrc_applied's rows (the same expressions and order)."""
@@ -276,13 +286,8 @@ class SwarmLoop:
                 "contact": contact, "new_contact": new, "dist": dist, "changed": False}
 
 
-#: NumPy's clip ufunc (None if absent: :func:`_clip_pair`)
+#: NumPy's clip ufunc (None if absent: the two ufuncs)
 _clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", None)
-
-
-def _clip_pair(x: np.ndarray, lo: float, hi: float, out: np.ndarray) -> np.ndarray:
-    """``np.minimum(np.maximum(x, lo), hi)`` into ``out``."""
-    return np.minimum(np.maximum(x, lo, out=out), hi, out=out)
 
 
 def action_to_command(action: np.ndarray) -> np.ndarray:

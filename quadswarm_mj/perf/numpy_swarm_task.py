@@ -28,6 +28,9 @@ from quadswarm_mj.pipeline import _no_jump
 #: set to False for the model's functions (the same-values tests compare the two)
 ENABLED = True
 
+#: ``np.count_nonzero`` without its Python-level wrapper (the same function)
+_count_nonzero = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "count_nonzero",
+                         np.count_nonzero)
 #: NumPy's clip ufunc (None if absent)
 _clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", None)
 # rows of the norm block: goal offset, clipped action, omega, velocity, thrust change
@@ -134,7 +137,23 @@ class SwarmTask:
             jump = _no_jump(goals.shape[:-1])
         else:
             jump = metrics_lib.goal_jump(prev.goals, goals, goal_vel, self.dt)
+        new_contact = k["new_contact"]
+        any_new = _count_nonzero(new_contact) > 0
+        out, dist_goal = self._rewards(s, k, action, goals, anneal, any_new)
+        hf, hw, hc = k["hit_floor"], k["hit_wall"], k["hit_ceiling"]
+        m = self._metrics(s["metrics_acc"], t[..., None], dist_goal, new_contact, any_new, hf, hw, hc, jump)
+        obs = self._obs(pos, vel, R, omega, goals, ops.draws("sensor", None, None), k["dist"])
+        return {"steps": steps, "total_steps": total_steps, "t": t, "sstate": sstate, "goals": goals,
+                "goal_vel": goal_vel, "terms": dict(zip(self.terms, out[1:])), "reward": out[0], "metrics_acc": m,
+                "obst_metrics": None, "obs": obs, "done": steps >= self.episode_steps, "rows": out}
+
+    def _rewards(self, s: dict[str, Any], k: dict[str, Any], action: np.ndarray, goals: np.ndarray, anneal: Any,
+                 any_new: bool) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`quadswarm_mj.rewards.reward_terms` and ``total_reward`` (same values) and the goal distance:
+        returns a fresh (1 + T, B, N) block (the reward, then the terms in ``rewards.TERMS`` order) and the
+        distance (B, N) m; sets ``self.key`` (the pair distances, inf on the diagonal) for :meth:`_obs`."""
         live, C, V = self.live, self.C, self.V
+        pos, R = k["pos"], k["R"]
         # the norms (rewards.reward_terms' norm_last costs and task_stage's goal distance)
         np.subtract(goals, pos, out=self.V_goal)
         if "effort" in live:
@@ -144,9 +163,9 @@ class SwarmTask:
                 np.maximum(action, -1.0, out=self.V_act)
                 np.minimum(self.V_act, 1.0, out=self.V_act)
         if "spin" in live:
-            self.V_omega[...] = omega
+            self.V_omega[...] = k["omega"]
         if "vel" in live:
-            self.V_vel[...] = vel
+            self.V_vel[...] = k["vel"]
         if "action_change" in live:
             np.subtract(k["f_norm"], s["f_norm"], out=self.V_df)
         SQ, S = self.SQ, self.S
@@ -172,12 +191,10 @@ class SwarmTask:
             np.negative(R[..., 0, 0], out=C[row["yaw"]])
         if "rot" in live:
             C[row["rot"]] = -(R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0
-        new_contact = k["new_contact"]
-        any_new = np.count_nonzero(new_contact) > 0
         if "quad_collision" in live:
             qc = C[row["quad_collision"]]
             if any_new:
-                np.add.reduce(new_contact, axis=-1, dtype=np.float64, out=qc)
+                np.add.reduce(k["new_contact"], axis=-1, dtype=np.float64, out=qc)
             else:
                 qc[...] = 0.0
         key = self.key
@@ -186,25 +203,20 @@ class SwarmTask:
             np.copyto(key, k["dist"], where=self.offdiag)
         if "proximity" in live:
             pr = C[row["proximity"]]
-            if np.count_nonzero(key >= self.falloff) == key.size:  # no pair within the falloff: +0.0
+            if _count_nonzero(key >= self.falloff) == key.size:  # no pair within the falloff: +0.0
                 pr[...] = 0.0
             else:
                 np.add.reduce(np.maximum(1.0 - key / self.falloff, 0.0), axis=-1, out=pr)
-        hf, hw, hc = k["hit_floor"], k["hit_wall"], k["hit_ceiling"]
-        for name, flag in (("floor_hit", hf), ("wall_hit", hw), ("ceiling_hit", hc)):
+        for name in ("floor_hit", "wall_hit", "ceiling_hit"):
             if name in live:
-                np.copyto(C[row[name]], flag)
+                np.copyto(C[row[name]], k["hit_" + name[:-4]])
         coef = self._coef(anneal) if self.annealed else self.coef
         out = np.empty((self.T + 1,) + C.shape[1:])  # reward, then the terms
         terms = out[1:]
         np.multiply(C, coef, out=terms)
         np.add.accumulate(terms, axis=0, out=self.acc)  # rewards.total_reward's running sum, TERMS order
         out[0] = self.acc[-1]
-        m = self._metrics(s["metrics_acc"], t[..., None], dist_goal, new_contact, any_new, hf, hw, hc, jump)
-        obs = self._obs(pos, vel, R, omega, goals, ops.draws("sensor", None, None), k["dist"])
-        return {"steps": steps, "total_steps": total_steps, "t": t, "sstate": sstate, "goals": goals,
-                "goal_vel": goal_vel, "terms": dict(zip(self.terms, terms)), "reward": out[0], "metrics_acc": m,
-                "obst_metrics": None, "obs": obs, "done": steps >= self.episode_steps, "rows": out}
+        return out, dist_goal
 
     def _metrics(self, m: dict[str, Any], t: Any, dist: np.ndarray, new_contact: np.ndarray, any_new: bool,
                  hit_floor: np.ndarray, hit_wall: np.ndarray, hit_ceiling: np.ndarray, jump: np.ndarray
@@ -214,7 +226,7 @@ class SwarmTask:
         if any_new:
             out["collisions"] = m["collisions"] + new_contact.sum(axis=-1, dtype=np.float64) * (t >= self.grace)
         for name, flag in (("floor_hits", hit_floor), ("wall_hits", hit_wall), ("ceiling_hits", hit_ceiling)):
-            if np.count_nonzero(flag):
+            if _count_nonzero(flag):
                 out[name] = m[name] + flag
         out["dist_sum"] = m["dist_sum"] + dist
         out["steps"] = m["steps"] + 1.0
@@ -225,7 +237,7 @@ class SwarmTask:
         out["last_dist"] = new_last
         reached = m["seg_reached"]
         near = dist < metrics_lib.REACH_DISTANCE
-        if np.count_nonzero(jump):
+        if _count_nonzero(jump):
             close = jump & ((t - m["seg_start"]) >= metrics_lib.MIN_SEGMENT_S - 1e-9)
             out["seg_count"] = m["seg_count"] + close
             out["seg_success"] = m["seg_success"] + (close & reached)
