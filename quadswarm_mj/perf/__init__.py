@@ -19,3 +19,44 @@ it through their ops (:mod:`quadswarm_mj.core.ops`), never the model.
 
 Nothing here changes a model's equations; docs/engines.md gives the measurements that keep each.
 """
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+_NUMPY_FORMS = ("one_quad", "numpy_loop", "numpy_swarm", "numpy_swarm_task")
+
+
+def numpy_fast_forms_enabled() -> bool:
+    """Whether the MuJoCo engine's fused NumPy forms (the modules above) are in use (the default)."""
+    from importlib import import_module
+
+    return all(import_module(f"{__name__}.{name}").ENABLED for name in _NUMPY_FORMS)
+
+
+def set_numpy_fast_forms(enabled: bool) -> None:
+    """Turn the MuJoCo engine's fused NumPy forms on (default) or off for this process.
+
+    Off, every step runs the model's plain array functions: the same values bit for bit (each form's
+    same-values test), only slower (docs/engines.md gives the figures). Takes effect at the next step.
+    """
+    if not isinstance(enabled, bool):
+        raise TypeError(f"set_numpy_fast_forms: enabled must be a bool, got {type(enabled).__name__}")
+    from importlib import import_module
+
+    for name in _NUMPY_FORMS:
+        import_module(f"{__name__}.{name}").ENABLED = enabled
+
+
+@contextmanager
+def numpy_fast_forms(enabled: bool) -> Iterator[None]:
+    """Context manager: the fused NumPy forms on or off inside the block, restored after it."""
+    from importlib import import_module
+
+    modules = [import_module(f"{__name__}.{name}") for name in _NUMPY_FORMS]
+    before = [module.ENABLED for module in modules]
+    set_numpy_fast_forms(enabled)
+    try:
+        yield
+    finally:
+        for module, value in zip(modules, before):
+            module.ENABLED = value
