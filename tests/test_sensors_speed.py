@@ -318,9 +318,10 @@ def test_deck_scratch_table_is_bounded_and_safe_across_threads():
                                      {"multiranger": True, "flow": True, "depth": (3, 5), "dropout": 0.2},
                                      {"flow": True, "light_lux": 10.0}, {"multiranger": True, "noise": False}])
 def test_jax_engine_deck_part_is_the_model_under_jit(sensors):
-    """perf.jax_deck.deck_part (core.ops.jax_deck_part: the model's part with the engine's forms, closed by
-    a kernel boundary) gives the model's values with the same forms under jit(vmap), bit for bit: noise as
-    uniforms, as ToF noise made in advance, none; with and without columns."""
+    """perf.jax_deck.deck_part (core.ops.jax_deck_part: the model's part with the engine's forms, with the
+    depth camera closed by a kernel boundary) gives the model's values with the same forms under
+    jit(vmap), bit for bit: noise as uniforms, as ToF noise made in advance, none; with and without
+    columns."""
     import functools
 
     jax = pytest.importorskip("jax")
@@ -351,16 +352,16 @@ def test_jax_engine_deck_part_is_the_model_under_jit(sensors):
             assert a.tobytes() == b.tobytes()
 
 
-def test_jax_deck_kernel_boundaries_are_identities():
-    """The two kernel boundaries of perf.jax_deck return their input bit for bit (NaN, infinities, signed
-    zeros, odd sizes; normal floats: XLA:CPU flushes subnormals in any arithmetic), under jit and vmap."""
+def test_jax_deck_kernel_boundary_is_an_identity():
+    """perf.jax_deck's kernel boundary returns its input bit for bit (NaN, infinities, signed zeros; normal
+    floats: XLA:CPU flushes subnormals in any arithmetic), under jit and vmap."""
     jax = pytest.importorskip("jax")
-    from quadswarm_mj.perf.jax_deck import divided_by_ones, materialized
+    from quadswarm_mj.perf.jax_deck import divided_by_ones
 
     x = np.array([[0.0, -0.0, 1.5, -10.0, np.inf, np.nan, 4.0], [2.0, 3.0, -1e30, 1e-30, 1.0, 0.5, -2.0]],
                  np.float32)
-    for f in (divided_by_ones, materialized):
-        for g in (jax.jit(f), jax.jit(jax.vmap(f)), jax.jit(lambda y, f=f: f(y[0]))):
-            got = np.asarray(g(x))
-            want = x[0] if got.ndim == 1 else x
-            assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+    f = divided_by_ones
+    for g in (jax.jit(f), jax.jit(jax.vmap(f)), jax.jit(lambda y: f(y[0]))):
+        got = np.asarray(g(x))
+        want = x[0] if got.ndim == 1 else x
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes()

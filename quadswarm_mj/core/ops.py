@@ -356,8 +356,9 @@ class AlwaysOn(ModelForms):
 def jax_deck_part() -> Any:
     """:func:`quadswarm_mj.sensors.deck_part` with the JAX engine's same-values forms: the float32 erfinv of
     its random numbers (:func:`quadswarm_mj.perf.fused_draws.erf_inv_f32`), the depth camera's hitbox
-    test for XLA:CPU (:func:`quadswarm_mj.perf.depth_xla.sphere_pixel_hits`) and the part computed once
-    for the observation and the info readings (:func:`quadswarm_mj.perf.jax_deck.deck_part`);
+    test for XLA:CPU (:func:`quadswarm_mj.perf.depth_xla.sphere_pixel_hits`) and, with the depth camera,
+    the part computed once for the observation and the info readings
+    (:func:`quadswarm_mj.perf.jax_deck.deck_part`);
     ``build_obs``' ``deck_fn``."""
     from quadswarm_mj.perf.jax_deck import deck_part
 

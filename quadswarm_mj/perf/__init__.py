@@ -11,7 +11,7 @@ it through their ops (:mod:`quadswarm_mj.core.ops`), never the model.
 * ``numpy_loop``: the sub-step loop for small arrays with the control step's constants computed once.
 * ``xla_cpu``: layouts and kernel boundaries for XLA:CPU (``worlds_last``, ``kernel_boundary``,
   integer sort keys); ``depth_xla``: the depth camera's hitbox test for XLA:CPU; ``jax_deck``: the deck
-  part computed once for the observation and the info readings (a kernel boundary).
+  part with the depth camera computed once for the observation and the info readings.
 * ``fused_draws``: a JAX step's random numbers from one unrolled threefry hash (``FusedJaxSampler``,
   the distributions of ``jax.random``; the deck rays' ToF noise from the same numbers).
 * ``jax_substeps``: the JAX engine's default sub-step loop on components (``ComponentLoop``).

@@ -1,23 +1,19 @@
 """The deck sensors' observation part for XLA:CPU (the JAX engine): the model's
 :func:`quadswarm_mj.sensors.deck_part` with the engine's same-values forms (the float32 erfinv of
-:mod:`quadswarm_mj.perf.fused_draws`, the depth camera's hitbox test of :mod:`quadswarm_mj.perf.depth_xla`),
-closed by a kernel boundary: the same values (an exact identity; ``tests/test_sensors_speed.py``).
+:mod:`quadswarm_mj.perf.fused_draws`, the depth camera's hitbox test of :mod:`quadswarm_mj.perf.depth_xla`)
+and, with the depth camera, closed by a kernel boundary: the same values (an exact identity;
+``tests/test_sensors_speed.py``).
 
 Why: the step reads the deck part twice, in the observation's concatenation and in the info readings
-(``sensors.deck_info`` of the observation). XLA:CPU fuses the readings' cheap elementwise chain (the
-rays' minima, the VL53L1x noise, clip and select) into both consumers and computes it twice; with the
-8 x 8 depth camera that is a second pass over the N x 64 rays of every world (in the profile of
+(``sensors.deck_info`` of the observation). XLA:CPU fuses the depth readings' cheap elementwise chain
+(the rays' minima over the room's planes, the VL53L1x noise, clip and select) into both consumers and
+computes it twice, a second pass over the N x H x W rays of every world (in the profile of
 ``quadswarm-profile-jax --sensors depth=8x8``: ``clamp_concatenate_fusion`` f32[512,8,118] for the
 observation and ``clamp_bitcast_fusion`` f32[512,8,8,8] for ``info["depth"]``, each about as long as the
-other). Closed here, the part is computed once and both read it:
-
-* with the depth camera: divided by a run-time array of ones (XLA does not duplicate a division into its
-  consumers, and cannot fold it away);
-* the multi-ranger and flow decks alone: copied through a two-trip loop (a loop's operand and result are
-  buffers; a one-trip loop would be inlined). Their part is 15 numbers per quad, the copy is cheap.
-
-Each was kept by alternating rounds of the 512 x 8 step (BENCHMARKS.md, "The deck sensors' cost"); the
-other boundary was slower for each (the loop with the depth camera ~0.3x against ~0.5x).
+other). Divided by a run-time array of ones (XLA does not duplicate a division into its consumers and
+cannot fold it away), the part is computed once and both read it (the measured gain: BENCHMARKS.md, "The
+deck sensors' cost"). The multi-ranger and flow decks' part (15 numbers per quad) is already one buffer
+(``copy_concatenate_fusion``); a boundary there measured no change and is not taken.
 """
 
 from __future__ import annotations
@@ -34,31 +30,14 @@ def divided_by_ones(x: Any) -> Any:
     return x / one
 
 
-def materialized(x: Any) -> Any:
-    """``x`` (the same values) copied through a two-trip loop over its flat halves: XLA:CPU computes it
-    into a buffer of its own before the loop, and its consumers read the loop's result."""
-    import jax
-    import jax.numpy as jnp
-
-    flat = x.reshape(-1)
-    n = flat.shape[0]
-    h = (n + 1) // 2
-    if 2 * h > n:
-        flat = jnp.concatenate([flat, jnp.zeros((1,), flat.dtype)])
-
-    def body(i: Any, acc: Any) -> Any:
-        return jax.lax.dynamic_update_slice_in_dim(acc, jax.lax.dynamic_slice_in_dim(flat, i * h, h), i * h, 0)
-
-    return jax.lax.fori_loop(0, 2, body, jnp.zeros_like(flat))[:n].reshape(x.shape)
-
-
 def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
               draws: dict[str, Any] | None = None) -> Any:
     """:func:`quadswarm_mj.sensors.deck_part` (same arguments, the same values) of JAX arrays with the JAX
-    engine's erfinv and depth hitbox forms, computed once into its own buffer (see the module doc)."""
+    engine's erfinv and depth hitbox forms; with the depth camera computed once into its own buffer (see
+    the module doc)."""
     from quadswarm_mj.perf.depth_xla import sphere_pixel_hits
     from quadswarm_mj.perf.fused_draws import erf_inv_f32
 
     part = sensors.deck_part(cfg, pos, vel, R, omega, obstacles, draws, erf_inv=erf_inv_f32,
                              pixel_spheres=sphere_pixel_hits)
-    return divided_by_ones(part) if cfg.sensors.depth is not None else materialized(part)
+    return divided_by_ones(part) if cfg.sensors.depth is not None else part
