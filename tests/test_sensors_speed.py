@@ -352,6 +352,30 @@ def test_jax_engine_deck_part_is_the_model_under_jit(sensors):
             assert a.tobytes() == b.tobytes()
 
 
+def test_jax_engine_axis_caster_is_the_model_under_jit():
+    """perf.jax_deck.axis_hits (the body-axis caster with the hitbox test's pair arrays closed by the kernel
+    boundary) gives sensor_rays.axis_hits' JAX values bit for bit under jit(vmap): crowded scenes (a quad
+    inside another's hitbox, rays meeting hitboxes), level and upside-down quads, with and without columns,
+    one quad."""
+    jax = pytest.importorskip("jax")
+    jnp = jax.numpy
+    from quadswarm_mj.perf.jax_deck import axis_hits as engine_form
+
+    for n in (8, 1):
+        c = EnvConfig(num_quads=n, room_size=(6.0, 5.0, 3.0))
+        for seed in range(3):
+            pos, R, omap = _scene(seed, n=n, crowded=n > 1)
+            args = (jnp.asarray(pos, jnp.float32), jnp.asarray(R, jnp.float32))
+            jmap = (jnp.asarray(omap[0], jnp.float32), jnp.asarray(omap[1]), jnp.asarray(omap[2], jnp.float32))
+            for cols in (None, jmap):
+                a, b = (np.asarray(jax.jit(jax.vmap(lambda p, r, m, g=g, c=c: g(p, r, c.room_low, c.room_high, m,
+                                                                                   c.hitbox)))(*args, cols))
+                        for g in (axis_hits, engine_form))
+                assert np.isfinite(a).all() and a.tobytes() == b.tobytes()
+                if n > 1:
+                    assert (a[:, 0] == 0.0).all()  # inside another's hitbox: 0
+
+
 def test_jax_deck_kernel_boundary_is_an_identity():
     """perf.jax_deck's kernel boundary returns its input bit for bit (NaN, infinities, signed zeros; normal
     floats: XLA:CPU flushes subnormals in any arithmetic), under jit and vmap."""
