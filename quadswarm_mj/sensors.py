@@ -196,17 +196,19 @@ def _own_buffer(t: Any, parts: tuple[Any, ...]) -> tuple[Any, ...]:
     return tuple(out[i] for i in range(len(parts)))
 
 
-def deck_ranges(cfg: Any, pos: Any, R: Any, obstacles: Any = None, pixel_spheres: Any = None) -> Any:
+def deck_ranges(cfg: Any, pos: Any, R: Any, obstacles: Any = None, pixel_spheres: Any = None,
+                axis_caster: Any = None) -> Any:
     """(..., N, K) true ranges (m) along :func:`ray_directions` (multi-ranger, flow deck down, depth
     pixels) from the quads' centres ``pos`` (..., N, 3), R (..., N, 3, 3) body -> world, against the
     room, the column map ``obstacles`` = (centres, valid, radius) or None, and the other quads'
     hitboxes: the body-frame casters :func:`axis_hits` and :func:`depth_hits` (= :func:`cast_rays` of
-    :func:`world_rays`, to round-off); ``pixel_spheres``: see :func:`depth_hits`."""
+    :func:`world_rays`, to round-off); ``pixel_spheres``: see :func:`depth_hits`; ``axis_caster``: an
+    engine's same-values form of :func:`axis_hits` (its signature; None: that function)."""
     xp = array_namespace(pos, R)
     s = cfg.sensors
     parts = []
     if s.multiranger or s.flow:
-        t6 = axis_hits(pos, R, cfg.room_low, cfg.room_high, obstacles, cfg.hitbox)
+        t6 = (axis_caster or axis_hits)(pos, R, cfg.room_low, cfg.room_high, obstacles, cfg.hitbox)
         parts.append(t6 if s.multiranger and s.flow else t6[..., :5] if s.multiranger else t6[..., 5:])
     if s.depth is not None:
         parts.append(depth_hits(pos, R, s.depth, s.depth_fov, cfg.room_low, cfg.room_high, obstacles, cfg.hitbox,
@@ -215,7 +217,8 @@ def deck_ranges(cfg: Any, pos: Any, R: Any, obstacles: Any = None, pixel_spheres
 
 
 def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
-              draws: dict[str, Any] | None = None, erf_inv: Any = None, pixel_spheres: Any = None) -> Any:
+              draws: dict[str, Any] | None = None, erf_inv: Any = None, pixel_spheres: Any = None,
+              axis_caster: Any = None) -> Any:
     """(..., N, sensors.obs_dim) the deck sensors' observation part (:func:`deck_layout` order, flags
     as 0.0 / 1.0; :func:`deck_readings` gives it as named readings) from the TRUE state: ``pos`` (...,
     N, 3) m and ``vel`` (..., N, 3) m/s (world), R (..., N, 3, 3) body -> world, ``omega`` (..., N, 3)
@@ -227,10 +230,11 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     Every ToF reading (VL53L1x model, all rays at once; true ranges :func:`deck_ranges`) is valid where
     the true range ``t`` is within its limit and not dropped (u >= dropout); a valid reading is
     ``t + tof_std(t) z`` (z = :func:`tof_normal`) clipped to [0, limit], an invalid one reads the limit.
-    ``erf_inv``, ``pixel_spheres``: an engine's same-values forms (:func:`tof_normal`, :func:`depth_hits`)."""
+    ``erf_inv``, ``pixel_spheres``, ``axis_caster``: an engine's same-values forms (:func:`tof_normal`,
+    :func:`depth_hits`, :func:`deck_ranges`)."""
     xp = array_namespace(pos, vel, R)
     s = cfg.sensors
-    t = deck_ranges(cfg, pos, R, obstacles, pixel_spheres)
+    t = deck_ranges(cfg, pos, R, obstacles, pixel_spheres, axis_caster)
     if xp is np and (draws is None or "range_u" in draws):
         return _deck_part_numpy(s, t, vel, R, omega, draws)
     limit = ray_limits(s)

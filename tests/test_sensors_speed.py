@@ -312,3 +312,80 @@ def test_deck_scratch_table_is_bounded_and_safe_across_threads():
     for t in threads:
         t.join()
     assert not errors and len(numpy_deck._LAST) <= 32
+
+
+@pytest.mark.parametrize("sensors", [{"multiranger": True, "flow": True}, {"depth": (4, 4)},
+                                     {"multiranger": True, "flow": True, "depth": (3, 5), "dropout": 0.2},
+                                     {"flow": True, "light_lux": 10.0}, {"multiranger": True, "noise": False}])
+def test_jax_engine_deck_part_is_the_model_under_jit(sensors):
+    """perf.jax_deck.deck_part (core.ops.jax_deck_part: the model's part with the engine's forms, with the
+    depth camera closed by a kernel boundary) gives the model's values with the same forms under
+    jit(vmap), bit for bit: noise as uniforms, as ToF noise made in advance, none; with and without
+    columns."""
+    import functools
+
+    jax = pytest.importorskip("jax")
+    jnp = jax.numpy
+    from quadswarm_mj.core.ops import jax_deck_part
+    from quadswarm_mj.perf.depth_xla import sphere_pixel_hits
+    from quadswarm_mj.perf.fused_draws import erf_inv_f32, tof_numbers
+    from quadswarm_mj.perf.jax_deck import deck_part as engine_form
+    from quadswarm_mj.sensors import deck_part
+
+    assert jax_deck_part() is engine_form
+    s = SensorConfig(**sensors)
+    c = EnvConfig(num_quads=8, room_size=(6.0, 5.0, 3.0), sensors=s)
+    plain_form = functools.partial(deck_part, erf_inv=erf_inv_f32, pixel_spheres=sphere_pixel_hits)
+    pos, R, omap = _scene(4)
+    rng = np.random.default_rng(4)
+    f32 = lambda x: jnp.asarray(x, jnp.float32) if np.asarray(x).dtype.kind == "f" else jnp.asarray(x)  # noqa: E731
+    u = f32(rng.uniform(size=(5, 8, s.num_rays)))
+    fn = f32(3.0 * rng.normal(size=(5, 8, 2)))
+    for draws in ({"range_u": u, "flow_noise": fn}, {"range_z": tof_numbers(u, s.dropout), "flow_noise": fn}, None):
+        if not s.noise and draws is not None:
+            continue
+        for cols in (None, tuple(f32(x) for x in omap)):
+            args = (f32(pos), f32(2.0 * rng.normal(size=(5, 8, 3))), f32(R), f32(rng.normal(size=(5, 8, 3))), cols,
+                    draws)
+            a, b = (np.asarray(jax.jit(jax.vmap(lambda *x, g=g: g(c, *x)))(*args)) for g in (plain_form, engine_form))
+            assert a.shape == (5, 8, s.obs_dim)
+            assert a.tobytes() == b.tobytes()
+
+
+def test_jax_engine_axis_caster_is_the_model_under_jit():
+    """perf.jax_deck.axis_hits (the body-axis caster with the hitbox test's pair arrays closed by the kernel
+    boundary) gives sensor_rays.axis_hits' JAX values bit for bit under jit(vmap): crowded scenes (a quad
+    inside another's hitbox, rays meeting hitboxes), level and upside-down quads, with and without columns,
+    one quad."""
+    jax = pytest.importorskip("jax")
+    jnp = jax.numpy
+    from quadswarm_mj.perf.jax_deck import axis_hits as engine_form
+
+    for n in (8, 1):
+        c = EnvConfig(num_quads=n, room_size=(6.0, 5.0, 3.0))
+        for seed in range(3):
+            pos, R, omap = _scene(seed, n=n, crowded=n > 1)
+            args = (jnp.asarray(pos, jnp.float32), jnp.asarray(R, jnp.float32))
+            jmap = (jnp.asarray(omap[0], jnp.float32), jnp.asarray(omap[1]), jnp.asarray(omap[2], jnp.float32))
+            for cols in (None, jmap):
+                a, b = (np.asarray(jax.jit(jax.vmap(lambda p, r, m, g=g, c=c: g(p, r, c.room_low, c.room_high, m,
+                                                                                   c.hitbox)))(*args, cols))
+                        for g in (axis_hits, engine_form))
+                assert np.isfinite(a).all() and a.tobytes() == b.tobytes()
+                if n > 1:
+                    assert (a[:, 0] == 0.0).all()  # inside another's hitbox: 0
+
+
+def test_jax_deck_kernel_boundary_is_an_identity():
+    """perf.jax_deck's kernel boundary returns its input bit for bit (NaN, infinities, signed zeros; normal
+    floats: XLA:CPU flushes subnormals in any arithmetic), under jit and vmap."""
+    jax = pytest.importorskip("jax")
+    from quadswarm_mj.perf.jax_deck import divided_by_ones
+
+    x = np.array([[0.0, -0.0, 1.5, -10.0, np.inf, np.nan, 4.0], [2.0, 3.0, -1e30, 1e-30, 1.0, 0.5, -2.0]],
+                 np.float32)
+    f = divided_by_ones
+    for g in (jax.jit(f), jax.jit(jax.vmap(f)), jax.jit(lambda y: f(y[0]))):
+        got = np.asarray(g(x))
+        want = x[0] if got.ndim == 1 else x
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes()

@@ -385,13 +385,14 @@ class AlwaysOn(ModelForms):
 @functools.cache
 def jax_deck_part() -> Any:
     """:func:`quadswarm_mj.sensors.deck_part` with the JAX engine's same-values forms: the float32 erfinv of
-    its random numbers (:func:`quadswarm_mj.perf.fused_draws.erf_inv_f32`) and the depth camera's hitbox
-    test for XLA:CPU (:func:`quadswarm_mj.perf.depth_xla.sphere_pixel_hits`); ``build_obs``' ``deck_fn``."""
-    from quadswarm_mj.perf.depth_xla import sphere_pixel_hits
-    from quadswarm_mj.perf.fused_draws import erf_inv_f32
-    from quadswarm_mj.sensors import deck_part
+    its random numbers (:func:`quadswarm_mj.perf.fused_draws.erf_inv_f32`), the depth camera's hitbox
+    test for XLA:CPU (:func:`quadswarm_mj.perf.depth_xla.sphere_pixel_hits`) and, with the depth camera,
+    the part computed once for the observation and the info readings
+    (:func:`quadswarm_mj.perf.jax_deck.deck_part`);
+    ``build_obs``' ``deck_fn``."""
+    from quadswarm_mj.perf.jax_deck import deck_part
 
-    return functools.partial(deck_part, erf_inv=erf_inv_f32, pixel_spheres=sphere_pixel_hits)
+    return deck_part
 
 
 class JaxOps(AlwaysOn):

@@ -9,8 +9,8 @@ it through their ops (:mod:`quadswarm_mj.core.ops`), never the model.
   observation), bit-identical to the array forms; ``one_quad_step``: on those bodies, the whole sub-step
   loop and the whole task stage of one quad (``NumpyOps.fused_loop``, ``fused_task``).
 * ``numpy_loop``, ``numpy_swarm``, ``numpy_swarm_task``: the sub-step loop and the task half of several quads.
-* ``xla_cpu``: layouts and kernel boundaries for XLA:CPU (``worlds_last``, ``kernel_boundary``,
-  integer sort keys); ``depth_xla``: the depth camera's hitbox test for XLA:CPU.
+* ``xla_cpu``: layouts and kernel boundaries for XLA:CPU (``worlds_last``, ``kernel_boundary``, integer
+  sort keys); ``depth_xla``: the depth camera's hitbox test; ``jax_deck``: its deck part computed once.
 * ``fused_draws``: a JAX step's random numbers from one unrolled threefry hash (``FusedJaxSampler``,
   the distributions of ``jax.random``; the deck rays' ToF noise from the same numbers).
 * ``jax_substeps``: the JAX engine's default sub-step loop on components (``ComponentLoop``).
