@@ -70,6 +70,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--eval-episodes", type=int, default=20)
     p.add_argument("--neighbors", type=int, default=6, help="nearest neighbours observed (K)")
+    p.add_argument("--random-neighbor-init", action="store_true", help="keep SB3's init of the neighbour inputs")
     p.add_argument("--reward", action="append", default=[], metavar="TERM=SCALE",
                    help="reward scale overrides (repeatable), e.g. quad_collision=5 (the paper's)")
     p.add_argument("--smoke", action="store_true", help="a few hundred steps on 0.5 s episodes (CI)")
@@ -94,9 +95,10 @@ def main() -> None:
                 n_epochs=4, learning_rate=lambda frac: lr0 * (0.1 + 0.9 * frac), gamma=0.99, gae_lambda=0.95,
                 clip_range=0.2, ent_coef=0.0, max_grad_norm=1.0, seed=args.seed,
                 policy_kwargs={"log_std_init": -0.5, "net_arch": [64, 64]}, verbose=0)
-    with torch.no_grad():  # the neighbour inputs start at zero weight: each quad first learns to fly to its goal
-        for net in (model.policy.mlp_extractor.policy_net, model.policy.mlp_extractor.value_net):
-            net[0].weight[:, cfg.self_obs_dim:] = 0.0
+    if not args.random_neighbor_init:  # neighbour inputs at zero weight: each quad first learns to reach its goal
+        with torch.no_grad():
+            for net in (model.policy.mlp_extractor.policy_net, model.policy.mlp_extractor.value_net):
+                net[0].weight[:, cfg.self_obs_dim:] = 0.0
     print(f"{venv.num_envs} SB3 envs ({args.worlds} worlds x 8 quads), observation {venv.observation_space.shape}",
           flush=True)
     t0 = time.time()
