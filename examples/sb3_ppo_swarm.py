@@ -3,6 +3,8 @@
 ``QuadSwarmSB3VecEnv`` turns W worlds of 8 quads (``QuadSwarmVectorEnv``) into W * 8 SB3 envs, one per
 quad; SB3 sees each quad as an env of its own (observation: own state + 6 nearest neighbours, 54 floats),
 and time-limit ends arrive as ``TimeLimit.truncated`` so that PPO bootstraps them. No SuperSuit needed.
+What makes it learn (docs/examples.md): the neighbour inputs start at zero weight (each quad first learns to
+fly to its own goal), and the collision/proximity penalties are off.
 
     python examples/sb3_ppo_swarm.py                                # the recorded run: 6 M agent-steps
     python examples/sb3_ppo_swarm.py --smoke                        # a few hundred steps (CI)

@@ -5,7 +5,8 @@ each agent's batch updating them in turn), with skrl's running observation and v
 time-limit ends bootstrapped (``time_limit_bootstrap``). Training runs on ``BatchedParallelEnv``: PettingZoo's
 parallel API over the W worlds of ``QuadSwarmVectorEnv`` (every value with a leading world axis, which skrl's
 PettingZoo wrapper reads from ``num_envs``; one jitted engine call per step). ``--worlds 1`` trains on
-``quadswarm_v0.parallel_env`` itself (one world: about 1.5 ms of CPU per agent-step in skrl).
+``quadswarm_v0.parallel_env`` itself (one world: about 1.5 ms of CPU per agent-step in skrl). As in
+``sb3_ppo_swarm.py``: the neighbour inputs start at zero weight, no collision/proximity penalty.
 
     python examples/skrl_ppo_pettingzoo.py                          # the recorded run (docs/examples.md)
     python examples/skrl_ppo_pettingzoo.py --smoke                  # a few hundred steps (CI)
@@ -128,12 +129,13 @@ def main() -> None:
     p.add_argument("--engine", choices=("jax", "mujoco"), default="jax", help="the smoke test uses mujoco (no compile)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--eval-episodes", type=int, default=5)
-    p.add_argument("--zero-neighbor-init", action="store_true", help="neighbour inputs start at zero weight")
+    p.add_argument("--random-neighbor-init", action="store_true", help="keep torch's init of the neighbour inputs")
     p.add_argument("--reward", action="append", default=[], metavar="TERM=SCALE",
-                   help="reward scale overrides (repeatable), e.g. quad_collision=0")
+                   help="reward scale overrides (repeatable), e.g. quad_collision=5 (the paper's)")
     p.add_argument("--smoke", action="store_true", help="a few hundred steps on 0.5 s episodes (CI)")
     args = p.parse_args()
-    rewards = {"pos": 3.0, **{k: float(v) for k, v in (r.split("=") for r in args.reward)}}
+    rewards = {"pos": 3.0, "quad_collision": 0.0, "proximity": 0.0,  # no collision penalty (docs/examples.md)
+               **{k: float(v) for k, v in (r.split("=") for r in args.reward)}}
     env_kwargs = {"num_quads": args.num_quads, "scenario": args.scenario, "rewards": rewards,
                   "engine": args.engine}
     if args.smoke:
@@ -148,8 +150,8 @@ def main() -> None:
         raw = BatchedParallelEnv(cfg, args.worlds, env_kwargs["engine"])
     env = wrap_env(raw, wrapper="pettingzoo")
     obs_space, act_space = env.observation_spaces[env.possible_agents[0]], env.action_spaces[env.possible_agents[0]]
-    # --zero-neighbor-init: the neighbour inputs (after the quad's own block) start at zero weight
-    own = EnvConfig(num_quads=args.num_quads).self_obs_dim if args.zero_neighbor_init else obs_space.shape[0]
+    # the neighbour inputs (after the quad's own block) start at zero weight: each quad first learns its goal
+    own = obs_space.shape[0] if args.random_neighbor_init else EnvConfig(num_quads=args.num_quads).self_obs_dim
     policy, value = Policy(obs_space, act_space, own), Value(obs_space, act_space, own)  # shared by every quad
     def each(v: dict) -> dict:
         return {uid: v for uid in env.possible_agents}
