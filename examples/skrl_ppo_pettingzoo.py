@@ -5,7 +5,8 @@ each agent's batch updating them in turn), with skrl's running observation and v
 time-limit ends bootstrapped (``time_limit_bootstrap``). Training runs on ``BatchedParallelEnv``: PettingZoo's
 parallel API over the W worlds of ``QuadSwarmVectorEnv`` (every value with a leading world axis, which skrl's
 PettingZoo wrapper reads from ``num_envs``; one jitted engine call per step). ``--worlds 1`` trains on
-``quadswarm_v0.parallel_env`` itself (one world: about 1.5 ms of CPU per agent-step in skrl).
+``quadswarm_v0.parallel_env`` itself (one world: about 1.5 ms of CPU per agent-step in skrl). As in
+``sb3_ppo_swarm.py``: the neighbour inputs start at zero weight, no collision/proximity penalty.
 
     python examples/skrl_ppo_pettingzoo.py                          # the recorded run (docs/examples.md)
     python examples/skrl_ppo_pettingzoo.py --smoke                  # a few hundred steps (CI)
@@ -67,17 +68,21 @@ class BatchedParallelEnv:
         self.venv.close()
 
 
-def mlp(n_in: int, n_out: int) -> nn.Sequential:
-    return nn.Sequential(nn.Linear(n_in, 64), nn.Tanh(), nn.Linear(64, 64), nn.Tanh(), nn.Linear(64, n_out))
+def mlp(n_in: int, n_out: int, own: int) -> nn.Sequential:
+    """MLP 64-64 tanh; the inputs past the first ``own`` (the neighbours, when ``own < n_in``) start at zero weight."""
+    net = nn.Sequential(nn.Linear(n_in, 64), nn.Tanh(), nn.Linear(64, 64), nn.Tanh(), nn.Linear(64, n_out))
+    with torch.no_grad():
+        net[0].weight[:, own:] = 0.0
+    return net
 
 
 class Policy(GaussianMixin, Model):
     """Gaussian policy: MLP 64-64 (tanh) for the mean, a learned state-independent log std."""
 
-    def __init__(self, observation_space, action_space, device=None):
+    def __init__(self, observation_space, action_space, own: int, device=None):
         Model.__init__(self, observation_space=observation_space, action_space=action_space, device=device)
         GaussianMixin.__init__(self, clip_actions=False)  # the env clips actions into [-1, 1]
-        self.net = mlp(self.num_observations, self.num_actions)
+        self.net = mlp(self.num_observations, self.num_actions, own)
         self.log_std = nn.Parameter(torch.full((self.num_actions,), -0.5))
 
     def compute(self, inputs, role=""):
@@ -85,10 +90,10 @@ class Policy(GaussianMixin, Model):
 
 
 class Value(DeterministicMixin, Model):
-    def __init__(self, observation_space, action_space, device=None):
+    def __init__(self, observation_space, action_space, own: int, device=None):
         Model.__init__(self, observation_space=observation_space, action_space=action_space, device=device)
         DeterministicMixin.__init__(self)
-        self.net = mlp(self.num_observations, 1)
+        self.net = mlp(self.num_observations, 1, own)
 
     def compute(self, inputs, role=""):
         return self.net(inputs["observations"]), {}
@@ -120,12 +125,18 @@ def main() -> None:
     p.add_argument("--worlds", type=int, default=64, help="worlds stepped together (1: quadswarm_v0.parallel_env)")
     p.add_argument("--rollouts", type=int, default=64, help="env steps per PPO update")
     p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--mini-batches", type=int, default=4, help="minibatches per agent per epoch")
     p.add_argument("--engine", choices=("jax", "mujoco"), default="jax", help="the smoke test uses mujoco (no compile)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--eval-episodes", type=int, default=5)
+    p.add_argument("--random-neighbor-init", action="store_true", help="keep torch's init of the neighbour inputs")
+    p.add_argument("--reward", action="append", default=[], metavar="TERM=SCALE",
+                   help="reward scale overrides (repeatable), e.g. quad_collision=5 (the paper's)")
     p.add_argument("--smoke", action="store_true", help="a few hundred steps on 0.5 s episodes (CI)")
     args = p.parse_args()
-    env_kwargs = {"num_quads": args.num_quads, "scenario": args.scenario, "rewards": {"pos": 3.0},
+    rewards = {"pos": 3.0, "quad_collision": 0.0, "proximity": 0.0,  # no collision penalty (docs/examples.md)
+               **{k: float(v) for k, v in (r.split("=") for r in args.reward)}}
+    env_kwargs = {"num_quads": args.num_quads, "scenario": args.scenario, "rewards": rewards,
                   "engine": args.engine}
     if args.smoke:
         args.total_steps, args.rollouts, args.eval_episodes, args.worlds = 150, 50, 1, 2
@@ -139,13 +150,15 @@ def main() -> None:
         raw = BatchedParallelEnv(cfg, args.worlds, env_kwargs["engine"])
     env = wrap_env(raw, wrapper="pettingzoo")
     obs_space, act_space = env.observation_spaces[env.possible_agents[0]], env.action_spaces[env.possible_agents[0]]
-    policy, value = Policy(obs_space, act_space), Value(obs_space, act_space)  # shared by every quad
+    # the neighbour inputs (after the quad's own block) start at zero weight: each quad first learns its goal
+    own = obs_space.shape[0] if args.random_neighbor_init else EnvConfig(num_quads=args.num_quads).self_obs_dim
+    policy, value = Policy(obs_space, act_space, own), Value(obs_space, act_space, own)  # shared by every quad
     def each(v: dict) -> dict:
         return {uid: v for uid in env.possible_agents}
 
     models = {uid: {"policy": policy, "value": value} for uid in env.possible_agents}
     memories = {uid: RandomMemory(memory_size=args.rollouts, num_envs=env.num_envs) for uid in env.possible_agents}
-    cfg = IPPO_CFG(rollouts=args.rollouts, learning_epochs=4, mini_batches=4, learning_rate=args.lr,
+    cfg = IPPO_CFG(rollouts=args.rollouts, learning_epochs=4, mini_batches=args.mini_batches, learning_rate=args.lr,
                    discount_factor=0.99, gae_lambda=0.95, grad_norm_clip=1.0, entropy_loss_scale=0.0,
                    value_loss_scale=1.0, time_limit_bootstrap=True,
                    observation_preprocessor=RunningStandardScaler,
