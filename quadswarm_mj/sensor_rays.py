@@ -239,14 +239,16 @@ def _axis_hits_numpy(pos: np.ndarray, R: np.ndarray, room_low: Any, room_high: A
 
 
 def axis_hits(pos: Any, R: Any, room_low: Any, room_high: Any, columns: Any = None,
-              quad_radius: float | None = None) -> Any:
+              quad_radius: float | None = None, share: Any = None) -> Any:
     """(..., N, 6) range (m) along the body axes +x, -x, +y, -y, +z, -z (:data:`AXIS_DIRS`) from the
     quads' centres ``pos`` (..., N, 3), R (..., N, 3, 3) body -> world; otherwise as :func:`cast_rays`
     (the same values to round-off).
 
     The world component a of body axis c is R[a, c], so the room's quotients are ``gap_a / R[a, c]``
     (along -c they change sign), and the dot product of ray +-c with a neighbour's offset is +-ob_c.
-    NumPy works on (..., N, 3, 3) and (..., N, N, 3) arrays (few calls); XLA:CPU on one array per axis."""
+    NumPy works on (..., N, 3, 3) and (..., N, N, 3) arrays (few calls); XLA:CPU on one array per axis.
+    ``share``: an engine's identity on the hitbox test's pair arrays (the same values), applied before
+    they are read (``perf.jax_deck`` passes one that makes XLA compute them once)."""
     xp = array_namespace(pos, R)
     spheres = quad_radius is not None and pos.shape[-2] > 1
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -256,6 +258,8 @@ def axis_hits(pos: Any, R: Any, room_low: Any, room_high: Any, columns: Any = No
             gap_hi, gap_lo = _room_gaps(xp, pos, room_low, room_high)
             if spheres:
                 ob, c, inside = _offsets(xp, pos, R, quad_radius)
+                if share is not None:
+                    c, *ob = (share(x) for x in (c, *ob))
                 sc = xp.sqrt(xp.maximum(c, 0.0))
             outs = []
             for k in range(3):  # body axis k: rays +k, -k

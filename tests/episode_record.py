@@ -24,3 +24,18 @@ def record_random_run(env: Any, seed: int, steps: int, outputs: Callable[[Any, f
             obs, info = env.reset()
             out.append(obs)
     return out
+
+
+def record_three_world_run(core: Any, outputs: Callable[[Any, dict], list], steps: int = 300) -> list:
+    """A seeded run of a 3-world, 4-quad ``CpuSwarm`` (Gaussian actions around hover, world 1 reset alone
+    halfway); ``outputs(core, step_output)`` lists what each step records."""
+    core.seed(5)
+    core.reset()
+    rng = np.random.default_rng(6)
+    run = []
+    for t in range(steps):
+        o = core.step(np.clip(-0.2 + 0.8 * rng.standard_normal((3, 4, 4)), -1, 1))
+        run += outputs(core, o)
+        if t == steps // 2:
+            core.reset(mask=np.array([False, True, False]))
+    return run

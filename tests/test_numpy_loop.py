@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from episode_record import record_random_run
+from episode_record import record_random_run, record_three_world_run
 
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.envs.cpu_core import CpuSwarm
@@ -52,16 +52,8 @@ def test_several_worlds_are_the_per_substep_ops_bitwise(backend):
         try:
             core = CpuSwarm(EnvConfig(num_quads=4, scenario="swap_goals"), num_worlds=3, backend=backend,
                             visual=False)
-            core.seed(5)
-            core.reset()
-            rng = np.random.default_rng(6)
-            run = []
-            for t in range(300):
-                o = core.step(np.clip(-0.2 + 0.8 * rng.standard_normal((3, 4, 4)), -1, 1))
-                run += [o["obs"], o["rewards"], core.qpos.copy(), core.qvel.copy(), core.on_floor.copy()]
-                if t == 150:
-                    core.reset(mask=np.array([False, True, False]))
-            out.append(run)
+            out.append(record_three_world_run(core, lambda c, o: [o["obs"], o["rewards"], c.qpos.copy(),
+                                                                 c.qvel.copy(), c.on_floor.copy()]))
         finally:
             numpy_loop.ENABLED = True
     for a, b in zip(*out):

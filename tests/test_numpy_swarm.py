@@ -9,7 +9,7 @@ import copy
 
 import numpy as np
 import pytest
-from episode_record import record_random_run
+from episode_record import record_random_run, record_three_world_run
 
 from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.envs.gym_env import QuadSwarmEnv
@@ -102,16 +102,8 @@ def test_task_several_worlds_are_the_model_functions_bitwise():
         try:
             core = CpuSwarm(EnvConfig(num_quads=4, scenario="swap_goals"), num_worlds=3, visual=False)
             assert isinstance(core._ops.fused_task, SwarmTask) == enabled
-            core.seed(5)
-            core.reset()
-            rng = np.random.default_rng(6)
-            run = []
-            for t in range(300):
-                o = core.step(np.clip(-0.2 + 0.8 * rng.standard_normal((3, 4, 4)), -1, 1))
-                run += [o["obs"], o["rewards"], *o["terms"].values(), *core.episode_metrics().values()]
-                if t == 150:
-                    core.reset(mask=np.array([False, True, False]))
-            out.append(run)
+            out.append(record_three_world_run(core, lambda c, o: [o["obs"], o["rewards"], *o["terms"].values(),
+                                                                 *c.episode_metrics().values()]))
         finally:
             numpy_swarm_task.ENABLED = True
     for a, b in zip(*out):

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from quadswarm_mj import sensors
+from quadswarm_mj import sensor_rays, sensors
 
 
 def divided_by_ones(x: Any) -> Any:
@@ -50,35 +50,4 @@ def axis_hits(pos: Any, R: Any, room_low: Any, room_high: Any, columns: Any = No
               quad_radius: float | None = None) -> Any:
     """:func:`quadswarm_mj.sensor_rays.axis_hits` under JAX (the same operations, the same values) with
     the hitbox test's pair arrays computed once (see the module doc)."""
-    import jax.numpy as jnp
-
-    from quadswarm_mj.sensor_rays import _offsets, _room_gaps, column_hits_xy
-
-    spheres = quad_radius is not None and pos.shape[-2] > 1
-    gap_hi, gap_lo = _room_gaps(jnp, pos, room_low, room_high)
-    if spheres:
-        ob, c, inside = _offsets(jnp, pos, R, quad_radius)
-        c, *ob = (divided_by_ones(x) for x in (c, *ob))  # computed once, read by the 4 roots and 6 tests
-        sc = jnp.sqrt(jnp.maximum(c, 0.0))
-    outs = []
-    for k in range(3):  # body axis k: rays +k, -k
-        t_pos = t_neg = None
-        for a in range(3):
-            inv = 1.0 / R[..., a, k]
-            q_hi, q_lo = gap_hi[..., a] * inv, gap_lo[..., a] * inv
-            p_a, n_a = jnp.maximum(q_hi, q_lo), -jnp.minimum(q_hi, q_lo)
-            t_pos = p_a if t_pos is None else jnp.minimum(t_pos, p_a)
-            t_neg = n_a if t_neg is None else jnp.minimum(t_neg, n_a)
-        if spheres:
-            b = ob[k]
-            sq = jnp.sqrt(jnp.maximum(b * b - c, 0.0))
-            t_pos = jnp.minimum(t_pos, jnp.min(jnp.where(b >= sc, b - sq, jnp.inf), axis=-1))
-            t_neg = jnp.minimum(t_neg, jnp.min(jnp.where(-b >= sc, -b - sq, jnp.inf), axis=-1))
-        outs += [t_pos, t_neg]
-    t = jnp.stack(outs, axis=-1)
-    if spheres:
-        t = jnp.where(inside[..., None], 0.0, t)
-    if columns is not None:  # the rays' world x and y components: +-R[0, c], +-R[1, c]
-        dx, dy = (jnp.stack([R[..., a, :], -R[..., a, :]], axis=-1).reshape(t.shape) for a in range(2))
-        t = jnp.minimum(t, column_hits_xy(pos, dx, dy, *columns))
-    return t
+    return sensor_rays.axis_hits(pos, R, room_low, room_high, columns, quad_radius, share=divided_by_ones)
