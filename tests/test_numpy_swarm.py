@@ -85,6 +85,8 @@ def _task_episode(enabled: bool, seed: int, **kw) -> list:
      "rewards": {"pos": 0.0, "proximity": 0.0}, "num_neighbors": 0},
     {"num_quads": 6, "room_size": (2.0, 2.0, 2.0)},  # crowded: proximity and collisions
     {"num_quads": 4, "scenario": "run_away", "episode_seconds": 4.0},  # goal jumps (metric segments)
+    {"num_quads": 4, "sensors": {"multiranger": True, "flow": True}},  # the decks' part, noise drawn last
+    {"num_quads": 3, "room_size": (2.0, 2.0, 2.0), "sensors": {"multiranger": True, "depth": (4, 6), "noise": False}},
 ])
 def test_task_episodes_are_the_model_functions_bitwise(kw):
     got, ref = _task_episode(True, 4, **kw), _task_episode(False, 4, **kw)

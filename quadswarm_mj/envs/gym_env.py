@@ -73,9 +73,9 @@ class QuadSwarmEnv(gym.Env):
 
             self._jax = JaxSingleBackend(self.cfg)
         else:
-            # without columns or deck sensors the engine steps a model without the visual geoms (half MuJoCo's
-            # kinematics; the same dynamics), and the renderer draws a visual twin (CpuSwarm.visual_arena)
-            lean = self.cfg.obstacles is None and not self.cfg.sensors.any
+            # without columns the engine steps a model without the visual geoms (half MuJoCo's kinematics; the
+            # same dynamics; the decks cast analytically), and the renderer draws a visual twin (CpuSwarm.visual_arena)
+            lean = self.cfg.obstacles is None
             self.core = CpuSwarm(self.cfg, num_worlds=1, visual=not lean)
         n, d = self.cfg.num_quads, self.cfg.obs_dim
         low, high = obs_bounds(self.cfg)

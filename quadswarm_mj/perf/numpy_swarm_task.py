@@ -9,8 +9,9 @@ changes no bit); the terms as one product of a (T, B, N) cost block with the fac
 terms keep a zero cost) and the reward as their running sum in ``rewards.TERMS`` order (adding -0.0 changes
 no bit); the proximity term (+0.0 with no pair within the falloff), the collision count and the metric
 accumulators that only events change gated on their events (x + 0.0 is x for these non-negative sums); the
-observation written part by part into one fresh array. Used for the "rotor" mode without obstacles or deck
-sensors, "base"/"floor" own state, neighbours by distance without neighbour noise, several quads. NumPy only.
+observation written part by part into one fresh array (the decks' part by ``perf.numpy_deck``). Used for the
+"rotor" mode without obstacles, "base"/"floor" own state, neighbours by distance without neighbour noise,
+several quads. NumPy only.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj import rewards
 from quadswarm_mj.collisions import off_diagonal
 from quadswarm_mj.observations import _gather_index, _neighbor_bounds, _obs_neighbor_bounds
+from quadswarm_mj.perf import numpy_deck
 from quadswarm_mj.pipeline import _no_jump
 
 #: set to False for the model's functions (the same-values tests compare the two)
@@ -39,7 +41,7 @@ _NORM_TERMS = ("pos", "effort", "spin", "vel", "action_change")
 
 def applies(cfg: Any, B: int, N: int) -> bool:
     """Whether :class:`SwarmTask` covers an engine of B worlds of N quads with ``cfg``."""
-    return (B * N > 1 and cfg.control_mode == "rotor" and cfg.obstacles is None and not cfg.sensors.any
+    return (B * N > 1 and cfg.control_mode == "rotor" and cfg.obstacles is None
             and cfg.obs_self in ("base", "floor") and not cfg.noise.neighbor_obs_noise
             and (cfg.neighbors == 0 or cfg.neighbor_sort == "distance"))
 
@@ -142,7 +144,8 @@ class SwarmTask:
         out, dist_goal = self._rewards(s, k, action, goals, anneal, any_new)
         hf, hw, hc = k["hit_floor"], k["hit_wall"], k["hit_ceiling"]
         m = self._metrics(s["metrics_acc"], t[..., None], dist_goal, new_contact, any_new, hf, hw, hc, jump)
-        obs = self._obs(pos, vel, R, omega, goals, ops.draws("sensor", None, None), k["dist"])
+        obs = self._obs(pos, vel, R, omega, goals, ops.draws("sensor", None, None), k["dist"],
+                        ops.draws("deck", None, None))
         return {"steps": steps, "total_steps": total_steps, "t": t, "sstate": sstate, "goals": goals,
                 "goal_vel": goal_vel, "terms": dict(zip(self.terms, out[1:])), "reward": out[0], "metrics_acc": m,
                 "obst_metrics": None, "obs": obs, "done": steps >= self.episode_steps, "rows": out}
@@ -248,7 +251,7 @@ class SwarmTask:
         return out
 
     def _obs(self, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray, goals: np.ndarray,
-             noise: dict[str, Any] | None, dist: np.ndarray) -> np.ndarray:
+             noise: dict[str, Any] | None, dist: np.ndarray, deck_draws: dict[str, Any] | None) -> np.ndarray:
         """:func:`quadswarm_mj.observations.build_obs` (same values) for this layout."""
         B, N = self.B, self.N
         obs = np.empty((B, N, self.D))
@@ -276,6 +279,8 @@ class SwarmTask:
             np.subtract(self.pv.take((idx.reshape(B * N, K) + self.first).reshape(-1), axis=0).reshape(B, N, K, 6),
                         self.pv.take(self.own, axis=0).reshape(B, N, K, 6),
                         out=obs[..., d0:d0 + 6 * K].reshape(B, N, K, 6))
+        if self.cfg.sensors.any:  # the decks' readings of the true state, last
+            obs[..., self.self_dim + 6 * K:] = numpy_deck.deck_part(self.cfg, pos, vel, R, omega, None, deck_draws)
         np.maximum(obs, self.low, out=obs)
         np.minimum(obs, self.high, out=obs)
         return obs if self.scale is None else obs / self.scale
