@@ -135,6 +135,27 @@ def test_release_writes_to_the_given_directory(tmp_path):
         release("mine", pretrained_dir() / "single.npz", ["static_same_goal"], None)
 
 
+def test_release_records_the_training_method_and_a_chain_of_stages(tmp_path, capsys):
+    from quadswarm_mj.policies import pretrained_dir
+    from quadswarm_mj.training.release import main
+
+    out = tmp_path / "shipped"
+    bad = tmp_path / "bad.json"
+    bad.write_text("[1, 2]")
+    args = ["--name", "mine", "--policy", str(pretrained_dir() / "single.npz"), "--scenarios", "static_same_goal",
+            "--episodes", "1", "--out", str(out)]
+    assert main(args + ["--train-record", str(bad)]) == 2  # not an object: nothing written
+    assert "must be a JSON object" in capsys.readouterr().err and not out.exists()
+    assert main(args + ["--train-record", str(tmp_path / "missing.json")]) == 2
+    assert not out.exists()
+    record = tmp_path / "chain.json"
+    record.write_text(json.dumps({"stages": [{"command": "quadswarm-train --preset single"}], "wall_clock_min": 1}))
+    assert main(args + ["--train-record", str(record)]) == 0
+    train = json.loads((out / "manifest.json").read_text())["policies"]["mine"]["train"]
+    assert train["method"] == "ppo" and train["wall_clock_min"] == 1  # a PPO file: method recorded
+    assert train["stages"][0]["command"] == "quadswarm-train --preset single" and "ppo" in train
+
+
 @pytest.mark.slow
 def test_profile_jax_lists_the_step_kernels(capsys):
     from quadswarm_mj.cli import profile_jax

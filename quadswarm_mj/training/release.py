@@ -49,9 +49,13 @@ def check_name(name: Any) -> str:
 
 
 def release(name: str, policy_path: str | Path, scenarios: list[str], directory: str | Path, episodes: int = 100,
-            seed: int = 0, run_dir: str | Path | None = None, description: str = "") -> dict[str, Any]:
+            seed: int = 0, run_dir: str | Path | None = None, description: str = "",
+            train_record: dict[str, Any] | None = None) -> dict[str, Any]:
     """Evaluate ``policy_path`` on ``scenarios``, then ship it as ``directory/<name>.npz`` and record it in
     ``directory/manifest.json`` (created if missing). Returns the manifest entry.
+
+    ``train_record`` (a JSON object: for a chain of runs its method, stages with their commands, budget and
+    curves) is merged into the entry's ``train``; a PPO policy file's entry gets ``train.method = "ppo"``.
 
     Nothing in ``directory`` changes unless every check and evaluation succeeds: the name, the
     scenarios, the directory, the existing manifest and the policy file are checked first; the
@@ -62,6 +66,8 @@ def release(name: str, policy_path: str | Path, scenarios: list[str], directory:
         raise ValueError("directory must be given (the installed package may be read-only); "
                          "use quadswarm_mj/pretrained in a source checkout")
     check_name(name)
+    if train_record is not None and not isinstance(train_record, dict):
+        raise ValueError(f"the training record must be a JSON object, got {type(train_record).__name__}")
     if not isinstance(scenarios, (list, tuple)) or not scenarios:
         raise ValueError(f"scenarios must be a non-empty list of scenario names, got {scenarios!r}")
     if not isinstance(episodes, int) or isinstance(episodes, bool) or episodes < 1:
@@ -112,6 +118,9 @@ def release(name: str, policy_path: str | Path, scenarios: list[str], directory:
                                  "eval": ev, "train": dict(train) if isinstance(train, dict) else {}}
         if run_info is not None:
             entry["train"]["run"] = run_info
+        if "ppo" in entry["train"]:
+            entry["train"].setdefault("method", "ppo")
+        entry["train"].update(train_record or {})
         entry["env"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in entry["env"].items()}
         if mp.exists():  # re-read: keep entries another release added during the evaluation
             man = read_manifest(d)
@@ -129,11 +138,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--run", help="training run directory (its run.json is recorded)")
     p.add_argument("--description", default="")
+    p.add_argument("--train-record", help="JSON file merged into the entry's train record (method, stages, budget)")
     p.add_argument("--out", required=True, help="directory of shipped policies to write (e.g. quadswarm_mj/pretrained)")
     a = p.parse_args(argv)
     try:
+        record = None
+        if a.train_record is not None:
+            try:
+                record = json.loads(Path(a.train_record).read_text())
+            except (OSError, ValueError) as e:
+                raise ValueError(f"--train-record {a.train_record!r} is not a readable JSON file ({e})") from None
         release(a.name, a.policy, [s.strip() for s in a.scenarios.split(",") if s.strip()], a.out, a.episodes, a.seed,
-                a.run, a.description)
+                a.run, a.description, record)
     except ValueError as e:
         print(f"error: {e}\nnothing was written", file=sys.stderr)
         return 2
