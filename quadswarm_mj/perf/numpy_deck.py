@@ -141,6 +141,7 @@ class _Scratch:
             s.dropout, 1.0 / (1.0 - s.dropout) if s.dropout < 1.0 else 0.0, 2.0 ** -24, 1e-3, sensors.FLOW_MIN_RANGE,
             sensors.FLOW_GAIN))
         self.dark = s.light_lux < sensors.FLOW_MIN_LUX
+        self.ndtri = sensors._ndtri()
         # the buffer [values (rows) | flags (rows)] in its invalid state (the limit, flow 0, flags 0) and the
         # deck_layout columns as indices into it
         self.template = np.zeros(2 * rs)
@@ -290,7 +291,7 @@ def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
         w = _sub(u, p.dropout, out=p.uw)  # tof_normal(u, dropout)
         _mul(w, p.scale, out=w)
         _max(w, p.tiny, out=w)
-        sensors._ndtri()(w, out=p.bk)
+        p.ndtri(w, out=p.bk)
         if p.f:
             p.bf2[...] = draws["flow_noise"]
         _mul(a, p.b, out=a)
