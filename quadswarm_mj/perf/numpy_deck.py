@@ -31,7 +31,8 @@ _clip = np._core.umath.clip
 _add, _sub, _mul, _div, _neg, _abs = np.add, np.subtract, np.multiply, np.divide, np.negative, np.abs
 _max, _min, _le, _ge, _exp, _sqrt, _matmul = np.maximum, np.minimum, np.less_equal, np.greater_equal, np.exp, \
     np.sqrt, np.matmul
-_add_reduce, _fmax_reduce, _fmin_reduce = np.add.reduce, np.fmax.reduce, np.fmin.reduce
+_add_reduce, _min_reduce, _fmax_reduce, _fmin_reduce = np.add.reduce, np.minimum.reduce, np.fmax.reduce, \
+    np.fmin.reduce
 try:  # np.errstate(divide, invalid, over="ignore") as its context variable's value (~8x cheaper to enter)
     from numpy._core._ufunc_config import _extobj_contextvar as _ERR
 except ImportError:  # pragma: no cover (another NumPy)
@@ -69,39 +70,38 @@ class _Scratch:
         self.signs = full(np.array([1.0, -1.0]), room)  # a body axis' two rays
         self.inv, self.q, self.m = e(room), e(room), e(room[1:])
         self.q0, self.q1, self.m0, self.m1, self.m2 = self.q[0], self.q[1], self.m[0], self.m[1], self.m[2]
-        # the rows [ranges (..., N, K) | flow (..., N, 1, 3)]: with both decks the ranges are the 6 axis rays
-        self.rows = e(rs)
-        self.ranges = self.rows[:nq * k].reshape(lead + (k,))
+        # hb = [ob | sqrt(disc) (the hitboxes) | 0 | t6 (the ranges along the 6 body axes)], with both decks t6
+        # the first 6 lanes of the rows [ranges (..., N, K) | flow (..., N, 1, 3)]
+        hit = radius is not None and n > 1
+        pair = lead + (n, 3)
+        size = int(np.prod(pair)) if hit else 0
         both = s.multiranger and s.flow
-        self.t6 = self.ranges if both else e(lead + (6,))
+        self.hb = np.zeros(2 * size + 1 + (rs if both else nq * 6))
+        self.rows = self.hb[2 * size + 1:] if both else e(rs)
+        self.ranges = self.rows[:nq * k].reshape(lead + (k,))
+        self.t6 = self.hb[2 * size + 1:2 * size + 1 + nq * 6].reshape(lead + (6,))
         self.t = self.t6.reshape(lead + (3, 2))
         self.tu = self.t.view(np.uint64)
         self.t_rays = None if both else self.t6[..., slice(0, 5) if s.multiranger else slice(5, 6)]
         self.r2 = None  # (..., N, N) hitbox radius^2, -inf on the diagonal (None: no hitbox test)
-        if radius is not None and n > 1:  # offsets, body frame, disc and its root, the hits gathered (j, ..., N, c, +-)
-            pair = lead + (n, 3)
-            size = int(np.prod(pair))
+        if hit:  # offsets, body frame, disc and its root; the hits and the room's t gathered (j, ..., N, c, +-)
             self.r2 = full(np.where(np.eye(n, dtype=bool), -np.inf, radius * radius), lead + (n,))
             self.pos_idx = np.concatenate([self.pos_idx, np.broadcast_to(pos_id[..., None, :, :], pair).ravel(),
                                            np.broadcast_to(pos_id[..., :, None, :], pair).ravel()])  # quad j, quad i
-            self.h, self.cc = e(2 * size), e(lead + (n,))
-            self.ob, self.disc = self.h[:size].reshape(pair), self.h[size:].reshape(pair)
+            self.cc = e(lead + (n,))
+            self.ob, self.disc = self.hb[:size].reshape(pair), self.hb[size:2 * size].reshape(pair)
             self.cc3 = self.cc[..., None]
-            hits = (n,) + lead + (3, 2)
-            ob_id = np.broadcast_to(np.moveaxis(np.arange(size).reshape(pair), -2, 0)[..., None], hits)
-            self.h_idx = np.concatenate([ob_id.ravel(), (ob_id + size).ravel()])
-            self.hg = e(2 * int(np.prod(hits)))
+            hits = (n + 1,) + lead + (3, 2)  # row N: the room's t (times 1, minus 0)
+            ob_id = np.moveaxis(np.arange(size).reshape(pair), -2, 0)[..., None]
+            ob_id = np.concatenate([np.broadcast_to(ob_id, (n,) + hits[1:]),
+                                    (2 * size + 1 + np.arange(nq * 6)).reshape((1,) + hits[1:])])
+            sq_id = np.concatenate([ob_id[:n] + size, np.full((1,) + hits[1:], 2 * size)])
+            self.h_idx = np.concatenate([ob_id.ravel(), sq_id.ravel()])
+            self.hg = e(self.h_idx.size)
             self.obg, self.sqg = self.hg[:self.hg.size // 2].reshape(hits), self.hg[self.hg.size // 2:].reshape(hits)
+            self.obg_u = self.obg.view(np.uint64)
             self.hsigns = full(np.array([1.0, -1.0]), hits)
-            self.halving, x, kk = [], self.obg.view(np.uint64), n  # the minimum over j by halving
-            while kk > 1:
-                hh = kk // 2
-                out = e((hh,) + hits[1:], np.uint64)
-                self.halving.append((x[:hh], x[hh:2 * hh], out))
-                if kk % 2:
-                    self.halving.append((out[:1], x[2 * hh:], out[:1]))
-                x, kk = out, hh
-            self.near = x[0]
+            self.hsigns[-1] = 1.0
         self.pg = e(self.pos_idx.size)  # the gathered pos: the room's gaps, then the pairs' quad j and quad i
         self.gaps = self.pg[:self.q.size].reshape(room)
         if self.r2 is not None:
@@ -208,12 +208,10 @@ def _axis_hits(p: _Scratch, pos: np.ndarray, R: np.ndarray) -> None:
         # along +-c the hit is +-ob_c - sqrt(disc); kept where >= 0 (a miss: NaN, behind: < 0; both order
         # above +inf as unsigned integers)
         _sqrt(disc, out=disc)
-        p.h.take(p.h_idx, None, p.hg, "wrap")  # (j, ..., N (i), c, +-): ob, sqrt(disc)
+        p.hb.take(p.h_idx, None, p.hg, "wrap")  # (j, ..., N (i), c, +-): ob, sqrt(disc); the room's t
         obg = _mul(p.obg, p.hsigns, out=p.obg)
         _sub(obg, p.sqg, out=obg)
-        for x, y, out in p.halving:  # the nearest over the neighbours
-            _min(x, y, out=out)
-        _min(p.tu, p.near, out=p.tu)  # the room's t: finite, >= 0
+        _min_reduce(p.obg_u, axis=0, out=p.tu)  # the nearest of the neighbours and the room (t: finite, >= 0)
         if _fmin_reduce(c, axis=None) < 0.0:  # (inside another's hitbox: disc > 0 along every axis)
             inside = np.logical_or.reduce(c < 0.0, axis=-1)
             t[inside] = 0.0
