@@ -71,9 +71,12 @@ class _Scratch:
         self.inv, self.q, self.m = e(room), e(room), e(room[1:])
         self.q0, self.q1, self.m0, self.m1, self.m2 = self.q[0], self.q[1], self.m[0], self.m[1], self.m[2]
         # hb = [ob | sqrt(disc) (the hitboxes) | 0 | t6 (the ranges along the 6 body axes)], with both decks t6
-        # the first 6 lanes of the rows [ranges (..., N, K) | flow (..., N, 1, 3)]
+        # the first 6 lanes of the rows [ranges (..., N, K) | flow (..., N, 1, 3)]. With the flow deck the body
+        # velocity is the pairs' matrix product's row N (its offset row: vel - 0; never a hit)
         hit = radius is not None and n > 1
-        pair = lead + (n, 3)
+        self.vel_row = hit and f > 0
+        nv = n + self.vel_row
+        pair = lead + (nv, 3)
         size = int(np.prod(pair)) if hit else 0
         both = s.multiranger and s.flow
         self.hb = np.zeros(2 * size + 1 + (rs if both else nq * 6))
@@ -83,16 +86,26 @@ class _Scratch:
         self.t = self.t6.reshape(lead + (3, 2))
         self.tu = self.t.view(np.uint64)
         self.t_rays = None if both else self.t6[..., slice(0, 5) if s.multiranger else slice(5, 6)]
-        self.r2 = None  # (..., N, N) hitbox radius^2, -inf on the diagonal (None: no hitbox test)
+        self.r2 = None  # (..., N, N (+ 1)) hitbox radius^2, -inf on the diagonal (None: no hitbox test)
+        self.pv = np.zeros(2 * nq * 3 + 1)  # [pos | vel | 0]: the gathers' source with the velocity row
+        self.pv_pos, self.pv_vel = self.pv[:nq * 3].reshape(shape), self.pv[nq * 3:2 * nq * 3].reshape(shape)
         if hit:  # offsets, body frame, disc and its root; the hits and the room's t gathered (j, ..., N, c, +-)
-            self.r2 = full(np.where(np.eye(n, dtype=bool), -np.inf, radius * radius), lead + (n,))
-            self.pos_idx = np.concatenate([self.pos_idx, np.broadcast_to(pos_id[..., None, :, :], pair).ravel(),
-                                           np.broadcast_to(pos_id[..., :, None, :], pair).ravel()])  # quad j, quad i
-            self.cc = e(lead + (n,))
+            r2 = np.full((n, nv), radius * radius)
+            r2[:, n:] = -np.inf
+            np.fill_diagonal(r2, -np.inf)
+            self.r2 = full(r2, lead + (nv,))
+            pj = np.broadcast_to(pos_id[..., None, :, :], lead + (n, 3))  # (..., N (i), N (j), 3): quad j, quad i
+            pi = np.broadcast_to(pos_id[..., :, None, :], lead + (n, 3))
+            if self.vel_row:
+                pj = np.concatenate([pj, (nq * 3 + pos_id)[..., None, :]], axis=-2)
+                pi = np.concatenate([pi, np.full(lead + (1, 3), 2 * nq * 3)], axis=-2)
+            self.pos_idx = np.concatenate([self.pos_idx, pj.ravel(), pi.ravel()])
+            self.cc = e(lead + (nv,))
             self.ob, self.disc = self.hb[:size].reshape(pair), self.hb[size:2 * size].reshape(pair)
+            self.ob_vel = self.ob[..., n:, :]  # (..., N, 1, 3) the body velocity (with the flow deck)
             self.cc3 = self.cc[..., None]
             hits = (n + 1,) + lead + (3, 2)  # row N: the room's t (times 1, minus 0)
-            ob_id = np.moveaxis(np.arange(size).reshape(pair), -2, 0)[..., None]
+            ob_id = np.moveaxis(np.arange(size).reshape(pair)[..., :n, :], -2, 0)[..., None]
             ob_id = np.concatenate([np.broadcast_to(ob_id, (n,) + hits[1:]),
                                     (2 * size + 1 + np.arange(nq * 6)).reshape((1,) + hits[1:])])
             sq_id = np.concatenate([ob_id[:n] + size, np.full((1,) + hits[1:], 2 * size)])
@@ -105,8 +118,8 @@ class _Scratch:
         self.pg = e(self.pos_idx.size)  # the gathered pos: the room's gaps, then the pairs' quad j and quad i
         self.gaps = self.pg[:self.q.size].reshape(room)
         if self.r2 is not None:
-            size = int(np.prod(lead + (n, 3)))
-            self.pj, self.pi = (self.pg[self.q.size + i * size:self.q.size + (i + 1) * size].reshape(lead + (n, 3))
+            size = int(np.prod(pair))
+            self.pj, self.pi = (self.pg[self.q.size + i * size:self.q.size + (i + 1) * size].reshape(pair)
                                 for i in (0, 1))
         # --- the readings on the rows and their like
         self.a, self.b, self.ab, self.ab2 = e(rs), np.zeros(rs), e(rs), e(rs)
@@ -182,10 +195,15 @@ def _scratch(cfg: Any, shape: tuple[int, ...]) -> _Scratch:
     return hit[1]
 
 
-def _axis_hits(p: _Scratch, pos: np.ndarray, R: np.ndarray) -> None:
+def _axis_hits(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray) -> None:
     """``sensor_rays._axis_hits_numpy`` (the same bits) into ``p.t`` (..., N, 3, 2): the ranges along the
     +-body axes. Call with the divide and invalid errors ignored."""
-    pos.take(p.pos_idx, None, p.pg, "wrap")
+    if p.vel_row:
+        p.pv_pos[...] = pos
+        p.pv_vel[...] = vel
+        p.pv.take(p.pos_idx, None, p.pg, "wrap")
+    else:
+        pos.take(p.pos_idx, None, p.pg, "wrap")
     gaps = p.gaps
     _sub(p.planes, gaps, out=gaps)  # high and low planes minus pos
     _clip(gaps, p.g_lo, p.g_hi, out=gaps)  # kept > 0 (high) and < 0 (low)
@@ -198,7 +216,7 @@ def _axis_hits(p: _Scratch, pos: np.ndarray, R: np.ndarray) -> None:
     _min(t, p.m2, out=t)
     if p.r2 is None:
         return
-    o = _sub(p.pj, p.pi, out=p.pj)  # (..., N (i), N (j), 3): quad j - quad i
+    o = _sub(p.pj, p.pi, out=p.pj)  # (..., N (i), N (j) (+ 1), 3): quad j - quad i (, vel)
     ob = _matmul(o, R, out=p.ob)  # body frame of quad i: ob[i, j, c] = sum_a o[i, j, a] R[i, a, c]
     disc = _mul(ob, ob, out=p.disc)
     c = _add_reduce(disc, axis=-1, out=p.cc)
@@ -247,7 +265,7 @@ def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
     """:func:`deck_part`'s work (with the divide, invalid and overflow errors ignored): ``p.t`` the true
     ranges, then ``sensors._deck_part_numpy`` (the same bits) from them: the deck part in
     :func:`sensors.deck_layout` order (a fresh array)."""
-    _axis_hits(p, pos, R)
+    _axis_hits(p, pos, vel, R)
     if obstacles is not None:  # the rays' world x and y components: +-R[0, c], +-R[1, c] (as axis_hits)
         dx, dy = (np.stack([R[..., a, :], -R[..., a, :]], axis=-1).reshape(p.t6.shape) for a in range(2))
         _min(p.t6, column_hits_xy(pos, dx, dy, *obstacles), out=p.t6)
@@ -256,7 +274,11 @@ def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
     rows, m = p.rows, p.m_ok
     p.buf[...] = p.template  # invalid readings: the limit, flow 0, flags 0
     if p.f:  # the flow lanes: the body velocity over the down range, + (-omega_y, omega_x, .)
-        flow = _matmul(vel[..., None, :], R, out=p.flow)  # (..., N, 1, 3) the body velocity (x, y used)
+        if p.vel_row:  # (..., N, 1, 3) the body velocity (x, y used)
+            flow = p.flow
+            flow[...] = p.ob_vel
+        else:
+            flow = _matmul(vel[..., None, :], R, out=p.flow)
         dd = rows.take(p.d_idx, None, p.dd, "wrap")
         _ge(dd, p.min_range, out=p.gf)  # high enough for the flow
         _max(dd, p.d_min, out=dd)
