@@ -3,18 +3,19 @@ engine's (1, 8, .) arrays: NumPy's per-call cost dominates, and a call's cost de
 
 :func:`deck_part` gives the same bits as :func:`quadswarm_mj.sensors.deck_part` (its NumPy forms
 ``sensor_rays._axis_hits_numpy`` and ``sensors._deck_part_numpy``; ``tests/test_sensors_speed.py``):
-the same floating-point operations on the same operands. Almost every call is NumPy's cheapest form
-(contiguous operands of one shape or 0-d, positional ``out``): an input is first gathered by one
-``ndarray.take`` into preallocated work arrays (per config, shape and thread) laid out so that the
-reductions become calls on contiguous halves (the room's quotients world axis first, the hitbox hits
-neighbour first; their minimum on the unsigned integers of the distances' bits: a hit ahead is a float
->= 0, ordered as the floats; a miss (NaN) or a hit behind (< 0) orders above +inf, as in
-``perf/depth_xla.py``). The readings: one row of all quads' ranges, then one of their flow lanes (x, y,
-unused), so that the noise, the clip and the masked copy are one call each for both decks (per-lane
-constants: the ToF-noise chain gives the flow's noise scale on the flow lanes, clip to 0, exp(0) = 1).
-The two matrix products (the neighbours' body-frame offsets, the body velocity) stay as the model writes
-them (they round with FMA). Other configurations (the depth camera, JAX arrays, noise given as
-``range_z``) go to the model's function. ``core.ops.NumpyOps`` passes it to ``build_obs`` as ``deck_fn``.
+the same floating-point operations on the same operands, nearly every call in NumPy's cheapest form
+(contiguous operands of one shape or 0-d; ``maximum``, ``minimum`` and reductions with a keyword ``out``).
+Each input is gathered once (``ndarray.take``) into work arrays (per config, shape and thread) laid out so
+that reductions are calls on contiguous blocks: the room's quotients world axis first; the hitbox hits
+neighbour first, the room's ranges beside them, one minimum over both on the unsigned integers of their
+bits (a hit ahead is a float >= 0, ordered as the floats; a miss (NaN) or a hit behind (< 0) orders
+above +inf, as in ``perf/depth_xla.py``). The readings: one row of the ranges, then the flow lanes (x, y,
+unused), so the noise, the clip and the masked copy are one call each (per-lane constants make the
+ToF-noise chain give the flow's noise scale on its lanes: clip to 0, exp(0) = 1). The body-frame
+products stay BLAS products as the model's (they round with FMA); with the flow deck the body velocity is
+row N of the neighbours' product (offset vel - 0), one product instead of two (the same bits here; the
+bitwise tests check it). Other configurations (the depth camera, JAX arrays, noise given as ``range_z``)
+go to the model's function. ``core.ops.NumpyOps`` passes it to ``build_obs`` as ``deck_fn``.
 """
 
 from __future__ import annotations
