@@ -29,9 +29,10 @@ from quadswarm_mj import sensors
 from quadswarm_mj.sensor_rays import column_hits_xy
 
 _clip = np._core.umath.clip
-_add, _sub, _mul, _div, _neg, _abs = np.add, np.subtract, np.multiply, np.divide, np.negative, np.abs
+_add, _sub, _mul, _div, _abs = np.add, np.subtract, np.multiply, np.divide, np.abs
 _max, _min, _le, _ge, _exp, _sqrt, _matmul = np.maximum, np.minimum, np.less_equal, np.greater_equal, np.exp, \
     np.sqrt, np.matmul
+_and, _putmask = np.logical_and, np.putmask
 _add_reduce, _min_reduce, _fmax_reduce, _fmin_reduce = np.add.reduce, np.minimum.reduce, np.fmax.reduce, \
     np.fmin.reduce
 try:  # np.errstate(divide, invalid, over="ignore") as its context variable's value (~8x cheaper to enter)
@@ -39,11 +40,6 @@ try:  # np.errstate(divide, invalid, over="ignore") as its context variable's va
 except ImportError:  # pragma: no cover (another NumPy)
     _ERR = None
 _ERR_LAST: tuple[Any, Any] = (None, None)  # (the state it was made from, the state with the errors ignored)
-
-
-def _ro(*xs: np.ndarray) -> None:
-    for x in xs:
-        x.setflags(write=False)
 
 
 class _Scratch:
@@ -293,9 +289,9 @@ def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
     if draws is not None:
         u = draws["range_u"]
         _ge(u, p.dropout, out=p.gk)  # not dropped
-        np.logical_and(m, p.g, out=m)
+        _and(m, p.g, out=m)
     elif p.f:
-        np.logical_and(p.mf, p.gf, out=p.mf)
+        _and(p.mf, p.gf, out=p.mf)
     if p.f:
         if p.dark:  # too dark: the flow never valid
             p.mf[...] = False
@@ -320,6 +316,6 @@ def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
         _clip(a, p.lo, p.hi, out=a)  # the ranges to [0, limit], the flow to +-FLOW_LIMIT_PX
     else:
         _clip(rows, p.lo, p.hi, out=a)
-    np.copyto(p.vals, a, where=m)
+    _putmask(p.vals, m, a)  # the valid readings (the invalid keep the template's)
     p.flags[...] = m
     return p.buf.take(p.cols)
