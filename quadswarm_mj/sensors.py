@@ -446,6 +446,28 @@ def deck_bounds(cfg: Any) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(lo, dtype=np.float32), np.asarray(hi, dtype=np.float32)
 
 
+def numpy_deck_info(cfg: Any, scale: Any = None) -> Any:
+    """:func:`deck_info` as a function of the observation alone, its plan made once (a gym env's per-step
+    info): ``f(obs)`` = ``deck_info(cfg, obs, scale)`` (the same arrays)."""
+    s, dim = cfg.sensors, cfg.obs_dim
+    if not s.any:
+        return lambda obs: {}
+    width, plan = s.obs_dim, _split_plan(s)
+    sc = None if scale is None else np.asarray(scale, dtype=np.float32)[dim - width:]
+
+    def f(obs: Any) -> dict[str, Any]:
+        if type(obs) is not np.ndarray or obs.shape[-1] != dim:
+            return deck_info(cfg, obs, scale)
+        part = obs[..., dim - width:].astype(np.float32)
+        if sc is not None:
+            part *= sc
+        flags = part > 0.5
+        return {name: (flags if kind == 1 else part)[..., a:b] if kind != 2 else
+                part[..., a:b].reshape(part.shape[:-1] + s.depth) for name, a, b, kind in plan}
+
+    return f
+
+
 def deck_info(cfg: Any, obs: Any, scale: Any = None) -> dict[str, Any]:
     """The info entries of the deck readings from an observation (..., N, obs_dim) (its last
     ``sensors.obs_dim`` components; ``scale``: the observation's normalization, or None):

@@ -288,6 +288,28 @@ def test_numpy_deck_speed_form_is_the_model_bit_for_bit(sensors):
     assert hit_rays > 0  # the hitbox hits are exercised
 
 
+def test_numpy_deck_part_keeps_the_callers_error_state():
+    """perf.numpy_deck ignores the divide, invalid and overflow errors of its cast (as the model's
+    np.errstate) on top of the caller's state, and gives that state back: no warning, the caller's other
+    settings kept, a changed state seen on the next call."""
+    import warnings
+
+    from quadswarm_mj.perf import numpy_deck
+    from quadswarm_mj.sensors import deck_part
+
+    c = EnvConfig(num_quads=8, sensors=SensorConfig(multiranger=True, flow=True, noise=False))
+    pos, R, _ = _scene(0, lead=(1,))
+    pos[..., 0, 2], R[..., 0, :, :] = 0.046, np.eye(3)  # zeros in R: 1 / 0 in the cast
+    vel = omega = np.zeros_like(pos)
+    want = deck_part(c, pos, vel, R, omega)
+    for state in ({"all": "raise"}, {"divide": "warn", "under": "ignore"}, {"all": "raise"}):
+        with np.errstate(**state), warnings.catch_warnings():
+            warnings.simplefilter("error")
+            before = np.geterr()
+            assert numpy_deck.deck_part(c, pos, vel, R, omega).tobytes() == want.tobytes()
+            assert np.geterr() == before
+
+
 def test_deck_scratch_table_is_bounded_and_safe_across_threads():
     """Threads making scratch arrays for many configs at once (more than the table keeps, so they evict
     each other's entries): no error, and the table keeps at most 32."""

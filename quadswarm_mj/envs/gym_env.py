@@ -125,13 +125,14 @@ class QuadSwarmEnv(gym.Env):
         the deck sensors on, their readings from ``obs`` (N, obs_dim) (``quadswarm_mj.sensors.deck_info``)."""
         if obs is not None and self.cfg.sensors.any:
             deck = self.__dict__.get("_deck_info_args")
-            if deck is None:  # (deck_info, shape, scale), made once
+            if deck is None:  # (deck_info of an observation, its shape), made once
                 from quadswarm_mj.observations import obs_scale
-                from quadswarm_mj.sensors import deck_info
+                from quadswarm_mj.sensors import numpy_deck_info
 
-                deck = self._deck_info_args = (deck_info, (self.cfg.num_quads, self.cfg.obs_dim),
-                                               obs_scale(self.cfg) if self.cfg.normalize_obs else None)
-            info.update(deck[0](self.cfg, np.reshape(obs, deck[1]), deck[2]))
+                deck = self._deck_info_args = (numpy_deck_info(
+                    self.cfg, obs_scale(self.cfg) if self.cfg.normalize_obs else None),
+                    (self.cfg.num_quads, self.cfg.obs_dim))
+            info.update(deck[0](np.reshape(obs, deck[1])))
         return info if self._flat is None else self._flat(info)
 
     # ------------------------------------------------------------------ API

@@ -3,16 +3,19 @@ engine's (1, 8, .) arrays: NumPy's per-call cost dominates, and a call's cost de
 
 :func:`deck_part` gives the same bits as :func:`quadswarm_mj.sensors.deck_part` (its NumPy forms
 ``sensor_rays._axis_hits_numpy`` and ``sensors._deck_part_numpy``; ``tests/test_sensors_speed.py``):
-the same floating-point operations on the same operands, only with same-shape or 0-d operands instead
-of broadcast constants and Python floats (~3x and ~2x cheaper calls); minima over short axes as
-elementwise calls on slices instead of ``ufunc.reduce``; the hitbox minimum on the unsigned integers
-of the distances' bits (a hit ahead is a float >= 0, ordered as the floats; a miss (NaN) or a hit
-behind (< 0) orders above +inf, as in ``perf/depth_xla.py``) instead of ``where`` and a float minimum;
-preallocated work arrays and views (per config, shape and thread); ``np.copyto(where=)`` instead of
-ufuncs with ``where=``; ``ndarray.take`` instead of ``np.take``. The two matrix products (the
-neighbours' body-frame offsets, the body velocity) stay as the model writes them (they round with FMA).
-Other configurations (the depth camera, JAX arrays, noise given as ``range_z``) go to the model's
-function. ``core.ops.NumpyOps`` passes it to ``build_obs`` as ``deck_fn``.
+the same floating-point operations on the same operands, nearly every call in NumPy's cheapest form
+(contiguous operands of one shape or 0-d; ``maximum``, ``minimum`` and reductions with a keyword ``out``).
+Each input is gathered once (``ndarray.take``) into work arrays (per config, shape and thread) laid out so
+that reductions are calls on contiguous blocks: the room's quotients world axis first; the hitbox hits
+neighbour first, the room's ranges beside them, one minimum over both on the unsigned integers of their
+bits (a hit ahead is a float >= 0, ordered as the floats; a miss (NaN) or a hit behind (< 0) orders
+above +inf, as in ``perf/depth_xla.py``). The readings: one row of the ranges, then the flow lanes (x, y,
+unused), so the noise, the clip and the masked copy are one call each (per-lane constants make the
+ToF-noise chain give the flow's noise scale on its lanes: clip to 0, exp(0) = 1). The body-frame
+products stay BLAS products as the model's (they round with FMA); with the flow deck the body velocity is
+row N of the neighbours' product (offset vel - 0), one product instead of two (the same bits here; the
+bitwise tests check it). Other configurations (the depth camera, JAX arrays, noise given as ``range_z``)
+go to the model's function. ``core.ops.NumpyOps`` passes it to ``build_obs`` as ``deck_fn``.
 """
 
 from __future__ import annotations
@@ -26,82 +29,152 @@ from quadswarm_mj import sensors
 from quadswarm_mj.sensor_rays import column_hits_xy
 
 _clip = np._core.umath.clip
-_SWAP = np.array([1, 0, 2])  # omega (x, y, z) -> (y, x, z)
+_add, _sub, _mul, _div, _abs = np.add, np.subtract, np.multiply, np.divide, np.abs
+_max, _min, _le, _ge, _exp, _sqrt, _matmul = np.maximum, np.minimum, np.less_equal, np.greater_equal, np.exp, \
+    np.sqrt, np.matmul
+_and, _putmask = np.logical_and, np.putmask
+_add_reduce, _min_reduce, _fmax_reduce, _fmin_reduce = np.add.reduce, np.minimum.reduce, np.fmax.reduce, \
+    np.fmin.reduce
+try:  # np.errstate(divide, invalid, over="ignore") as its context variable's value (~8x cheaper to enter)
+    from numpy._core._ufunc_config import _extobj_contextvar as _ERR
+except ImportError:  # pragma: no cover (another NumPy)
+    _ERR = None
+_ERR_LAST: tuple[Any, Any] = (None, None)  # (the state it was made from, the state with the errors ignored)
 
 
 class _Scratch:
-    """Preallocated work arrays of :func:`deck_part` for one (sensors, shape, room, hitbox), with the views
-    its calls read and write (no array is allocated or sliced per call but the result). Constants are
-    read-only; ``scalars`` holds the model's scalars as 0-d float64 arrays."""
+    """Preallocated work arrays of :func:`deck_part` for one (sensors, shape, room, hitbox), the gather
+    indices that fill them and the views its calls read and write (nothing is allocated or sliced per
+    call but the result). Constants are read-only and of their operands' shapes (or 0-d)."""
 
     def __init__(self, s: Any, shape: tuple[int, ...], room_low: tuple, room_high: tuple,
                  radius: float | None) -> None:
         lead, n = shape[:-1], shape[-2]  # lead = (..., N)
-        e = np.empty
-        self.planes = np.array([room_high, room_low], float)  # (2, 3): the room's high and low planes
-        self.g_lo, self.g_hi = (np.broadcast_to(np.array(b, float), lead + (2, 3)).copy() for b in
-                                ([[1e-30] * 3, [-np.inf] * 3], [[np.inf] * 3, [-1e-30] * 3]))  # the gaps' bounds
-        self.signs = np.array([1.0, -1.0])  # a body axis' two rays
-        self.gaps, self.inv, self.q = e(lead + (2, 3)), e(lead + (3, 3, 2)), e(lead + (2, 3, 3, 2))
-        self.q0, self.q1 = self.q[..., 0, :, :, :], self.q[..., 1, :, :, :]
-        self.m = e(lead + (3, 3, 2))
-        self.m0, self.m1, self.m2 = self.m[..., 0, :, :], self.m[..., 1, :, :], self.m[..., 2, :, :]
-        self.t = e(lead + (3, 2))  # the 6 axis rays' ranges (+x, -x, +y, -y, +z, -z)
-        self.t6, self.tu = self.t.reshape(lead + (6,)), self.t.view(np.uint64)
-        self.r2 = None  # (N, N): hitbox radius^2, -inf on the diagonal (None: no hitbox test)
-        if radius is not None and n > 1:
-            self.r2 = np.full((n, n), radius * radius)
-            np.fill_diagonal(self.r2, -np.inf)
-            pair = lead + (n, 3)
-            self.o, self.ob, self.ob2, self.sq = e(pair), e(pair), e(pair), e(pair)
-            self.cc = e(lead + (n,))
-            self.ts = e((2,) + pair)  # (+-, ..., N (i), N (j), 3)
-            self.ts0, self.ts1, self.tsu = self.ts[0], self.ts[1], self.ts.view(np.uint64)
-            # the minimum over the neighbours j by halving: (a, b, out) views of elementwise minima
-            self.halving, x, k = [], self.tsu, n
-            while k > 1:
-                h = k // 2
-                out = e((2,) + lead + (h, 3), np.uint64)
-                self.halving.append((x[..., :h, :], x[..., h:2 * h, :], out))
-                if k % 2:
-                    self.halving.append((out[..., :1, :], x[..., 2 * h:, :], out[..., :1, :]))
-                x, k = out, h
-            near = x[..., 0, :]  # (+-, ..., N, 3): the nearest hit per ray
-            self.near_t = near.transpose(tuple(range(1, near.ndim)) + (0,))  # as t: (..., N, 3, +-)
-        self.rays = slice(0, 6) if s.multiranger and s.flow else slice(0, 5) if s.multiranger else slice(5, 6)
-        self.t_rays = self.t6[..., self.rays]
-        k = s.num_rays
-        limit, self.cols, self.template, self.kf = sensors._numpy_plan(s, lead + (k,))
-        assert np.all(limit == s.range_limit), limit  # no depth: one limit for every ray
-        self.buf = e(self.template.shape)  # [r (K) | flags (K) | flow x, y | flow valid]
-        self.r, self.flags = self.buf[..., :k], self.buf[..., k:2 * k]
-        self.fxy, self.fvalid = self.buf[..., 2 * k:2 * k + 2], self.buf[..., 2 * k + 2]
-        self.valid, self.lost = e(lead + (k,), bool), e(lead + (k,), bool)
-        self.x, self.w = e(lead + (k,)), e(lead + (k,))
-        self.vb, self.dd, self.om = e(lead + (1, 3)), e(lead + (1,)), e(lead + (3,))
-        self.v3 = self.vb.reshape(lead + (3,))  # the body velocity (x, y used; the third unused)
-        self.v2 = self.v3[..., :2]
-        self.aw, self.rate_max, self.fn = e(lead + (3,)), e(lead[:-1] + (n,)), e(lead + (2,))
-        self.aw0, self.aw1 = self.aw[..., 0], self.aw[..., 1]
-        self.rate_ok, self.far = e(lead[:-1] + (n,), bool), e(lead[:-1] + (n,), bool)
-        self.rate_ok2 = self.rate_ok[..., None]
-        self.d = self.t_rays[..., self.kf:self.kf + 1]  # (..., N, 1) the true range along body -z (flow deck)
-        self.omega_signs = np.broadcast_to(np.array([-1.0, 1.0, 1.0]), lead + (3,)).copy()  # -omega_y, +omega_x
-        scale = 1.0 / (1.0 - s.dropout) if s.dropout < 1.0 else 0.0
-        self.scalars = {k: np.array(v, float) for k, v in {
-            "limit": s.range_limit, "dropout": s.dropout, "scale": scale, "tiny": 2.0 ** -24, "zero": 0.0,
-            "one": 1.0, "tof_b": sensors.TOF_POINT_B, "tof_a_point": sensors.TOF_POINT_A,
-            "tof_k": sensors.TOF_STD_K, "tof_a": sensors.TOF_STD_A, "d_min": 1e-3,
-            "max_rate": sensors.FLOW_MAX_RATE, "min_range": sensors.FLOW_MIN_RANGE, "gain": sensors.FLOW_GAIN,
-            "std_px": sensors.FLOW_STD_PX, "lim_px": sensors.FLOW_LIMIT_PX, "neg_lim_px": -sensors.FLOW_LIMIT_PX,
-        }.items()}
-        for x in (self.planes, self.g_lo, self.g_hi, self.signs, self.r2, self.omega_signs, *self.scalars.values()):
-            if x is not None:
-                x.setflags(write=False)
+        e, full = np.empty, (lambda x, shp: np.broadcast_to(np.asarray(x, float), shp).copy())
+        k, f = s.num_rays, (3 if s.flow else 0)  # range lanes; flow lanes x, y, unused (per quad)
+        nq, rs = int(np.prod(lead)), int(np.prod(lead)) * (k + f)
+        self.shape, self.k, self.f = shape, k, f
+        # --- the cast. The room: (hi/lo, a, ..., N, c, +-) quotients gap_a / (+-R[a, c]), gathered from pos, R
+        room = (2, 3) + lead + (3, 2)
+        pos_id = np.arange(nq * 3).reshape(shape)
+        self.pos_idx = np.broadcast_to(np.moveaxis(pos_id, -1, 0)[(None, ...) + (None,) * 2], room).ravel()
+        self.r_idx = np.broadcast_to(np.moveaxis(np.arange(nq * 9).reshape(lead + (3, 3)), -2, 0)[None, ..., None],
+                                     room).copy()
+        ex = (...,) + (None,) * (len(lead) + 2)
+        self.planes = full(np.array([room_high, room_low], float)[ex], room)
+        self.g_lo = full(np.array([[1e-30] * 3, [-np.inf] * 3])[ex], room)  # the gaps kept > 0 (high), < 0 (low)
+        self.g_hi = full(np.array([[np.inf] * 3, [-1e-30] * 3])[ex], room)
+        self.signs = full(np.array([1.0, -1.0]), room)  # a body axis' two rays
+        self.inv, self.q, self.m = e(room), e(room), e(room[1:])
+        self.q0, self.q1, self.m0, self.m1, self.m2 = self.q[0], self.q[1], self.m[0], self.m[1], self.m[2]
+        # hb = [ob | sqrt(disc) (the hitboxes) | 0 | t6 (the ranges along the 6 body axes)], with both decks t6
+        # the first 6 lanes of the rows [ranges (..., N, K) | flow (..., N, 1, 3)]. With the flow deck the body
+        # velocity is the pairs' matrix product's row N (its offset row: vel - 0; never a hit)
+        hit = radius is not None and n > 1
+        self.vel_row = hit and f > 0
+        nv = n + self.vel_row
+        pair = lead + (nv, 3)
+        size = int(np.prod(pair)) if hit else 0
+        both = s.multiranger and s.flow
+        self.hb = np.zeros(2 * size + 1 + (rs if both else nq * 6))
+        self.rows = self.hb[2 * size + 1:] if both else e(rs)
+        self.ranges = self.rows[:nq * k].reshape(lead + (k,))
+        self.t6 = self.hb[2 * size + 1:2 * size + 1 + nq * 6].reshape(lead + (6,))
+        self.t = self.t6.reshape(lead + (3, 2))
+        self.tu = self.t.view(np.uint64)
+        self.t_rays = None if both else self.t6[..., slice(0, 5) if s.multiranger else slice(5, 6)]
+        self.r2 = None  # (..., N, N (+ 1)) hitbox radius^2, -inf on the diagonal (None: no hitbox test)
+        self.pv = np.zeros(2 * nq * 3 + 1)  # [pos | vel | 0]: the gathers' source with the velocity row
+        self.pv_pos, self.pv_vel = self.pv[:nq * 3].reshape(shape), self.pv[nq * 3:2 * nq * 3].reshape(shape)
+        if hit:  # offsets, body frame, disc and its root; the hits and the room's t gathered (j, ..., N, c, +-)
+            r2 = np.full((n, nv), radius * radius)
+            r2[:, n:] = -np.inf
+            np.fill_diagonal(r2, -np.inf)
+            self.r2 = full(r2, lead + (nv,))
+            pj = np.broadcast_to(pos_id[..., None, :, :], lead + (n, 3))  # (..., N (i), N (j), 3): quad j, quad i
+            pi = np.broadcast_to(pos_id[..., :, None, :], lead + (n, 3))
+            if self.vel_row:
+                pj = np.concatenate([pj, (nq * 3 + pos_id)[..., None, :]], axis=-2)
+                pi = np.concatenate([pi, np.full(lead + (1, 3), 2 * nq * 3)], axis=-2)
+            self.pos_idx = np.concatenate([self.pos_idx, pj.ravel(), pi.ravel()])
+            self.cc = e(lead + (nv,))
+            self.ob, self.disc = self.hb[:size].reshape(pair), self.hb[size:2 * size].reshape(pair)
+            self.ob_vel = self.ob[..., n:, :]  # (..., N, 1, 3) the body velocity (with the flow deck)
+            self.cc3 = self.cc[..., None]
+            hits = (n + 1,) + lead + (3, 2)  # row N: the room's t (times 1, minus 0)
+            ob_id = np.moveaxis(np.arange(size).reshape(pair)[..., :n, :], -2, 0)[..., None]
+            ob_id = np.concatenate([np.broadcast_to(ob_id, (n,) + hits[1:]),
+                                    (2 * size + 1 + np.arange(nq * 6)).reshape((1,) + hits[1:])])
+            sq_id = np.concatenate([ob_id[:n] + size, np.full((1,) + hits[1:], 2 * size)])
+            self.h_idx = np.concatenate([ob_id.ravel(), sq_id.ravel()])
+            self.hg = e(self.h_idx.size)
+            self.obg, self.sqg = self.hg[:self.hg.size // 2].reshape(hits), self.hg[self.hg.size // 2:].reshape(hits)
+            self.obg_u = self.obg.view(np.uint64)
+            self.hsigns = full(np.array([1.0, -1.0]), hits)
+            self.hsigns[-1] = 1.0
+        self.pg = e(self.pos_idx.size)  # the gathered pos: the room's gaps, then the pairs' quad j and quad i
+        self.gaps = self.pg[:self.q.size].reshape(room)
+        if self.r2 is not None:
+            size = int(np.prod(pair))
+            self.pj, self.pi = (self.pg[self.q.size + i * size:self.q.size + (i + 1) * size].reshape(pair)
+                                for i in (0, 1))
+        # --- the readings on the rows and their like
+        self.a, self.b, self.ab, self.ab2 = e(rs), np.zeros(rs), e(rs), e(rs)
+        self.m_ok, self.g = e(rs, bool), e(rs, bool)
+        self.bk, self.gk = self.b[:nq * k].reshape(lead + (k,)), self.g[:nq * k].reshape(lead + (k,))
+        self.uw = e(lead + (k,))
+        kf = k - 1  # the down ray's lane (flow deck)
+        if f:
+            fl = lead + (1, 3)
+            self.flow = self.rows[nq * k:].reshape(fl)
+            self.bf2 = self.b[nq * k:].reshape(fl)[..., 0, :2]
+            self.gf, self.mf = self.g[nq * k:].reshape(fl), self.m_ok[nq * k:].reshape(fl)
+            q = np.arange(nq).reshape(lead)[..., None, None]
+            self.d_idx = np.broadcast_to(q * k + kf, fl).copy()  # the down range, thrice per quad
+            self.om_idx = (3 * q + np.array([1, 0, 2])).astype(np.intp)  # omega (x, y, z) -> (y, x, z)
+            self.om_signs = full(np.array([-1.0, 1.0, 1.0]), fl)  # + (-omega_y, omega_x, .)
+            self.dd, self.om = e(fl), e(fl)
+            self.perm = np.arange(rs)  # the flow's x and y lanes swapped (max(|x|, |y|) on both)
+            self.perm[nq * k:] = (nq * k + 3 * np.arange(nq)[:, None] + np.array([1, 0, 2])).ravel()
+
+        def lanes(rng: float, fx: float, fz: float = 0.0) -> np.ndarray:
+            """per lane: ``rng`` on the ranges, ``fx`` on the flow's x and y, ``fz`` on its unused lane"""
+            out = np.empty(rs)
+            out[:nq * k], out[nq * k:] = rng, np.tile([fx, fx, fz], nq) if f else []
+            return out
+
+        self.lim = lanes(s.range_limit, sensors.FLOW_MAX_RATE, -np.inf)  # valid: range <= limit, rate <= max
+        self.tof = (lanes(0.0, 0.0), lanes(sensors.TOF_POINT_B, 0.0), lanes(sensors.TOF_POINT_A, 0.0),
+                    lanes(sensors.TOF_STD_K, 1.0), lanes(1.0, 0.0), lanes(sensors.TOF_STD_A, sensors.FLOW_STD_PX))
+        self.lo, self.hi = lanes(0.0, -sensors.FLOW_LIMIT_PX), lanes(s.range_limit, sensors.FLOW_LIMIT_PX)
+        self.dropout, self.scale, self.tiny, self.d_min, self.min_range, self.gain = (np.array(v, float) for v in (
+            s.dropout, 1.0 / (1.0 - s.dropout) if s.dropout < 1.0 else 0.0, 2.0 ** -24, 1e-3, sensors.FLOW_MIN_RANGE,
+            sensors.FLOW_GAIN))
+        self.dark = s.light_lux < sensors.FLOW_MIN_LUX
+        self.ndtri = sensors._ndtri()
+        # the buffer [values (rows) | flags (rows)] in its invalid state (the limit, flow 0, flags 0) and the
+        # deck_layout columns as indices into it
+        self.template = np.zeros(2 * rs)
+        self.template[:nq * k] = s.range_limit
+        self.buf = e(2 * rs)
+        self.vals, self.flags = self.buf[:rs], self.buf[rs:]
+        q = np.arange(nq)[:, None]
+        cols = [q * k + np.arange(5), rs + q * k + np.arange(5)] if s.multiranger else []
+        if f:
+            fq = nq * k + 3 * q
+            cols += [q * k + kf, fq, fq + 1, rs + q * k + kf, rs + fq]
+        self.cols = np.concatenate(cols, axis=1).reshape(lead + (-1,))
+        assert np.all(sensors.ray_limits(s) == s.range_limit)  # no depth: one limit for every ray
+        for x in (self.planes, self.g_lo, self.g_hi, self.signs, self.r_idx, self.pos_idx, self.lim, self.lo,
+                  self.hi, self.template, self.cols, *self.tof, self.dropout, self.scale, self.tiny, self.d_min,
+                  self.min_range, self.gain, *((self.r2, self.h_idx, self.hsigns) if self.r2 is not None else ()),
+                  *((self.d_idx, self.om_idx, self.om_signs, self.perm) if f else ())):
+            x.setflags(write=False)
 
 
 _LAST: dict[tuple[int, tuple[int, ...], int], tuple[Any, _Scratch]] = {}  # (id(cfg), shape, thread) -> (cfg, .)
 _LAST_LOCK = threading.Lock()
+_LOCAL = threading.local()  # .last: this thread's last (cfg, scratch)
 
 
 def _scratch(cfg: Any, shape: tuple[int, ...]) -> _Scratch:
@@ -115,40 +188,48 @@ def _scratch(cfg: Any, shape: tuple[int, ...]) -> _Scratch:
             _LAST[key] = hit
             while len(_LAST) > 32:
                 _LAST.pop(next(iter(_LAST)))
+    _LOCAL.last = hit
     return hit[1]
 
 
-def _axis_hits(p: _Scratch, pos: np.ndarray, R: np.ndarray) -> None:
+def _axis_hits(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray) -> None:
     """``sensor_rays._axis_hits_numpy`` (the same bits) into ``p.t`` (..., N, 3, 2): the ranges along the
-    +-body axes. Call inside ``np.errstate(divide="ignore", invalid="ignore")``."""
-    np.subtract(p.planes, pos[..., None, :], out=p.gaps)  # (..., N, 2, 3): high and low planes minus pos
-    _clip(p.gaps, p.g_lo, p.g_hi, out=p.gaps)  # kept > 0 (high) and < 0 (low)
-    np.divide(p.signs, R[..., None], out=p.inv)  # (..., N, a, c, +-): 1 / (+-R[a, c])
-    np.multiply(p.gaps[..., :, :, None, None], p.inv[..., None, :, :, :], out=p.q)  # (..., N, hi/lo, a, c, +-)
-    np.maximum(p.q0, p.q1, out=p.m)  # the plane ahead (the larger quotient)
-    np.minimum(p.m0, p.m1, out=p.t)  # the nearest over the 3 axes
-    np.minimum(p.t, p.m2, out=p.t)
+    +-body axes. Call with the divide and invalid errors ignored."""
+    if p.vel_row:
+        p.pv_pos[...] = pos
+        p.pv_vel[...] = vel
+        p.pv.take(p.pos_idx, None, p.pg, "wrap")
+    else:
+        pos.take(p.pos_idx, None, p.pg, "wrap")
+    gaps = p.gaps
+    _sub(p.planes, gaps, out=gaps)  # high and low planes minus pos
+    _clip(gaps, p.g_lo, p.g_hi, out=gaps)  # kept > 0 (high) and < 0 (low)
+    inv = R.take(p.r_idx, None, p.inv, "wrap")
+    _div(p.signs, inv, out=inv)  # 1 / (+-R[a, c])
+    _mul(gaps, inv, out=p.q)
+    _max(p.q0, p.q1, out=p.m)  # the plane ahead (the larger quotient, > 0)
+    t = p.t
+    _min(p.m0, p.m1, out=t)  # the nearest over the 3 world axes
+    _min(t, p.m2, out=t)
     if p.r2 is None:
         return
-    np.subtract(pos[..., None, :, :], pos[..., :, None, :], out=p.o)  # (..., N (i), N (j), 3): quad j - quad i
-    ob = np.matmul(p.o, R, out=p.ob)  # body frame of quad i: ob[i, j, c] = sum_a o[i, j, a] R[i, a, c]
-    ob2 = np.multiply(ob, ob, out=p.ob2)
-    c = np.add.reduce(ob2, axis=-1, out=p.cc)
-    np.subtract(c, p.r2, out=c)  # |offset|^2 - r^2 (a rotation keeps the length); inf on the diagonal
-    disc = np.subtract(ob2, c[..., None], out=ob2)  # >= 0: the line of ray +-c meets the sphere
-    if np.fmax.reduce(disc, axis=None) >= 0.0:
-        # along +c the hit is ob_c - sqrt(disc), along -c -ob_c - sqrt(disc) = -(ob_c + sqrt(disc)); kept
-        # where >= 0 (a miss: NaN, behind: < 0; both order above +inf as unsigned integers)
-        sq = np.sqrt(disc, out=p.sq)
-        np.subtract(ob, sq, out=p.ts0)
-        np.add(ob, sq, out=p.ts1)
-        np.negative(p.ts1, out=p.ts1)
-        for x, y, out in p.halving:  # the nearest over the neighbours
-            np.minimum(x, y, out=out)
-        np.minimum(p.tu, p.near_t, out=p.tu)  # the room's t: finite, >= 0
-        if np.fmin.reduce(c, axis=None) < 0.0:  # (inside another's hitbox: disc > 0 along every axis)
+    o = _sub(p.pj, p.pi, out=p.pj)  # (..., N (i), N (j) (+ 1), 3): quad j - quad i (, vel)
+    ob = _matmul(o, R, out=p.ob)  # body frame of quad i: ob[i, j, c] = sum_a o[i, j, a] R[i, a, c]
+    disc = _mul(ob, ob, out=p.disc)
+    c = _add_reduce(disc, axis=-1, out=p.cc)
+    _sub(c, p.r2, out=c)  # |offset|^2 - r^2 (a rotation keeps the length); inf on the diagonal
+    _sub(disc, p.cc3, out=disc)  # >= 0: the line of ray +-c meets the sphere
+    if _fmax_reduce(disc, axis=None) >= 0.0:
+        # along +-c the hit is +-ob_c - sqrt(disc); kept where >= 0 (a miss: NaN, behind: < 0; both order
+        # above +inf as unsigned integers)
+        _sqrt(disc, out=disc)
+        p.hb.take(p.h_idx, None, p.hg, "wrap")  # (j, ..., N (i), c, +-): ob, sqrt(disc); the room's t
+        obg = _mul(p.obg, p.hsigns, out=p.obg)
+        _sub(obg, p.sqg, out=obg)
+        _min_reduce(p.obg_u, axis=0, out=p.tu)  # the nearest of the neighbours and the room (t: finite, >= 0)
+        if _fmin_reduce(c, axis=None) < 0.0:  # (inside another's hitbox: disc > 0 along every axis)
             inside = np.logical_or.reduce(c < 0.0, axis=-1)
-            p.t[inside] = 0.0
+            t[inside] = 0.0
 
 
 def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
@@ -159,62 +240,82 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     if (s.depth is not None or type(pos) is not np.ndarray or pos.dtype != np.float64 or not s.any
             or (draws is not None and "range_u" not in draws)):
         return sensors.deck_part(cfg, pos, vel, R, omega, obstacles, draws)
-    p = _scratch(cfg, pos.shape)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # (also the flow's unused third lane)
-        _axis_hits(p, pos, R)
-        t, d = p.t_rays, p.d
-        if obstacles is not None:  # the rays' world x and y components: +-R[0, c], +-R[1, c] (as axis_hits)
-            dx, dy = (np.stack([R[..., a, :], -R[..., a, :]], axis=-1).reshape(p.t6.shape) for a in range(2))
-            t = np.minimum(p.t6, column_hits_xy(pos, dx, dy, *obstacles))[..., p.rays]
-            d = t[..., p.kf:p.kf + 1]
-        return _readings(p, s, t, d, vel, R, omega, draws)
+    last = getattr(_LOCAL, "last", None)
+    p = last[1] if last is not None and last[0] is cfg and last[1].shape == pos.shape else _scratch(cfg, pos.shape)
+    if _ERR is None:  # pragma: no cover
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            return _deck_part(p, pos, vel, R, omega, obstacles, draws)
+    global _ERR_LAST
+    cur = _ERR.get()
+    if _ERR_LAST[0] is not cur:  # the caller's error state changed: ignore the three on top of it
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            _ERR_LAST = (cur, _ERR.get())
+    token = _ERR.set(_ERR_LAST[1])
+    try:
+        return _deck_part(p, pos, vel, R, omega, obstacles, draws)
+    finally:
+        _ERR.reset(token)
 
 
-def _readings(p: _Scratch, s: Any, t: np.ndarray, d: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray,
-              draws: dict[str, Any] | None) -> np.ndarray:
-    """``sensors._deck_part_numpy`` (the same bits) from the true ranges ``t`` (..., N, K) and the down
-    range ``d`` (..., N, 1): the deck part in :func:`sensors.deck_layout` order (a fresh array)."""
-    c = p.scalars
-    buf = p.buf
-    np.copyto(buf, p.template)  # invalid readings: the limit, flow 0
-    valid = np.less_equal(t, c["limit"], out=p.valid)
-    x = p.x
-    if draws is not None:  # VL53L1x: t + tof_std(t) tof_normal(u), clipped to [0, limit]
+def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray, obstacles: Any,
+               draws: dict[str, Any] | None) -> np.ndarray:
+    """:func:`deck_part`'s work (with the divide, invalid and overflow errors ignored): ``p.t`` the true
+    ranges, then ``sensors._deck_part_numpy`` (the same bits) from them: the deck part in
+    :func:`sensors.deck_layout` order (a fresh array)."""
+    _axis_hits(p, pos, vel, R)
+    if obstacles is not None:  # the rays' world x and y components: +-R[0, c], +-R[1, c] (as axis_hits)
+        dx, dy = (np.stack([R[..., a, :], -R[..., a, :]], axis=-1).reshape(p.t6.shape) for a in range(2))
+        _min(p.t6, column_hits_xy(pos, dx, dy, *obstacles), out=p.t6)
+    if p.t_rays is not None:
+        p.ranges[...] = p.t_rays
+    rows, m = p.rows, p.m_ok
+    p.buf[...] = p.template  # invalid readings: the limit, flow 0, flags 0
+    if p.f:  # the flow lanes: the body velocity over the down range, + (-omega_y, omega_x, .)
+        if p.vel_row:  # (..., N, 1, 3) the body velocity (x, y used)
+            flow = p.flow
+            flow[...] = p.ob_vel
+        else:
+            flow = _matmul(vel[..., None, :], R, out=p.flow)
+        dd = rows.take(p.d_idx, None, p.dd, "wrap")
+        _ge(dd, p.min_range, out=p.gf)  # high enough for the flow
+        _max(dd, p.d_min, out=dd)
+        _div(flow, dd, out=flow)
+        om = omega.take(p.om_idx, None, p.om, "wrap")
+        _add(flow, _mul(om, p.om_signs, out=om), out=flow)
+    ab = _abs(rows, out=p.ab)  # the ranges (>= 0) and the flow's |x|, |y|
+    if p.f:
+        _max(ab, ab.take(p.perm, None, p.ab2, "wrap"), out=ab)  # max(|x|, |y|) on both flow lanes
+    _le(ab, p.lim, out=m)  # valid: range <= limit, flow rate <= its maximum
+    if draws is not None:
         u = draws["range_u"]
-        valid &= np.greater_equal(u, c["dropout"], out=p.lost)
-        np.maximum(t, c["zero"], out=x)  # tof_std(t) (= its clip(t, 0, 4): the sign of a zero range is lost next)
-        np.minimum(x, c["tof_b"], out=x)
-        x -= c["tof_a_point"]
-        x *= c["tof_k"]
-        np.exp(x, out=x)
-        x += c["one"]
-        x *= c["tof_a"]
-        w = np.subtract(u, c["dropout"], out=p.w)  # tof_normal(u, dropout)
-        w *= c["scale"]
-        np.maximum(w, c["tiny"], out=w)
-        x *= sensors._ndtri()(w, out=w)
-        x += t
-        np.maximum(x, c["zero"], out=x)
+        _ge(u, p.dropout, out=p.gk)  # not dropped
+        _and(m, p.g, out=m)
+    elif p.f:
+        _and(p.mf, p.gf, out=p.mf)
+    if p.f:
+        if p.dark:  # too dark: the flow never valid
+            p.mf[...] = False
+        _mul(p.flow, p.gain, out=p.flow)
+    a = p.a
+    if draws is not None:  # VL53L1x: t + tof_std(t) tof_normal(u); the flow: + FLOW_STD_PX flow_noise
+        lo, hi, a_point, k, one, std = p.tof
+        _clip(rows, lo, hi, out=a)  # tof_std(t) (the sign of a zero range is lost next)
+        _sub(a, a_point, out=a)
+        _mul(a, k, out=a)
+        _exp(a, out=a)
+        _add(a, one, out=a)
+        _mul(a, std, out=a)
+        w = _sub(u, p.dropout, out=p.uw)  # tof_normal(u, dropout)
+        _mul(w, p.scale, out=w)
+        _max(w, p.tiny, out=w)
+        p.ndtri(w, out=p.bk)
+        if p.f:
+            p.bf2[...] = draws["flow_noise"]
+        _mul(a, p.b, out=a)
+        _add(a, rows, out=a)
+        _clip(a, p.lo, p.hi, out=a)  # the ranges to [0, limit], the flow to +-FLOW_LIMIT_PX
     else:
-        np.maximum(t, c["zero"], out=x)
-    np.minimum(x, c["limit"], out=x)
-    np.copyto(p.r, x, where=valid)
-    np.copyto(p.flags, valid)
-    if s.flow:
-        w = np.matmul(vel[..., None, :], R, out=p.vb)  # (..., N, 1, 3) the body velocity (x, y used)
-        w = p.v3
-        w /= np.maximum(d, c["d_min"], out=p.dd)
-        w += np.multiply(omega.take(_SWAP, axis=-1, out=p.om), p.omega_signs, out=p.om)  # + (-omega_y, omega_x, .)
-        np.abs(w, out=p.aw)
-        rate_ok = np.less_equal(np.maximum(p.aw0, p.aw1, out=p.rate_max), c["max_rate"], out=p.rate_ok)
-        rate_ok &= np.greater_equal(d[..., 0], c["min_range"], out=p.far)
-        if s.light_lux < sensors.FLOW_MIN_LUX:  # too dark: never valid
-            rate_ok[...] = False
-        w *= c["gain"]
-        if draws is not None:
-            np.add(p.v2, np.multiply(draws["flow_noise"], c["std_px"], out=p.fn), out=p.v2)
-        np.maximum(w, c["neg_lim_px"], out=w)
-        np.minimum(w, c["lim_px"], out=w)
-        np.copyto(p.fxy, p.v2, where=p.rate_ok2)
-        np.copyto(p.fvalid, rate_ok)
-    return buf.take(p.cols, axis=-1)
+        _clip(rows, p.lo, p.hi, out=a)
+    _putmask(p.vals, m, a)  # the valid readings (the invalid keep the template's)
+    p.flags[...] = m
+    return p.buf.take(p.cols)
