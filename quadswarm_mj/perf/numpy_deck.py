@@ -35,11 +35,6 @@ _max, _min, _le, _ge, _exp, _sqrt, _matmul = np.maximum, np.minimum, np.less_equ
 _and, _putmask = np.logical_and, np.putmask
 _add_reduce, _min_reduce, _fmax_reduce, _fmin_reduce = np.add.reduce, np.minimum.reduce, np.fmax.reduce, \
     np.fmin.reduce
-try:  # np.errstate(divide, invalid, over="ignore") as its context variable's value (~8x cheaper to enter)
-    from numpy._core._ufunc_config import _extobj_contextvar as _ERR
-except ImportError:  # pragma: no cover (another NumPy)
-    _ERR = None
-_ERR_LAST: tuple[Any, Any] = (None, None)  # (the state it was made from, the state with the errors ignored)
 
 
 class _Scratch:
@@ -242,19 +237,8 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
         return sensors.deck_part(cfg, pos, vel, R, omega, obstacles, draws)
     last = getattr(_LOCAL, "last", None)
     p = last[1] if last is not None and last[0] is cfg and last[1].shape == pos.shape else _scratch(cfg, pos.shape)
-    if _ERR is None:  # pragma: no cover
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            return _deck_part(p, pos, vel, R, omega, obstacles, draws)
-    global _ERR_LAST
-    cur = _ERR.get()
-    if _ERR_LAST[0] is not cur:  # the caller's error state changed: ignore the three on top of it
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            _ERR_LAST = (cur, _ERR.get())
-    token = _ERR.set(_ERR_LAST[1])
-    try:
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         return _deck_part(p, pos, vel, R, omega, obstacles, draws)
-    finally:
-        _ERR.reset(token)
 
 
 def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray, obstacles: Any,
