@@ -13,6 +13,7 @@ one world (B = 1, offsets zero) with the paper's chain and floor. NumPy only.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -42,6 +43,7 @@ class _Views:
         self.src = (qpos, qvel, xfrc)
         q, v, x = qpos[0], qvel[0], xfrc[0]
         self.q, self.v = q, v
+        self.qf = q.reshape(-1)  # (N * 7,) a view (qpos is contiguous): the source of the flat gathers
         self.z2, self.zq, self.qp = q[:, 2:3], q[:, 2:7], q[:, :3]
         self.v_h, self.v_stay = v[:, :2], v[:, 2:5]
         self.force, self.torque, self.f_h, self.f_z, self.t_xy = x[:, :3], x[:, 3:], x[:, :2], x[:, 2], x[:, 3:5]
@@ -57,7 +59,6 @@ class SwarmLoop:
         self.friction, self.dt, self.max_omega = cfg.collision.floor_friction, cfg.sim_dt, cfg.quad.max_omega
         self.floor_z = swarm.floor_z
         self.floor_top = swarm.floor_z + FLOOR_TOL
-        self.z_bounds = np.array([self.floor_z, self.floor_top])
         d = swarm._spec_floor["yaw"]
         self.yaw = (d.low, d.high) if cfg.noise.stochastic_collisions else None
         self.yaw_mean = d.mean
@@ -88,16 +89,20 @@ class SwarmLoop:
         self._floor_rows = (h, h[:, :2], h[:, 2:], sq, sq[:, 0::2], sq[:, 1::2], mags, mags[:, 0], mags[:, 1],
                             num[:, 0], num[:, 1], ratio, ratio[:, :1], ratio[:, 1:], np.empty(n), np.empty(n),
                             np.empty(n), np.empty((n, 2)), num, fcopy, fcopy[:, :2], fcopy[:, 2])
-        # the landing's rows
-        le2, p6, e = np.empty((n, 2), bool), np.empty((n, 6)), np.empty((n, 3))
+        # the landing's rows: one flat gather of qpos (z twice, the yaw entries' two factors, entry-major) into g
+        g = np.empty(14 * n)
+        le16, p, e = np.empty(2 * n, bool), np.empty(6 * n), np.empty(3 * n)
         q5 = np.zeros((n, 5))  # (floor_z, cos h, 0, 0, sin h)
         q5[:, 0] = self.floor_z
-        self._landing_rows = (le2, le2[:, 0], le2[:, 1], p6, p6[:, :3], p6[:, 3:], e, e[:, 0], e[:, 1], e[:, 2], q5,
-                              q5[:, 1], q5[:, 4])
-        self.t18 = np.empty((n, 18))
-        self.t18_a, self.t18_b = self.t18[:, :9], self.t18[:, 9:]
+        self._landing_rows = (g, g[:2 * n], g[2 * n:8 * n], g[8 * n:], le16, le16[:n], le16[n:], p, p[:3 * n],
+                              p[3 * n:], e, e[:n], e[n:2 * n], e[2 * n:], np.empty(n), np.empty(n), np.empty(n), q5,
+                              q5[:, 1], q5[:, 4], np.empty(n, bool), np.empty(n, bool))
+        # rotation rows: the two factors of the 18 products per quad gathered as (2, 2, N, 9), product (2, N, 9)
+        self.t36 = np.empty((2, 2, n, 9))
+        self.t18 = np.empty((2, n, 9))
+        self._k = _constants(n, self.floor_z, self.floor_top, self.yaw)
 
-    _KEEP = ("s", "friction", "dt", "max_omega", "floor_z", "floor_top", "z_bounds", "yaw", "yaw_mean", "n",
+    _KEEP = ("s", "friction", "dt", "max_omega", "floor_z", "floor_top", "yaw", "yaw_mean", "n",
              "stages_apply", "out_lo", "out_hi", "hitbox", "offdiag")
 
     def __getstate__(self) -> dict[str, Any]:
@@ -115,12 +120,14 @@ class SwarmLoop:
         return v
 
     def rotmat(self) -> None:
-        """``self.R`` = ``perf.numpy_small.quat_to_rotmat_qpos`` of the physics' qpos (same bits)."""
-        q, t = self._v.q, self.t18
-        np.multiply(q.take(_QPOS_A, axis=-1), q.take(_QPOS_B, axis=-1), out=t)
-        t *= _Q_SCALE
-        np.add(self.t18_a, self.t18_b, out=self.R9)
-        self.R9 += _Q_BASE  # base + (a + b): the same sum
+        """``self.R`` = ``perf.numpy_small.quat_to_rotmat_qpos`` of the physics' qpos (same bits: the same
+        products, scales and sums, on rows gathered in one flat take)."""
+        t36, t = self.t36, self.t18
+        self._v.qf.take(self._k.rot_idx, None, t36, "wrap")  # (valid indices: wrap is raise, without its checks)
+        np.multiply(t36[0], t36[1], t)
+        np.multiply(t, self._k.rot_scale, t)
+        np.add(t[0], t[1], self.R9)
+        np.add(self.R9, self._k.rot_base, self.R9)  # base + (a + b): the same sum
 
     def __call__(self, cfg: Any, carry: dict[str, Any], inp: dict[str, Any], consts: dict[str, Any],
                  ops: Any) -> dict[str, Any]:
@@ -226,37 +233,43 @@ class SwarmLoop:
 
     def _landing(self, V: _Views, u: np.ndarray, on_floor: np.ndarray, hit_row: np.ndarray) -> np.ndarray:
         """``numpy_loop.SmallLoop.floor_impact`` of the one world (``numpy_floor.floor_impact_rows``, offsets
-        zero): written into qpos/qvel, ``u`` and ``hit_row`` in place; returns the new on_floor (N,)."""
-        s = self.s
-        le2, le, stay_le, p6, p6_a, p6_b, e, e0, e1, e2, q5, q5_cos, q5_sin = self._landing_rows
-        np.less_equal(V.z2, self.z_bounds, le2)  # z <= floor_z, z <= floor_z + FLOOR_TOL
-        grounded = le | on_floor if s._any_on_floor else le
-        if not _count_nonzero(grounded):
+        zero): written into qpos/qvel, ``u`` and ``hit_row`` in place; returns the new on_floor (N,). The same
+        expressions on contiguous rows of one flat gather (``numpy_small.yaw_entries_qpos``' products, scales
+        and sums); the yaw draw as ``Generator.uniform``'s low + range * (a standard uniform), the same stream."""
+        s, k = self.s, self._k
+        g, z2, f1, f2, le16, le, stay_le, p, p_a, p_b, e, e0, e1, e2, yaw, half, draw, q5, q5_cos, q5_sin, hit, \
+            staying = self._landing_rows
+        V.qf.take(k.land_idx, None, g, "wrap")
+        np.less_equal(z2, k.z_bounds, le16)  # z <= floor_z, z <= floor_z + FLOOR_TOL
+        if not s._any_on_floor and not _count_nonzero(le):  # (_any_on_floor mirrors on_floor.any())
             return on_floor
-        n = self.n
-        yaw_draw = s.rng.uniform(*self.yaw, size=(1, n))[0] if self.yaw is not None else np.full(n, self.yaw_mean)
-        hit = le > on_floor  # at or below the floor and airborne
-        staying = on_floor & stay_le
-        grounded = hit | staying
+        if self.yaw is not None:
+            s.rng.random(out=draw)  # the n doubles of rng.uniform(*self.yaw, size=(1, n))
+        np.greater(le, on_floor, hit)  # at or below the floor and airborne
+        np.logical_and(on_floor, stay_le, staying)
+        grounded = np.logical_or(hit, staying)
         any_hit = _count_nonzero(hit) > 0
-        q = V.q  # numpy_small.yaw_entries_qpos: R10, R00, R22 of the old rotation
-        np.multiply(q.take(_QPOS_YAW_1, axis=-1), q.take(_QPOS_YAW_2, axis=-1), p6)
-        p6 *= _YAW_SCALE
-        np.add(p6_a, p6_b, e)
-        e += _YAW_BASE
-        yaw = np.arctan2(e0, e1)
-        yaw += np.where(hit & (e2 < 0), yaw_draw, 0.0) if any_hit else 0.0
-        half = 0.5 * yaw
+        np.multiply(f1, f2, p)  # numpy_small.yaw_entries_qpos: R10, R00, R22 of the old rotation
+        np.multiply(p, k.yaw_scale, p)
+        np.add(p_a, p_b, e)
+        np.add(e, k.yaw_base, e)
+        np.arctan2(e0, e1, yaw)
+        if any_hit:
+            yaw_draw = draw * k.yaw_range + k.yaw_low if self.yaw is not None else np.full(self.n, self.yaw_mean)
+            yaw += np.where(hit & (e2 < 0), yaw_draw, 0.0)
+        else:
+            np.add(yaw, k.zero, yaw)
+        np.multiply(k.half, yaw, half)
         # (z, the yaw-only quaternion) where grounded: (floor_z, cos h, 0, 0, sin h) in one masked write
         np.cos(half, q5_cos)
         np.sin(half, q5_sin)
-        np.copyto(V.zq, q5, where=grounded[:, None])
-        V.qp += 0.0  # (p - 0.0) + 0.0 of the frame round trip
+        _copyto(V.zq, q5, where=grounded[:, None])
+        np.add(V.q, k.q_zero, V.q)  # (p - 0.0) + 0.0 of the frame round trip (the quaternion + -0.0: as it is)
         if any_hit:  # a hit zeroes vel and omega, and the motors (0.0 * x: signs kept)
             np.multiply(V.v, 0.0, out=V.v, where=hit[:, None])
             np.multiply(u, 0.0, out=u, where=hit[:, None])
             hit_row |= hit
-        np.copyto(V.v_stay, 0.0, where=staying[:, None])
+        _copyto(V.v_stay, k.zero, where=staying[:, None])
         s.phys.touch()
         s._any_on_floor = _count_nonzero(grounded) > 0
         return grounded
@@ -286,6 +299,27 @@ class SwarmLoop:
                 "contact": contact, "new_contact": new, "dist": dist, "changed": False}
 
 
+def _constants(n: int, floor_z: float, floor_top: float, yaw: tuple[float, float] | None) -> SimpleNamespace:
+    """The sub-step's constant operands as arrays of the full shape of the other operand (a NumPy call on
+    same-shape contiguous arrays costs less than one that broadcasts or converts a Python float) and the
+    flat gather indices into one world's qpos (N * 7,)."""
+    rows = 7 * np.arange(n)
+    k = SimpleNamespace(zero=np.zeros(()), half=np.full((), 0.5))
+    k.land_idx = np.concatenate([rows + 2, rows + 2, (_QPOS_YAW_1[:, None] + rows).ravel(),
+                                 (_QPOS_YAW_2[:, None] + rows).ravel()])
+    k.z_bounds = np.repeat([floor_z, floor_top], n)
+    k.yaw_scale, k.yaw_base = np.repeat(_YAW_SCALE, n), np.repeat(_YAW_BASE, n)
+    lo, hi = yaw if yaw is not None else (0.0, 0.0)
+    k.yaw_low, k.yaw_range = np.full((), lo), np.full((), hi - lo)  # Generator.uniform: low + (high - low) u
+    k.q_zero = np.tile([0.0, 0.0, 0.0, -0.0, -0.0, -0.0, -0.0], (n, 1))
+    k.rot_idx = np.stack([a.reshape(2, 1, 9) + rows[:, None] for a in (_QPOS_A, _QPOS_B)])  # (2, 2, N, 9)
+    k.rot_scale = np.broadcast_to(_Q_SCALE.reshape(2, 1, 9), (2, n, 9)).copy()
+    k.rot_base = np.tile(_Q_BASE, (n, 1))
+    return k
+
+
+#: ``np.copyto`` without its Python-level wrapper (the same function)
+_copyto = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "copyto", np.copyto)
 #: NumPy's clip ufunc (None if absent: the two ufuncs)
 _clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", None)
 
