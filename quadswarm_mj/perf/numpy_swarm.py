@@ -95,12 +95,12 @@ class SwarmLoop:
         q5 = np.zeros((n, 5))  # (floor_z, cos h, 0, 0, sin h)
         q5[:, 0] = self.floor_z
         self._landing_rows = (g, g[:2 * n], g[2 * n:8 * n], g[8 * n:], le16, le16[:n], le16[n:], p, p[:3 * n],
-                              p[3 * n:], e, e[:n], e[n:2 * n], e[2 * n:], np.empty(n), np.empty(n), np.empty(n), q5,
+                              p[3 * n:], e, e[:n], e[n:2 * n], e[2 * n:], np.empty(n), np.empty(n), q5,
                               q5[:, 1], q5[:, 4], np.empty(n, bool), np.empty(n, bool))
         # rotation rows: the two factors of the 18 products per quad gathered as (2, 2, N, 9), product (2, N, 9)
         self.t36 = np.empty((2, 2, n, 9))
         self.t18 = np.empty((2, n, 9))
-        self._k = _constants(n, self.floor_z, self.floor_top, self.yaw)
+        self._k = _constants(n, self.floor_z, self.floor_top)
 
     _KEEP = ("s", "friction", "dt", "max_omega", "floor_z", "floor_top", "yaw", "yaw_mean", "n",
              "stages_apply", "out_lo", "out_hi", "hitbox", "offdiag")
@@ -235,16 +235,15 @@ class SwarmLoop:
         """``numpy_loop.SmallLoop.floor_impact`` of the one world (``numpy_floor.floor_impact_rows``, offsets
         zero): written into qpos/qvel, ``u`` and ``hit_row`` in place; returns the new on_floor (N,). The same
         expressions on contiguous rows of one flat gather (``numpy_small.yaw_entries_qpos``' products, scales
-        and sums); the yaw draw as ``Generator.uniform``'s low + range * (a standard uniform), the same stream."""
+        and sums)."""
         s, k = self.s, self._k
-        g, z2, f1, f2, le16, le, stay_le, p, p_a, p_b, e, e0, e1, e2, yaw, half, draw, q5, q5_cos, q5_sin, hit, \
+        g, z2, f1, f2, le16, le, stay_le, p, p_a, p_b, e, e0, e1, e2, yaw, half, q5, q5_cos, q5_sin, hit, \
             staying = self._landing_rows
         V.qf.take(k.land_idx, None, g, "wrap")
         np.less_equal(z2, k.z_bounds, le16)  # z <= floor_z, z <= floor_z + FLOOR_TOL
         if not s._any_on_floor and not _count_nonzero(le):  # (_any_on_floor mirrors on_floor.any())
             return on_floor
-        if self.yaw is not None:
-            s.rng.random(out=draw)  # the n doubles of rng.uniform(*self.yaw, size=(1, n))
+        yaw_draw = s.rng.uniform(*self.yaw, size=(1, self.n))[0] if self.yaw is not None else None
         np.greater(le, on_floor, hit)  # at or below the floor and airborne
         np.logical_and(on_floor, stay_le, staying)
         grounded = np.logical_or(hit, staying)
@@ -255,7 +254,8 @@ class SwarmLoop:
         np.add(e, k.yaw_base, e)
         np.arctan2(e0, e1, yaw)
         if any_hit:
-            yaw_draw = draw * k.yaw_range + k.yaw_low if self.yaw is not None else np.full(self.n, self.yaw_mean)
+            if yaw_draw is None:
+                yaw_draw = np.full(self.n, self.yaw_mean)
             yaw += np.where(hit & (e2 < 0), yaw_draw, 0.0)
         else:
             np.add(yaw, k.zero, yaw)
@@ -299,7 +299,7 @@ class SwarmLoop:
                 "contact": contact, "new_contact": new, "dist": dist, "changed": False}
 
 
-def _constants(n: int, floor_z: float, floor_top: float, yaw: tuple[float, float] | None) -> SimpleNamespace:
+def _constants(n: int, floor_z: float, floor_top: float) -> SimpleNamespace:
     """The sub-step's constant operands as arrays of the full shape of the other operand (a NumPy call on
     same-shape contiguous arrays costs less than one that broadcasts or converts a Python float) and the
     flat gather indices into one world's qpos (N * 7,)."""
@@ -309,8 +309,6 @@ def _constants(n: int, floor_z: float, floor_top: float, yaw: tuple[float, float
                                  (_QPOS_YAW_2[:, None] + rows).ravel()])
     k.z_bounds = np.repeat([floor_z, floor_top], n)
     k.yaw_scale, k.yaw_base = np.repeat(_YAW_SCALE, n), np.repeat(_YAW_BASE, n)
-    lo, hi = yaw if yaw is not None else (0.0, 0.0)
-    k.yaw_low, k.yaw_range = np.full((), lo), np.full((), hi - lo)  # Generator.uniform: low + (high - low) u
     k.q_zero = np.tile([0.0, 0.0, 0.0, -0.0, -0.0, -0.0, -0.0], (n, 1))
     k.rot_idx = np.stack([a.reshape(2, 1, 9) + rows[:, None] for a in (_QPOS_A, _QPOS_B)])  # (2, 2, N, 9)
     k.rot_scale = np.broadcast_to(_Q_SCALE.reshape(2, 1, 9), (2, n, 9)).copy()
