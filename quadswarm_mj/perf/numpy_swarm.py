@@ -43,7 +43,8 @@ class _Views:
         self.src = (qpos, qvel, xfrc)
         q, v, x = qpos[0], qvel[0], xfrc[0]
         self.q, self.v = q, v
-        self.qf = q.reshape(-1)  # (N * 7,) a view (qpos is contiguous): the source of the flat gathers
+        # flat views (MuJoCo's arrays are contiguous): the sources of the flat gathers
+        self.qf, self.vf, self.xf = q.reshape(-1), v.reshape(-1), x.reshape(-1)
         self.z2, self.zq, self.qp = q[:, 2:3], q[:, 2:7], q[:, :3]
         self.v_h, self.v_stay = v[:, :2], v[:, 2:5]
         self.force, self.torque, self.f_h, self.f_z, self.t_xy = x[:, :3], x[:, 3:], x[:, :2], x[:, 2], x[:, 3:5]
@@ -82,13 +83,14 @@ class SwarmLoop:
         self._ts_src: tuple | None = None
         self._wrench_rows = (rows, np.empty((n, 4, 4)), mix4, sm, sm[:, :1], sm[:, None, 1:], np.empty((n, 3, 3)),
                              self.R[:, :, 2], np.empty((n, 4)))
-        # the floor wrench's rows: h = (F_x, F_y, v_x, v_y), their squares, (|F_h|, speed), ...
-        h, sq, mags, num, ratio = np.empty((n, 4)), np.empty((n, 4)), np.empty((n, 2)), np.empty((n, 2)), \
-            np.empty((n, 2))
-        fcopy = np.empty((n, 3))
-        self._floor_rows = (h, h[:, :2], h[:, 2:], sq, sq[:, 0::2], sq[:, 1::2], mags, mags[:, 0], mags[:, 1],
-                            num[:, 0], num[:, 1], ratio, ratio[:, :1], ratio[:, 1:], np.empty(n), np.empty(n),
-                            np.empty(n), np.empty((n, 2)), num, fcopy, fcopy[:, :2], fcopy[:, 2])
+        # the floor wrench's rows, component-major (., N): G = (v_x, v_y, F_x, F_y, F_z, tau_x, tau_y) gathered,
+        # W = (F_x, F_y, F_z, tau_x, tau_y) written (tau rows stay 0.0)
+        G, W = np.empty((7, n)), np.zeros((5, n))
+        sq, mags, num, den, kv = np.empty((4, n)), np.empty((2, n)), np.empty((2, n)), np.empty((2, n)), \
+            np.empty((2, n))
+        self._floor_rows = (G, G[:2], G[2:], G[:4], G[2:4], G[4], sq, sq[0::2], sq[1::2], mags, mags[0], mags[1],
+                            num, num[0], num[1], den, np.empty((2, n), bool), kv, np.empty(n), np.empty(n),
+                            np.empty(n), W, W[:2], W[2], np.empty((5, n)))
         # the landing's rows: one flat gather of qpos (z twice, the yaw entries' two factors, entry-major) into g
         g = np.empty(14 * n)
         le16, p, e = np.empty(2 * n, bool), np.empty(6 * n), np.empty(3 * n)
@@ -100,7 +102,7 @@ class SwarmLoop:
         # rotation rows: the two factors of the 18 products per quad gathered as (2, 2, N, 9), product (2, N, 9)
         self.t36 = np.empty((2, 2, n, 9))
         self.t18 = np.empty((2, n, 9))
-        self._k = _constants(n, self.floor_z, self.floor_top)
+        self._k = _constants(n, self.floor_z, self.floor_top, self.friction, self.dt)
 
     _KEEP = ("s", "friction", "dt", "max_omega", "floor_z", "floor_top", "yaw", "yaw_mean", "n",
              "stages_apply", "out_lo", "out_hi", "hitbox", "offdiag")
@@ -195,41 +197,39 @@ class SwarmLoop:
         return u
 
     def _floor_wrench(self, V: _Views, on_floor: np.ndarray, mass: np.ndarray, weight: np.ndarray) -> None:
-        """``numpy_floor.floor_wrench_inplace`` on xfrc_applied's rows (the same expressions and order)."""
-        every = _count_nonzero(on_floor) == self.n
-        h, h_f, h_v, sq, sq_a, sq_b, mags, mag_f, mag_v, num_s, num_k, ratio, ratio_s, ratio_k, normal, cap, tmp, kv, \
-            num, fcopy, fcopy_h, fcopy_z = self._floor_rows
-        if every:
-            f_h, f_z = V.f_h, V.f_z
-        else:
-            np.copyto(fcopy, V.force)
-            f_h, f_z = fcopy_h, fcopy_z
-        mul, sub = np.multiply, np.subtract
-        h_f[...] = f_h
-        h_v[...] = V.v_h
-        mul(h, h, sq)
+        """``numpy_floor.floor_wrench_inplace`` on xfrc_applied's rows (the same expressions and order) on
+        component-major rows gathered from qvel and xfrc_applied and put back in one call (grounded quads
+        only); max(0, x) and min(a, x) as the clip ufunc (the same bits: no operand is -0.0 here)."""
+        k = self._k
+        G, G_v, G_x, h, h_f, f_z, sq, sq_a, sq_b, mags, speed, mag_f, num, num_k, num_s, den, positive, kv, \
+            normal, cap, tmp, W, W_h, W_z, W_mixed = self._floor_rows
+        V.vf.take(k.v_idx, None, G_v, "wrap")  # (v_x, v_y)
+        V.xf.take(k.x_idx, None, G_x, "wrap")  # (F_x, F_y, F_z, tau_x, tau_y)
+        np.multiply(h, h, sq)
         np.add(sq_a, sq_b, mags)
-        np.sqrt(mags, mags)
-        sub(weight, f_z, normal)
-        np.maximum(0.0, normal, out=normal)
-        mul(self.friction, normal, cap)
-        sub(mag_f, cap, tmp)
-        np.maximum(0.0, tmp, out=num_s)
-        mul(mass, mag_v, tmp)
-        tmp /= self.dt
-        np.minimum(cap, tmp, out=num_k)
-        positive = mags > _THRESH
-        np.divide(num, np.where(positive, mags, 1.0), ratio)
-        mul(h_f, ratio_s, f_h)  # static friction
-        mul(ratio_k, h_v, kv)
-        sub(h_f, kv, out=f_h, where=positive[:, 1:])  # kinetic
-        f_z += normal
-        if every:
-            V.t_xy[...] = 0.0
-        else:
-            mask = on_floor[:, None]
-            np.copyto(V.force, fcopy, where=mask)
-            np.copyto(V.t_xy, 0.0, where=mask)
+        np.sqrt(mags, mags)  # speed, |F_h| (sqrt(x x + y y) as norm_last)
+        np.subtract(weight, f_z, normal)
+        _clip(normal, k.zero, k.inf, normal)  # max(0, weight - F_z)
+        np.multiply(k.friction, normal, cap)
+        np.subtract(mag_f, cap, tmp)
+        _clip(tmp, k.zero, k.inf, num_s)  # static: max(0, |F_h| - cap)
+        np.multiply(mass, speed, tmp)
+        np.divide(tmp, k.dt, tmp)
+        _clip(cap, k.ninf, tmp, num_k)  # kinetic: min(cap, m speed / dt)
+        np.greater(mags, k.thresh, positive)  # moving, |F_h| > 0
+        _copyto(den, k.ones2)
+        _copyto(den, mags, where=positive)
+        np.divide(num, den, num)  # ratio (kinetic, static)
+        np.multiply(h_f, num_s, W_h)  # static friction
+        np.multiply(num_k, G_v, kv)
+        np.subtract(h_f, kv, kv)
+        _copyto(W_h, kv, where=positive[0])  # kinetic
+        np.add(f_z, normal, W_z)
+        if _count_nonzero(on_floor) != self.n:  # the other quads' rows as they are
+            _copyto(W_mixed, G_x)
+            _copyto(W_mixed, W, where=on_floor)
+            W = W_mixed
+        V.xf.put(k.x_idx, W)
 
     def _landing(self, V: _Views, u: np.ndarray, on_floor: np.ndarray, hit_row: np.ndarray) -> np.ndarray:
         """``numpy_loop.SmallLoop.floor_impact`` of the one world (``numpy_floor.floor_impact_rows``, offsets
@@ -299,7 +299,7 @@ class SwarmLoop:
                 "contact": contact, "new_contact": new, "dist": dist, "changed": False}
 
 
-def _constants(n: int, floor_z: float, floor_top: float) -> SimpleNamespace:
+def _constants(n: int, floor_z: float, floor_top: float, friction: float, dt: float) -> SimpleNamespace:
     """The sub-step's constant operands as arrays of the full shape of the other operand (a NumPy call on
     same-shape contiguous arrays costs less than one that broadcasts or converts a Python float) and the
     flat gather indices into one world's qpos (N * 7,)."""
@@ -313,6 +313,11 @@ def _constants(n: int, floor_z: float, floor_top: float) -> SimpleNamespace:
     k.rot_idx = np.stack([a.reshape(2, 1, 9) + rows[:, None] for a in (_QPOS_A, _QPOS_B)])  # (2, 2, N, 9)
     k.rot_scale = np.broadcast_to(_Q_SCALE.reshape(2, 1, 9), (2, n, 9)).copy()
     k.rot_base = np.tile(_Q_BASE, (n, 1))
+    rows6 = 6 * np.arange(n)
+    k.v_idx, k.x_idx = (np.stack([rows6 + c for c in cols]) for cols in ((0, 1), (0, 1, 2, 3, 4)))  # (2, N), (5, N)
+    k.inf, k.ninf, k.ones2 = np.full((), np.inf), np.full((), -np.inf), np.ones((2, n))
+    k.thresh = np.repeat([[1e-9], [0.0]], n, axis=1)  # (speed, |F_h|) thresholds, as numpy_floor's
+    k.friction, k.dt = np.full((), friction), np.full((), dt)
     return k
 
 
@@ -336,5 +341,3 @@ def action_to_command(action: np.ndarray) -> np.ndarray:
 #: ``np.count_nonzero`` without its Python-level wrapper (the same function)
 _count_nonzero = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "count_nonzero",
                          np.count_nonzero)
-# thresholds of (|F_h|, |v_h|) (numpy_floor): the static ratio divides by |F_h| where > 0, the kinetic by the speed
-_THRESH = np.array([0.0, 1e-9])
