@@ -16,6 +16,7 @@ several quads. NumPy only.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -33,6 +34,8 @@ ENABLED = True
 #: ``np.count_nonzero`` without its Python-level wrapper (the same function)
 _count_nonzero = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "count_nonzero",
                          np.count_nonzero)
+#: ``np.copyto`` without its Python-level wrapper (the same function)
+_copyto = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "copyto", np.copyto)
 #: NumPy's clip ufunc (None if absent)
 _clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", None)
 # rows of the norm block: goal offset, clipped action, omega, velocity, thrust change
@@ -98,6 +101,15 @@ class SwarmTask:
         self.pv = np.empty((B * N, 6))
         self.pv_p, self.pv_v = self.pv[:, :3].reshape(B, N, 3), self.pv[:, 3:].reshape(B, N, 3)
         self.mpos = np.empty((B, N, 3))
+        # constant operands of the full shape of the other operand (NumPy calls on same-shape contiguous arrays cost
+        # less than ones that broadcast or convert a Python float), the rotation's diagonal gathered in one take
+        self.diag = np.empty((3, B, N))
+        self.diag_idx = (9 * np.arange(B * N) + np.array([[0], [4], [8]])).reshape(3, B, N)
+        self.c = SimpleNamespace(one=np.ones(()), two=np.full((), 2.0), neg_one=np.full((), -1.0),
+                                 falloff=np.full((), self.falloff), inf=np.full((B, N, N), np.inf),
+                                 coef=np.broadcast_to(self.coef, (T, B, N)).copy(), far=np.empty((B, N, N), bool),
+                                 low=np.broadcast_to(self.low, (B, N, self.D)).copy(),
+                                 high=np.broadcast_to(self.high, (B, N, self.D)).copy())
 
     _KEEP = ("cfg", "B", "N", "zero_terms", "dt", "episode_steps", "grace", "terms", "T", "factors", "row", "live",
              "annealed", "coef", "norm_rows", "falloff", "offdiag", "K", "self_dim", "D", "low", "high", "scale",
@@ -161,7 +173,7 @@ class SwarmTask:
         np.subtract(goals, pos, out=self.V_goal)
         if "effort" in live:
             if _clip is not None:  # = min(max(a, -1), 1) (the bounds are not zero: the same bits)
-                _clip(action, -1.0, 1.0, out=self.V_act)
+                _clip(action, self.c.neg_one, self.c.one, self.V_act)
             else:
                 np.maximum(action, -1.0, out=self.V_act)
                 np.minimum(self.V_act, 1.0, out=self.V_act)
@@ -183,17 +195,24 @@ class SwarmTask:
         if "pos" not in live:  # a -0.0 term: its cost stays 0.0
             C[0] = 0.0
         on_floor = k["on_floor"]
-        row = self.row
+        row, c, diag = self.row, self.c, self.diag
         if "crash" in live:
-            np.copyto(C[row["crash"]], on_floor)
+            _copyto(C[row["crash"]], on_floor)
+        if "orient" in live or "yaw" in live or "rot" in live:  # R00, R11, R22
+            R.reshape(-1).take(self.diag_idx, None, diag, "wrap")
         if "orient" in live:
             o = C[row["orient"]]
-            np.negative(R[..., 2, 2], out=o)
-            np.copyto(o, 1.0, where=on_floor)
+            np.negative(diag[2], o)
+            _copyto(o, c.one, where=on_floor)
         if "yaw" in live:
-            np.negative(R[..., 0, 0], out=C[row["yaw"]])
-        if "rot" in live:
-            C[row["rot"]] = -(R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0
+            np.negative(diag[0], C[row["yaw"]])
+        if "rot" in live:  # -(R00 + R11 + R22 - 1.0) / 2.0
+            r = C[row["rot"]]
+            np.add(diag[0], diag[1], r)
+            np.add(r, diag[2], r)
+            np.subtract(r, c.one, r)
+            np.negative(r, r)
+            np.divide(r, c.two, r)
         if "quad_collision" in live:
             qc = C[row["quad_collision"]]
             if any_new:
@@ -202,18 +221,18 @@ class SwarmTask:
                 qc[...] = 0.0
         key = self.key
         if "proximity" in live or self.K > 0:
-            np.copyto(key, np.inf)
-            np.copyto(key, k["dist"], where=self.offdiag)
+            _copyto(key, c.inf)
+            _copyto(key, k["dist"], where=self.offdiag)
         if "proximity" in live:
             pr = C[row["proximity"]]
-            if _count_nonzero(key >= self.falloff) == key.size:  # no pair within the falloff: +0.0
+            if _count_nonzero(np.greater_equal(key, c.falloff, c.far)) == key.size:  # no pair within the falloff: +0.0
                 pr[...] = 0.0
             else:
                 np.add.reduce(np.maximum(1.0 - key / self.falloff, 0.0), axis=-1, out=pr)
         for name in ("floor_hit", "wall_hit", "ceiling_hit"):
             if name in live:
-                np.copyto(C[row[name]], k["hit_" + name[:-4]])
-        coef = self._coef(anneal) if self.annealed else self.coef
+                _copyto(C[row[name]], k["hit_" + name[:-4]])
+        coef = self._coef(anneal) if self.annealed else c.coef
         out = np.empty((self.T + 1,) + C.shape[1:])  # reward, then the terms
         terms = out[1:]
         np.multiply(C, coef, out=terms)
@@ -281,6 +300,9 @@ class SwarmTask:
                         out=obs[..., d0:d0 + 6 * K].reshape(B, N, K, 6))
         if self.cfg.sensors.any:  # the decks' readings of the true state, last
             obs[..., self.self_dim + 6 * K:] = numpy_deck.deck_part(self.cfg, pos, vel, R, omega, None, deck_draws)
-        np.maximum(obs, self.low, out=obs)
-        np.minimum(obs, self.high, out=obs)
+        if _clip is not None:  # = min(max(obs, low), high) (the clip ufunc on same-shape bounds: the same bits)
+            _clip(obs, self.c.low, self.c.high, obs)
+        else:
+            np.maximum(obs, self.low, out=obs)
+            np.minimum(obs, self.high, out=obs)
         return obs if self.scale is None else obs / self.scale
