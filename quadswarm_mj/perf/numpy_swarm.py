@@ -74,23 +74,24 @@ class SwarmLoop:
         """The work rows and their views (made again in a copy: a deep copy does not keep views)."""
         n = self.n
         self._v: _Views | None = None
-        # work rows (N, .), reused every sub-step (nothing in them outlives a control step)
-        rows = np.empty((n, 4, 4))  # thrust x mix rows (F_z, tau_x, tau_y) and yaw reaction per rotor
-        sm = np.empty((n, 4))  # F_z, tau_x, tau_y, tau_z (body)
-        self.R = np.empty((n, 3, 3))
-        self.R9 = self.R.reshape(n, 9)
-        mix4 = np.ones((4, 4))  # the mix rows (F_z, tau_x, tau_y) and 1.0 for the yaw reaction (set per call)
+        # work rows, component-major (., N) (contiguous rows: cheaper NumPy calls than strided (N, .) columns),
+        # reused every sub-step (nothing in them outlives a control step)
+        self.Rj = np.empty((3, 3, n))  # the rotation R[n, i, j] at Rj[j, i, n]: its column j is the row block Rj[j]
+        self.R9 = self.Rj.reshape(9, n)
+        # motor state and per-step operands (4 rotors, N): u, f, sqrt(cmd), cmd * noise, alpha, lag step
+        self._motor = tuple(np.empty((4, n)) for _ in range(6))
+        # rotor rows (rotor k, row j, N): (thrust_max f) mix for F_z, tau_x, tau_y and (spin f) 1.0 for tau_z
         self._ts_src: tuple | None = None
-        self._wrench_rows = (rows, np.empty((n, 4, 4)), mix4, sm, sm[:, :1], sm[:, None, 1:], np.empty((n, 3, 3)),
-                             self.R[:, :, 2], np.empty((n, 4)))
-        # the floor wrench's rows, component-major (., N): G = (v_x, v_y, F_x, F_y, F_z, tau_x, tau_y) gathered,
-        # W = (F_x, F_y, F_z, tau_x, tau_y) written (tau rows stay 0.0)
-        G, W = np.empty((7, n)), np.zeros((5, n))
+        self._rotor = (np.empty((4, 4, n)), np.empty((4, 4, n)), np.empty((4, 4, n)), np.empty((4, n)),
+                       np.empty((3, 3, n)))  # ts, mix, rows, sums (F_z, tau_x, tau_y, tau_z), R tau products
+        self.W6 = np.empty((6, n))  # the world wrench (F_x, F_y, F_z, tau_x, tau_y, tau_z), put into xfrc_applied
+        # the floor wrench's rows: H = (v_x, v_y, F_x, F_y), new = (F_x, F_y, F_z, tau_x, tau_y) (tau rows stay 0.0)
+        H, new = np.empty((4, n)), np.zeros((5, n))
         sq, mags, num, den, kv = np.empty((4, n)), np.empty((2, n)), np.empty((2, n)), np.empty((2, n)), \
             np.empty((2, n))
-        self._floor_rows = (G, G[:2], G[2:], G[:4], G[2:4], G[4], sq, sq[0::2], sq[1::2], mags, mags[0], mags[1],
-                            num, num[0], num[1], den, np.empty((2, n), bool), kv, np.empty(n), np.empty(n),
-                            np.empty(n), W, W[:2], W[2], np.empty((5, n)))
+        self._floor_rows = (H, H[:2], H[2:], sq, sq[0::2], sq[1::2], mags, mags[0], mags[1], num, num[0], num[1],
+                            den, np.empty((2, n), bool), kv, np.empty(n), np.empty(n), np.empty(n), new, new[:2],
+                            new[2])
         # the landing's rows: one flat gather of qpos (z twice, the yaw entries' two factors, entry-major) into g
         g = np.empty(14 * n)
         le16, p, e = np.empty(2 * n, bool), np.empty(6 * n), np.empty(3 * n)
@@ -99,9 +100,9 @@ class SwarmLoop:
         self._landing_rows = (g, g[:2 * n], g[2 * n:8 * n], g[8 * n:], le16, le16[:n], le16[n:], p, p[:3 * n],
                               p[3 * n:], e, e[:n], e[n:2 * n], e[2 * n:], np.empty(n), np.empty(n), q5,
                               q5[:, 1], q5[:, 4], np.empty(n, bool), np.empty(n, bool))
-        # rotation rows: the two factors of the 18 products per quad gathered as (2, 2, N, 9), product (2, N, 9)
-        self.t36 = np.empty((2, 2, n, 9))
-        self.t18 = np.empty((2, n, 9))
+        # rotation rows: the two factors of the 18 products per quad gathered as (2, 2, 9, N), product (2, 9, N)
+        self.t36 = np.empty((2, 2, 9, n))
+        self.t18 = np.empty((2, 9, n))
         self._k = _constants(n, self.floor_z, self.floor_top, self.friction, self.dt)
 
     _KEEP = ("s", "friction", "dt", "max_omega", "floor_z", "floor_top", "yaw", "yaw_mean", "n",
@@ -122,14 +123,14 @@ class SwarmLoop:
         return v
 
     def rotmat(self) -> None:
-        """``self.R`` = ``perf.numpy_small.quat_to_rotmat_qpos`` of the physics' qpos (same bits: the same
-        products, scales and sums, on rows gathered in one flat take)."""
-        t36, t = self.t36, self.t18
-        self._v.qf.take(self._k.rot_idx, None, t36, "wrap")  # (valid indices: wrap is raise, without its checks)
+        """``self.Rj`` = ``perf.numpy_small.quat_to_rotmat_qpos`` of the physics' qpos, component-major (same bits:
+        the same products, scales and sums, on rows gathered in one flat take)."""
+        t36, t, k = self.t36, self.t18, self._k
+        self._v.qf.take(k.rot_idx, None, t36, "wrap")  # (valid indices: wrap is raise, without its checks)
         np.multiply(t36[0], t36[1], t)
-        np.multiply(t, self._k.rot_scale, t)
+        np.multiply(t, k.rot_scale, t)
         np.add(t[0], t[1], self.R9)
-        np.add(self.R9, self._k.rot_base, self.R9)  # base + (a + b): the same sum
+        np.add(self.R9, k.rot_base, self.R9)  # base + (a + b): the same sum
 
     def __call__(self, cfg: Any, carry: dict[str, Any], inp: dict[str, Any], consts: dict[str, Any],
                  ops: Any) -> dict[str, Any]:
@@ -138,74 +139,76 @@ class SwarmLoop:
         s, phys, V = self.s, self.s.phys, self._views()
         n = self.n
         params, cmd = inp["params"], inp["cmd"][0]
+        u, f, root, cn, alpha, _ = self._motor
         # constant over the control step (as SmallLoop): sqrt(cmd), alpha, cmd * noise, mass * gravity
-        root, alpha, cn = np.sqrt(cmd), params["alpha"][0][:, None], cmd * inp["eps"][0]
-        thrust_max, spin, mix = params["thrust_max"][0], consts["torque_spin"][0], consts["mix"]
-        gravity = params["gravity"]
+        np.sqrt(cmd.T, root)
+        np.multiply(cmd.T, inp["eps"][0].T, cn)
         mass = params["mass"][0]
-        weight = params["mass"][0] * gravity
+        weight = mass * params["gravity"]
+        src = self._ts_src  # per-quad constants, made again when they change (at a reset)
+        if src is None or src[0] is not params["thrust_max"] or src[1] is not consts["torque_spin"] \
+                or src[2] is not consts["mix"] or src[3] is not params["alpha"]:
+            ts, mix = self._rotor[:2]
+            ts[:, :3, :] = params["thrust_max"][0].T[:, None, :]
+            ts[:, 3, :] = consts["torque_spin"][0].T
+            mix[:, :3, :] = consts["mix"].T[:, :, None]
+            mix[:, 3, :] = 1.0
+            alpha[...] = params["alpha"][0]
+            self._ts_src = (params["thrust_max"], consts["torque_spin"], consts["mix"], params["alpha"])
         on_floor = carry["on_floor"][0]
         hit_floor = carry["hit_floor"]
         hit_row = hit_floor[0]
-        R = self.R
-        R[...] = carry["R"][0]
-        u = carry["u"][0]
-        f = np.empty((n, 4))
-        ts, mix4 = self._wrench_rows[1:3]
-        src = self._ts_src  # ts = (thrust_max x 3 rows, torque_spin) per quad, made again when they change
-        if src is None or src[0] is not params["thrust_max"] or src[1] is not consts["torque_spin"] \
-                or src[2] is not mix:
-            ts[:, :3, :] = thrust_max[:, None, :]
-            ts[:, 3, :] = spin
-            mix4[:3] = mix
-            self._ts_src = (params["thrust_max"], consts["torque_spin"], mix)
-        f_row = f[:, None, :]
-        force, torque, max_omega = V.force, V.torque, self.max_omega
-        wrench = self._wrench
-        for i in range(cfg.substeps):
-            u = wrench(i, u, f, f_row, root, alpha, cn, force, torque)  # written into xfrc_applied
+        _copyto(self.Rj, carry["R"][0].transpose(2, 1, 0))
+        _copyto(u, carry["u"][0].T)
+        max_omega, xf, x_idx = self.max_omega, V.xf, self._k.x_idx
+        for _ in range(cfg.substeps):
+            self._wrench()  # into self.W6
             if s._any_on_floor:  # the floor's normal force and friction (numpy_floor.floor_wrench_inplace)
                 self._floor_wrench(V, on_floor, mass, weight)
+            xf.put(x_idx, self.W6)  # xfrc_applied's rows
             phys.step(max_omega)
             on_floor = self._landing(V, u, on_floor, hit_row)
             self.rotmat()
-        return {"q": phys.qpos, "v": phys.qvel, "R": R.copy().reshape(1, n, 3, 3), "u": u.reshape(1, n, 4),
-                "f_norm": f.reshape(1, n, 4), "on_floor": on_floor.reshape(1, n), "hit_floor": hit_floor,
+        R = np.empty((1, n, 3, 3))
+        _copyto(R[0], self.Rj.transpose(2, 1, 0))
+        return {"q": phys.qpos, "v": phys.qvel, "R": R, "u": u.T.reshape(1, n, 4).copy(),
+                "f_norm": f.T.reshape(1, n, 4).copy(), "on_floor": on_floor.reshape(1, n), "hit_floor": hit_floor,
                 "aux": carry["aux"], "ctrl": carry["ctrl"]}
 
-    def _wrench(self, i: int, u: np.ndarray, f: np.ndarray, f_row: np.ndarray, root: np.ndarray, alpha: np.ndarray,
-                cn: np.ndarray, force: np.ndarray, torque: np.ndarray) -> np.ndarray:
-        """Sub-step ``i``'s rotor wrench (``numpy_loop.substep_wrench``: motor lag, thrusts ``f`` written in place,
-        force and torque written into xfrc_applied's ``force``/``torque`` rows); returns u (fresh at i = 0)."""
-        rows, ts, mix4, sm, sm_fz, sm_tau, rt, R_z, d4 = self._wrench_rows
-        mul, reduce = np.multiply, np.add.reduce
+    def _wrench(self) -> None:
+        """A sub-step's rotor wrench (``numpy_loop.substep_wrench``: motor lag, thrusts, the body force and torque
+        rotated to the world) on the component-major rows (the same products and left-to-right sums), written
+        into ``self.W6``; u and f updated in place."""
+        u, f, root, cn, alpha, d4 = self._motor
+        ts, mix, rows, sm, rt = self._rotor
+        k, W6, Rj = self._k, self.W6, self.Rj
         np.subtract(root, u, d4)
-        d4 *= alpha
-        u = u + d4 if i == 0 else np.add(u, d4, u)  # a fresh u for this step, then in place
-        mul(u, u, f)
-        f += cn
-        if _clip is not None:  # = min(max(f, 0), 1): u u + c n is never -0.0, so no sign of zero differs
-            _clip(f, 0.0, 1.0, out=f)
-        else:
-            np.minimum(np.maximum(f, 0.0, out=f), 1.0, out=f)
-        mul(ts, f_row, rows)  # (thrust_max f) mix for F_z, tau_x, tau_y; (spin f) 1.0 for tau_z
-        rows *= mix4
-        reduce(rows, -1, None, sm)
-        mul(sm_fz, R_z, force)
-        mul(self.R, sm_tau, rt)
-        reduce(rt, -1, None, torque)
-        return u
+        np.multiply(d4, alpha, d4)
+        np.add(u, d4, u)
+        np.multiply(u, u, f)
+        np.add(f, cn, f)
+        _clip(f, k.zero, k.one, f)  # = min(max(f, 0), 1): u u + c n is never -0.0, so no sign of zero differs
+        np.multiply(ts, f[:, None, :], rows)  # (thrust_max f) mix; (spin f) 1.0
+        np.multiply(rows, mix, rows)
+        np.add(rows[0], rows[1], sm)  # the sum over the rotors, left to right (as np.add.reduce over 4)
+        np.add(sm, rows[2], sm)
+        np.add(sm, rows[3], sm)
+        np.multiply(sm[0], Rj[2], W6[:3])  # F_z R[:, 2]
+        np.multiply(Rj, sm[1:, None, :], rt)  # R[i, j] tau_j at rt[j, i]
+        np.add(rt[0], rt[1], W6[3:])
+        np.add(W6[3:], rt[2], W6[3:])
 
     def _floor_wrench(self, V: _Views, on_floor: np.ndarray, mass: np.ndarray, weight: np.ndarray) -> None:
-        """``numpy_floor.floor_wrench_inplace`` on xfrc_applied's rows (the same expressions and order) on
-        component-major rows gathered from qvel and xfrc_applied and put back in one call (grounded quads
-        only); max(0, x) and min(a, x) as the clip ufunc (the same bits: no operand is -0.0 here)."""
-        k = self._k
-        G, G_v, G_x, h, h_f, f_z, sq, sq_a, sq_b, mags, speed, mag_f, num, num_k, num_s, den, positive, kv, \
-            normal, cap, tmp, W, W_h, W_z, W_mixed = self._floor_rows
-        V.vf.take(k.v_idx, None, G_v, "wrap")  # (v_x, v_y)
-        V.xf.take(k.x_idx, None, G_x, "wrap")  # (F_x, F_y, F_z, tau_x, tau_y)
-        np.multiply(h, h, sq)
+        """``numpy_floor.floor_wrench_inplace`` on ``self.W6`` (the same expressions and order) on component-major
+        rows (grounded quads only); max(0, x) and min(a, x) as the clip ufunc (the same bits: no operand is
+        -0.0 here)."""
+        k, W6 = self._k, self.W6
+        H, H_v, h_f, sq, sq_a, sq_b, mags, speed, mag_f, num, num_k, num_s, den, positive, kv, normal, cap, tmp, \
+            new, new_h, new_z = self._floor_rows
+        f_z = W6[2]
+        V.vf.take(k.v_idx, None, H_v, "wrap")  # (v_x, v_y)
+        _copyto(h_f, W6[:2])  # (F_x, F_y)
+        np.multiply(H, H, sq)
         np.add(sq_a, sq_b, mags)
         np.sqrt(mags, mags)  # speed, |F_h| (sqrt(x x + y y) as norm_last)
         np.subtract(weight, f_z, normal)
@@ -220,16 +223,15 @@ class SwarmLoop:
         _copyto(den, k.ones2)
         _copyto(den, mags, where=positive)
         np.divide(num, den, num)  # ratio (kinetic, static)
-        np.multiply(h_f, num_s, W_h)  # static friction
-        np.multiply(num_k, G_v, kv)
+        np.multiply(h_f, num_s, new_h)  # static friction
+        np.multiply(num_k, H_v, kv)
         np.subtract(h_f, kv, kv)
-        _copyto(W_h, kv, where=positive[0])  # kinetic
-        np.add(f_z, normal, W_z)
-        if _count_nonzero(on_floor) != self.n:  # the other quads' rows as they are
-            _copyto(W_mixed, G_x)
-            _copyto(W_mixed, W, where=on_floor)
-            W = W_mixed
-        V.xf.put(k.x_idx, W)
+        _copyto(new_h, kv, where=positive[0])  # kinetic
+        np.add(f_z, normal, new_z)
+        if _count_nonzero(on_floor) == self.n:
+            _copyto(W6[:5], new)
+        else:  # the other quads' rows as they are
+            _copyto(W6[:5], new, where=on_floor)
 
     def _landing(self, V: _Views, u: np.ndarray, on_floor: np.ndarray, hit_row: np.ndarray) -> np.ndarray:
         """``numpy_loop.SmallLoop.floor_impact`` of the one world (``numpy_floor.floor_impact_rows``, offsets
@@ -267,7 +269,7 @@ class SwarmLoop:
         np.add(V.q, k.q_zero, V.q)  # (p - 0.0) + 0.0 of the frame round trip (the quaternion + -0.0: as it is)
         if any_hit:  # a hit zeroes vel and omega, and the motors (0.0 * x: signs kept)
             np.multiply(V.v, 0.0, out=V.v, where=hit[:, None])
-            np.multiply(u, 0.0, out=u, where=hit[:, None])
+            np.multiply(u, 0.0, out=u, where=hit)  # (u: (4, N))
             hit_row |= hit
         _copyto(V.v_stay, k.zero, where=staying[:, None])
         s.phys.touch()
@@ -310,12 +312,15 @@ def _constants(n: int, floor_z: float, floor_top: float, friction: float, dt: fl
     k.z_bounds = np.repeat([floor_z, floor_top], n)
     k.yaw_scale, k.yaw_base = np.repeat(_YAW_SCALE, n), np.repeat(_YAW_BASE, n)
     k.q_zero = np.tile([0.0, 0.0, 0.0, -0.0, -0.0, -0.0, -0.0], (n, 1))
-    k.rot_idx = np.stack([a.reshape(2, 1, 9) + rows[:, None] for a in (_QPOS_A, _QPOS_B)])  # (2, 2, N, 9)
-    k.rot_scale = np.broadcast_to(_Q_SCALE.reshape(2, 1, 9), (2, n, 9)).copy()
-    k.rot_base = np.tile(_Q_BASE, (n, 1))
+    # the rotation's entries in the order (column j, row i): entry e = 3 i + j at position 3 j + i
+    order = np.array([3 * i + j for j in range(3) for i in range(3)])
+    halves = np.concatenate([order, order + 9])
+    k.rot_idx = np.stack([a[halves].reshape(2, 9, 1) + rows for a in (_QPOS_A, _QPOS_B)])  # (2, 2, 9, N)
+    k.rot_scale = np.repeat(_Q_SCALE[halves].reshape(2, 9, 1), n, axis=2)
+    k.rot_base = np.repeat(_Q_BASE[order].reshape(9, 1), n, axis=1)
     rows6 = 6 * np.arange(n)
-    k.v_idx, k.x_idx = (np.stack([rows6 + c for c in cols]) for cols in ((0, 1), (0, 1, 2, 3, 4)))  # (2, N), (5, N)
-    k.inf, k.ninf, k.ones2 = np.full((), np.inf), np.full((), -np.inf), np.ones((2, n))
+    k.v_idx, k.x_idx = (np.stack([rows6 + c for c in cols]) for cols in ((0, 1), range(6)))  # (2, N), (6, N)
+    k.one, k.inf, k.ninf, k.ones2 = np.ones(()), np.full((), np.inf), np.full((), -np.inf), np.ones((2, n))
     k.thresh = np.repeat([[1e-9], [0.0]], n, axis=1)  # (speed, |F_h|) thresholds, as numpy_floor's
     k.friction, k.dt = np.full((), friction), np.full((), dt)
     return k
