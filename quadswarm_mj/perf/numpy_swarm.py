@@ -78,20 +78,21 @@ class SwarmLoop:
         # reused every sub-step (nothing in them outlives a control step)
         self.Rj = np.empty((3, 3, n))  # the rotation R[n, i, j] at Rj[j, i, n]: its column j is the row block Rj[j]
         self.R9 = self.Rj.reshape(9, n)
-        # motor state and per-step operands (4 rotors, N): u, f, sqrt(cmd), cmd * noise, alpha, lag step
-        self._motor = tuple(np.empty((4, n)) for _ in range(6))
-        # rotor rows (rotor k, row j, N): (thrust_max f) mix for F_z, tau_x, tau_y and (spin f) 1.0 for tau_z
+        # motor state and per-step operands (rotor k, row jj, N): u, f, sqrt(cmd), cmd * noise, alpha, lag step,
+        # each replicated over the 12 rows jj of the rotor sums (a NumPy call on same-shape arrays costs a third of
+        # one that broadcasts): F_z x 3 (for the force's rows), tau_x x 3, tau_y x 3, tau_z x 3 (for the torque's)
+        self._motor = tuple(np.empty((4, 12, n)) for _ in range(6))
         self._ts_src: tuple | None = None
-        self._rotor = (np.empty((4, 4, n)), np.empty((4, 4, n)), np.empty((4, 4, n)), np.empty((4, n)),
-                       np.empty((3, 3, n)))  # ts, mix, rows, sums (F_z, tau_x, tau_y, tau_z), R tau products
+        # ts (thrust_max or spin), mix (mix rows, 1.0 for tau_z), rows, sums, R tau products
+        self._rotor = (np.empty((4, 12, n)), np.empty((4, 12, n)), np.empty((4, 12, n)), np.empty((12, n)),
+                       np.empty((3, 3, n)))
         self.W6 = np.empty((6, n))  # the world wrench (F_x, F_y, F_z, tau_x, tau_y, tau_z), put into xfrc_applied
-        # the floor wrench's rows: H = (v_x, v_y, F_x, F_y), new = (F_x, F_y, F_z, tau_x, tau_y) (tau rows stay 0.0)
-        H, new = np.empty((4, n)), np.zeros((5, n))
-        sq, mags, num, den, kv = np.empty((4, n)), np.empty((2, n)), np.empty((2, n)), np.empty((2, n)), \
-            np.empty((2, n))
-        self._floor_rows = (H, H[:2], H[2:], sq, sq[0::2], sq[1::2], mags, mags[0], mags[1], num, num[0], num[1],
-                            den, np.empty((2, n), bool), kv, np.empty(n), np.empty(n), np.empty(n), new, new[:2],
-                            new[2])
+        # the floor wrench's rows: H = (v_x, v_y, F_x, F_y, v_y, v_x, F_y, F_x), new = (F_x, F_y, F_z, tau_x, tau_y)
+        # (tau rows stay 0.0), the ratios' rows (kinetic, kinetic, static, static)
+        H, new, sq, m4 = np.empty((8, n)), np.zeros((5, n)), np.empty((8, n)), np.empty((4, n))
+        self._floor_rows = (H, H[:2], H[2:4], H[4:6], H[6:8], sq, sq[:4], sq[4:], m4, m4[0], m4[2], np.empty((2, n)),
+                            np.empty((4, n)), np.empty((4, n)), np.empty((4, n), bool), np.empty((2, n)), np.empty(n),
+                            np.empty(n), np.empty(n), new, new[:2], new[2], np.empty((5, n), bool))
         # the landing's rows: one flat gather of qpos (z twice, the yaw entries' two factors, entry-major) into g
         g = np.empty(14 * n)
         le16, p, e = np.empty(2 * n, bool), np.empty(6 * n), np.empty(3 * n)
@@ -136,31 +137,32 @@ class SwarmLoop:
                  ops: Any) -> dict[str, Any]:
         """``cfg.substeps`` sub-steps from ``carry`` (as ``substep_loop``: ``q``/``v`` the physics' qpos/qvel;
         ``hit_floor`` all False); returns the carry after the last one."""
-        s, phys, V = self.s, self.s.phys, self._views()
+        s, phys, V, k = self.s, self.s.phys, self._views(), self._k
         n = self.n
         params, cmd = inp["params"], inp["cmd"][0]
         u, f, root, cn, alpha, _ = self._motor
         # constant over the control step (as SmallLoop): sqrt(cmd), alpha, cmd * noise, mass * gravity
-        np.sqrt(cmd.T, root)
-        np.multiply(cmd.T, inp["eps"][0].T, cn)
+        rep = k.motor_idx  # (4, 12, N) flat indices of an (N, 4) array: its entry [n, k] at [k, jj, n]
+        np.sqrt(cmd).take(rep, None, root, "wrap")
+        np.multiply(cmd, inp["eps"][0]).take(rep, None, cn, "wrap")
+        np.ravel(carry["u"][0]).take(rep, None, u, "wrap")
         mass = params["mass"][0]
         weight = mass * params["gravity"]
         src = self._ts_src  # per-quad constants, made again when they change (at a reset)
         if src is None or src[0] is not params["thrust_max"] or src[1] is not consts["torque_spin"] \
                 or src[2] is not consts["mix"] or src[3] is not params["alpha"]:
             ts, mix = self._rotor[:2]
-            ts[:, :3, :] = params["thrust_max"][0].T[:, None, :]
-            ts[:, 3, :] = consts["torque_spin"][0].T
-            mix[:, :3, :] = consts["mix"].T[:, :, None]
-            mix[:, 3, :] = 1.0
+            ts[:, :9, :] = params["thrust_max"][0].T[:, None, :]
+            ts[:, 9:, :] = consts["torque_spin"][0].T[:, None, :]
+            mix[:, :9, :] = np.repeat(consts["mix"].T, 3, axis=1)[:, :, None]
+            mix[:, 9:, :] = 1.0
             alpha[...] = params["alpha"][0]
             self._ts_src = (params["thrust_max"], consts["torque_spin"], consts["mix"], params["alpha"])
         on_floor = carry["on_floor"][0]
         hit_floor = carry["hit_floor"]
         hit_row = hit_floor[0]
         _copyto(self.Rj, carry["R"][0].transpose(2, 1, 0))
-        _copyto(u, carry["u"][0].T)
-        max_omega, xf, x_idx = self.max_omega, V.xf, self._k.x_idx
+        max_omega, xf, x_idx = self.max_omega, V.xf, k.x_idx
         for _ in range(cfg.substeps):
             self._wrench()  # into self.W6
             if s._any_on_floor:  # the floor's normal force and friction (numpy_floor.floor_wrench_inplace)
@@ -171,67 +173,71 @@ class SwarmLoop:
             self.rotmat()
         R = np.empty((1, n, 3, 3))
         _copyto(R[0], self.Rj.transpose(2, 1, 0))
-        return {"q": phys.qpos, "v": phys.qvel, "R": R, "u": u.T.reshape(1, n, 4).copy(),
-                "f_norm": f.T.reshape(1, n, 4).copy(), "on_floor": on_floor.reshape(1, n), "hit_floor": hit_floor,
-                "aux": carry["aux"], "ctrl": carry["ctrl"]}
+        return {"q": phys.qpos, "v": phys.qvel, "R": R, "u": u[:, 0].T.reshape(1, n, 4).copy(),
+                "f_norm": f[:, 0].T.reshape(1, n, 4).copy(), "on_floor": on_floor.reshape(1, n),
+                "hit_floor": hit_floor, "aux": carry["aux"], "ctrl": carry["ctrl"]}
 
     def _wrench(self) -> None:
         """A sub-step's rotor wrench (``numpy_loop.substep_wrench``: motor lag, thrusts, the body force and torque
         rotated to the world) on the component-major rows (the same products and left-to-right sums), written
         into ``self.W6``; u and f updated in place."""
-        u, f, root, cn, alpha, d4 = self._motor
+        u, f, root, cn, alpha, d = self._motor
         ts, mix, rows, sm, rt = self._rotor
         k, W6, Rj = self._k, self.W6, self.Rj
-        np.subtract(root, u, d4)
-        np.multiply(d4, alpha, d4)
-        np.add(u, d4, u)
+        np.subtract(root, u, d)
+        np.multiply(d, alpha, d)
+        np.add(u, d, u)
         np.multiply(u, u, f)
         np.add(f, cn, f)
         _clip(f, k.zero, k.one, f)  # = min(max(f, 0), 1): u u + c n is never -0.0, so no sign of zero differs
-        np.multiply(ts, f[:, None, :], rows)  # (thrust_max f) mix; (spin f) 1.0
+        np.multiply(ts, f, rows)  # (thrust_max f) mix; (spin f) 1.0
         np.multiply(rows, mix, rows)
         np.add(rows[0], rows[1], sm)  # the sum over the rotors, left to right (as np.add.reduce over 4)
         np.add(sm, rows[2], sm)
         np.add(sm, rows[3], sm)
-        np.multiply(sm[0], Rj[2], W6[:3])  # F_z R[:, 2]
-        np.multiply(Rj, sm[1:, None, :], rt)  # R[i, j] tau_j at rt[j, i]
+        np.multiply(sm[:3], Rj[2], W6[:3])  # F_z R[:, 2]
+        np.multiply(Rj, sm[3:].reshape(3, 3, -1), rt)  # R[i, j] tau_j at rt[j, i]
         np.add(rt[0], rt[1], W6[3:])
         np.add(W6[3:], rt[2], W6[3:])
 
     def _floor_wrench(self, V: _Views, on_floor: np.ndarray, mass: np.ndarray, weight: np.ndarray) -> None:
         """``numpy_floor.floor_wrench_inplace`` on ``self.W6`` (the same expressions and order) on component-major
-        rows (grounded quads only); max(0, x) and min(a, x) as the clip ufunc (the same bits: no operand is
-        -0.0 here)."""
+        rows, pairs duplicated where a row meets a pair (x, y) (grounded quads only); max(0, x) and min(a, x) as the
+        clip ufunc (the same bits: no operand is -0.0 here)."""
         k, W6 = self._k, self.W6
-        H, H_v, h_f, sq, sq_a, sq_b, mags, speed, mag_f, num, num_k, num_s, den, positive, kv, normal, cap, tmp, \
-            new, new_h, new_z = self._floor_rows
+        H, H_v, h_f, H_vs, H_fs, sq, sq_a, sq_b, m4, speed, mag_f, num2, num4, den, positive, kv, normal, cap, tmp, \
+            new, new_h, new_z, mask5 = self._floor_rows
         f_z = W6[2]
         V.vf.take(k.v_idx, None, H_v, "wrap")  # (v_x, v_y)
         _copyto(h_f, W6[:2])  # (F_x, F_y)
+        V.vf.take(k.vs_idx, None, H_vs, "wrap")  # (v_y, v_x)
+        _copyto(H_fs, W6[1::-1])  # (F_y, F_x)
         np.multiply(H, H, sq)
-        np.add(sq_a, sq_b, mags)
-        np.sqrt(mags, mags)  # speed, |F_h| (sqrt(x x + y y) as norm_last)
+        np.add(sq_a, sq_b, m4)  # (x x + y y) twice (y y + x x: the same sum) for the speed and |F_h|
+        np.sqrt(m4, m4)  # speed, speed, |F_h|, |F_h| (sqrt(x x + y y) as norm_last)
         np.subtract(weight, f_z, normal)
         _clip(normal, k.zero, k.inf, normal)  # max(0, weight - F_z)
         np.multiply(k.friction, normal, cap)
-        np.subtract(mag_f, cap, tmp)
-        _clip(tmp, k.zero, k.inf, num_s)  # static: max(0, |F_h| - cap)
         np.multiply(mass, speed, tmp)
         np.divide(tmp, k.dt, tmp)
-        _clip(cap, k.ninf, tmp, num_k)  # kinetic: min(cap, m speed / dt)
-        np.greater(mags, k.thresh, positive)  # moving, |F_h| > 0
-        _copyto(den, k.ones2)
-        _copyto(den, mags, where=positive)
-        np.divide(num, den, num)  # ratio (kinetic, static)
-        np.multiply(h_f, num_s, new_h)  # static friction
-        np.multiply(num_k, H_v, kv)
+        _clip(cap, k.ninf, tmp, num2[0])  # kinetic: min(cap, m speed / dt)
+        np.subtract(mag_f, cap, tmp)
+        _clip(tmp, k.zero, k.inf, num2[1])  # static: max(0, |F_h| - cap)
+        num2.take(k.pair_idx, None, num4, "wrap")  # (kinetic, kinetic, static, static)
+        np.greater(m4, k.thresh, positive)  # moving, moving, |F_h| > 0 (twice)
+        _copyto(den, k.ones4)
+        _copyto(den, m4, where=positive)
+        np.divide(num4, den, num4)  # the ratios
+        np.multiply(h_f, num4[2:], new_h)  # static friction
+        np.multiply(num4[:2], H_v, kv)
         np.subtract(h_f, kv, kv)
-        _copyto(new_h, kv, where=positive[0])  # kinetic
+        _copyto(new_h, kv, where=positive[:2])  # kinetic
         np.add(f_z, normal, new_z)
         if _count_nonzero(on_floor) == self.n:
             _copyto(W6[:5], new)
         else:  # the other quads' rows as they are
-            _copyto(W6[:5], new, where=on_floor)
+            on_floor.take(k.mask_idx, None, mask5, "wrap")
+            _copyto(W6[:5], new, where=mask5)
 
     def _landing(self, V: _Views, u: np.ndarray, on_floor: np.ndarray, hit_row: np.ndarray) -> np.ndarray:
         """``numpy_loop.SmallLoop.floor_impact`` of the one world (``numpy_floor.floor_impact_rows``, offsets
@@ -320,8 +326,12 @@ def _constants(n: int, floor_z: float, floor_top: float, friction: float, dt: fl
     k.rot_base = np.repeat(_Q_BASE[order].reshape(9, 1), n, axis=1)
     rows6 = 6 * np.arange(n)
     k.v_idx, k.x_idx = (np.stack([rows6 + c for c in cols]) for cols in ((0, 1), range(6)))  # (2, N), (6, N)
-    k.one, k.inf, k.ninf, k.ones2 = np.ones(()), np.full((), np.inf), np.full((), -np.inf), np.ones((2, n))
-    k.thresh = np.repeat([[1e-9], [0.0]], n, axis=1)  # (speed, |F_h|) thresholds, as numpy_floor's
+    k.vs_idx = np.stack([rows6 + 1, rows6])
+    k.one, k.inf, k.ninf, k.ones4 = np.ones(()), np.full((), np.inf), np.full((), -np.inf), np.ones((4, n))
+    k.thresh = np.repeat([[1e-9], [1e-9], [0.0], [0.0]], n, axis=1)  # (speed, |F_h|) thresholds, as numpy_floor's
+    k.pair_idx = np.stack([np.arange(n)] * 2 + [np.arange(n, 2 * n)] * 2)  # rows (0, 0, 1, 1) of a (2, N) array
+    k.mask_idx = np.stack([np.arange(n)] * 5)  # an (N,) row five times
+    k.motor_idx = np.broadcast_to((4 * np.arange(n) + np.arange(4)[:, None])[:, None, :], (4, 12, n)).copy()
     k.friction, k.dt = np.full((), friction), np.full((), dt)
     return k
 
