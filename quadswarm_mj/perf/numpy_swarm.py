@@ -83,9 +83,13 @@ class SwarmLoop:
         # one that broadcasts): F_z x 3 (for the force's rows), tau_x x 3, tau_y x 3, tau_z x 3 (for the torque's)
         self._motor = tuple(np.empty((4, 12, n)) for _ in range(6))
         self._ts_src: tuple | None = None
+        self._out: tuple = (None, None)  # the last (u, R) returned
         # ts (thrust_max or spin), mix (mix rows, 1.0 for tau_z), rows, sums, R tau products
         self._rotor = (np.empty((4, 12, n)), np.empty((4, 12, n)), np.empty((4, 12, n)), np.empty((12, n)),
                        np.empty((3, 3, n)))
+        # the velocity stages' rows: out-of-room flags, pair positions, squared offsets, squared distance
+        self._stage_rows = (np.empty((2, 1, n, 3), bool), np.empty((2, 3, n, n)), np.empty((3, n, n)),
+                            np.empty((1, n, n)))
         self.W6 = np.empty((6, n))  # the world wrench (F_x, F_y, F_z, tau_x, tau_y, tau_z), put into xfrc_applied
         # the floor wrench's rows: H = (v_x, v_y, F_x, F_y, v_y, v_x, F_y, F_x), new = (F_x, F_y, F_z, tau_x, tau_y)
         # (tau rows stay 0.0), the ratios' rows (kinetic, kinetic, static, static)
@@ -105,6 +109,9 @@ class SwarmLoop:
         self.t36 = np.empty((2, 2, 9, n))
         self.t18 = np.empty((2, 9, n))
         self._k = _constants(n, self.floor_z, self.floor_top, self.friction, self.dt)
+        k = self._k
+        k.wall_lo, k.wall_hi = (np.broadcast_to(b, (1, n, 3)).copy() for b in (self.out_lo, self.out_hi))
+        k.hitbox = np.full((), self.hitbox)
 
     _KEEP = ("s", "friction", "dt", "max_omega", "floor_z", "floor_top", "yaw", "yaw_mean", "n",
              "stages_apply", "out_lo", "out_hi", "hitbox", "offdiag")
@@ -145,7 +152,8 @@ class SwarmLoop:
         rep = k.motor_idx  # (4, 12, N) flat indices of an (N, 4) array: its entry [n, k] at [k, jj, n]
         np.sqrt(cmd).take(rep, None, root, "wrap")
         np.multiply(cmd, inp["eps"][0]).take(rep, None, cn, "wrap")
-        np.ravel(carry["u"][0]).take(rep, None, u, "wrap")
+        if carry["u"] is not self._out[0]:  # (else u holds it: the carry is this loop's last output)
+            np.ravel(carry["u"][0]).take(rep, None, u, "wrap")
         mass = params["mass"][0]
         weight = mass * params["gravity"]
         src = self._ts_src  # per-quad constants, made again when they change (at a reset)
@@ -161,7 +169,8 @@ class SwarmLoop:
         on_floor = carry["on_floor"][0]
         hit_floor = carry["hit_floor"]
         hit_row = hit_floor[0]
-        _copyto(self.Rj, carry["R"][0].transpose(2, 1, 0))
+        if carry["R"] is not self._out[1]:  # (as u)
+            _copyto(self.Rj, carry["R"][0].transpose(2, 1, 0))
         max_omega, xf, x_idx = self.max_omega, V.xf, k.x_idx
         for _ in range(cfg.substeps):
             self._wrench()  # into self.W6
@@ -171,11 +180,9 @@ class SwarmLoop:
             phys.step(max_omega)
             on_floor = self._landing(V, u, on_floor, hit_row)
             self.rotmat()
-        R = np.empty((1, n, 3, 3))
-        _copyto(R[0], self.Rj.transpose(2, 1, 0))
-        return {"q": phys.qpos, "v": phys.qvel, "R": R, "u": u[:, 0].T.reshape(1, n, 4).copy(),
-                "f_norm": f[:, 0].T.reshape(1, n, 4).copy(), "on_floor": on_floor.reshape(1, n),
-                "hit_floor": hit_floor, "aux": carry["aux"], "ctrl": carry["ctrl"]}
+        out = self._out = (u.take(k.motor_out), self.R9.take(k.rot_out))  # fresh (1, N, 4), (1, N, 3, 3)
+        return {"q": phys.qpos, "v": phys.qvel, "R": out[1], "u": out[0], "f_norm": f.take(k.motor_out),
+                "on_floor": on_floor.reshape(1, n), "hit_floor": hit_floor, "aux": carry["aux"], "ctrl": carry["ctrl"]}
 
     def _wrench(self) -> None:
         """A sub-step's rotor wrench (``numpy_loop.substep_wrench``: motor lag, thrusts, the body force and torque
@@ -290,12 +297,22 @@ class SwarmLoop:
         if not self.stages_apply or cfg is not self.s.cfg:
             return None
         pos, at_wall, at_ceiling = kin["pos"], prev["at_wall"], prev["at_ceiling"]
-        out = (pos <= self.out_lo) | (pos >= self.out_hi)
+        k, out, rel = self._k, self._stage_rows[0], self._stage_rows[1]
+        if pos.shape != k.wall_lo.shape:
+            return None
+        np.less_equal(pos, k.wall_lo, out[0])
+        np.greater_equal(pos, k.wall_hi, out[1])
         if _count_nonzero(out) or _count_nonzero(at_wall) or _count_nonzero(at_ceiling):
             return None
-        rel = pos[..., :, None, :] - pos[..., None, :, :]
-        dist = np.sqrt((rel * rel).sum(axis=-1))  # spatial.norm_last below spatial.BIG elements
-        contact = (dist <= self.hitbox) & self.offdiag
+        np.ravel(pos).take(k.pair_rows, None, rel, "wrap")  # pos[i, c] and pos[j, c] at [0 / 1, c, i, j]
+        sq, dist = self._stage_rows[2:]
+        np.subtract(rel[0], rel[1], sq)  # pos_i - pos_j
+        np.multiply(sq, sq, sq)
+        np.add(sq[0], sq[1], dist[0])  # spatial.norm_last: sqrt of the left-to-right sum of the squares
+        np.add(dist[0], sq[2], dist[0])
+        dist = np.sqrt(dist)
+        contact = np.less_equal(dist, k.hitbox)
+        np.logical_and(contact, self.offdiag, contact)
         if _count_nonzero(contact):
             new = contact & ~prev["contact"]
             if _count_nonzero(new):  # a new contact: the paper's response (and its draws)
@@ -331,6 +348,10 @@ def _constants(n: int, floor_z: float, floor_top: float, friction: float, dt: fl
     k.thresh = np.repeat([[1e-9], [1e-9], [0.0], [0.0]], n, axis=1)  # (speed, |F_h|) thresholds, as numpy_floor's
     k.pair_idx = np.stack([np.arange(n)] * 2 + [np.arange(n, 2 * n)] * 2)  # rows (0, 0, 1, 1) of a (2, N) array
     k.mask_idx = np.stack([np.arange(n)] * 5)  # an (N,) row five times
+    i3 = (3 * np.arange(n)[:, None] + np.arange(3)[:, None, None])  # (3, N, 1): pos[i, c] of an (N, 3) array
+    k.pair_rows = np.stack([np.broadcast_to(i3, (3, n, n)), np.broadcast_to(i3.transpose(0, 2, 1), (3, n, n))])
+    k.motor_out = (12 * n * np.arange(4) + np.arange(n)[:, None]).reshape(1, n, 4)  # [k, 0, n] of (4, 12, N)
+    k.rot_out = (n * (np.arange(3)[:, None] + 3 * np.arange(3)) + np.arange(n)[:, None, None])[None]  # row 3 j + i
     k.motor_idx = np.broadcast_to((4 * np.arange(n) + np.arange(4)[:, None])[:, None, :], (4, 12, n)).copy()
     k.friction, k.dt = np.full((), friction), np.full((), dt)
     return k
