@@ -4,7 +4,7 @@
 most of its time in NumPy's fixed cost per call on small (B, N, .) arrays. :class:`SwarmTask` computes the
 same values with the same operations in the same order (the same bits, signs of zero included;
 ``tests/test_numpy_swarm.py`` checks seeded episodes against the model's functions): the reward's five norms
-as one product and left-to-right sums over a zero-padded (5, 4, B, N) block (adding +0.0 to a sum of squares
+as one product and left-to-right sums over a zero-padded (4, 5, B, N) block (adding +0.0 to a sum of squares
 changes no bit); the terms as one product of a (T, B, N) cost block with the factors -dt * scale (the -0.0
 terms keep a zero cost) and the reward as their running sum in ``rewards.TERMS`` order (adding -0.0 changes
 no bit); the proximity term (+0.0 with no pair within the falloff), the collision count and the metric
@@ -86,12 +86,12 @@ class SwarmTask:
     def _alloc(self) -> None:
         """Work blocks and their views (made again in a copy: a deep copy does not keep views)."""
         B, N, T = self.B, self.N, self.T
-        self.V = np.zeros((5, 4, B, N))  # the norm block, components on axis 1 (padding stays 0.0)
-        self.V_goal = self.V[0, :3].transpose(1, 2, 0)  # (B, N, 3) views of the rows
-        self.V_act = self.V[1].transpose(1, 2, 0)
-        self.V_omega, self.V_vel = self.V[2, :3].transpose(1, 2, 0), self.V[3, :3].transpose(1, 2, 0)
-        self.V_df = self.V[4].transpose(1, 2, 0)
-        self.SQ = np.empty((5, 4, B, N))
+        self.V = np.zeros((4, 5, B, N))  # the norm block, components on axis 0 (padding stays 0.0)
+        self.V_goal = self.V[:3, 0].transpose(1, 2, 0)  # (B, N, 3) views of the rows
+        self.V_act = self.V[:, 1].transpose(1, 2, 0)
+        self.V_omega, self.V_vel = self.V[:3, 2].transpose(1, 2, 0), self.V[:3, 3].transpose(1, 2, 0)
+        self.V_df = self.V[:, 4].transpose(1, 2, 0)
+        self.SQ = np.empty((4, 5, B, N))
         self.S = np.empty((5, B, N))
         self.C = np.zeros((T, B, N))  # costs, rewards.TERMS order (rows of -0.0 terms stay 0.0)
         self.C_norm3 = self.C[0:3]  # pos, effort, spin
@@ -184,11 +184,11 @@ class SwarmTask:
         if "action_change" in live:
             np.subtract(k["f_norm"], s["f_norm"], out=self.V_df)
         SQ, S = self.SQ, self.S
-        np.multiply(V, V, out=SQ)
-        np.add(SQ[:, 0], SQ[:, 1], out=S)
-        S += SQ[:, 2]
-        S += SQ[:, 3]
-        np.sqrt(S[:3], out=self.C_norm3)
+        np.multiply(V, V, SQ)
+        np.add(SQ[0], SQ[1], S)
+        np.add(S, SQ[2], S)
+        np.add(S, SQ[3], S)
+        np.sqrt(S[:3], self.C_norm3)
         if "vel" in live or "action_change" in live:
             np.sqrt(S[3:], out=self.C_norm2)
         dist_goal = C[0].copy()
