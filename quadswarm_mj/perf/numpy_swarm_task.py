@@ -106,6 +106,7 @@ class SwarmTask:
         self.diag = np.empty((3, B, N))
         self.diag_idx = (9 * np.arange(B * N) + np.array([[0], [4], [8]])).reshape(3, B, N)
         self.c = SimpleNamespace(one=np.ones(()), two=np.full((), 2.0), neg_one=np.full((), -1.0),
+                                 dt=np.full((), self.dt), reach=np.full((), metrics_lib.REACH_DISTANCE),
                                  falloff=np.full((), self.falloff), inf=np.full((B, N, N), np.inf),
                                  coef=np.broadcast_to(self.coef, (T, B, N)).copy(), far=np.empty((B, N, N), bool),
                                  low=np.broadcast_to(self.low, (B, N, self.D)).copy(),
@@ -141,7 +142,7 @@ class SwarmTask:
         if cfg is not self.cfg or action.dtype != np.float64 or consts["zero_terms"] != self.zero_terms:
             return None
         steps, total_steps = s["steps"] + 1, s["total_steps"] + 1
-        t = steps.astype(np.float64) * self.dt
+        t = np.multiply(steps, self.c.dt)  # = steps.astype(float64) * dt
         anneal = rewards.anneal_factor(cfg, total_steps)
         prev = s["sstate"]
         pos, vel, R, omega = k["pos"], k["vel"], k["R"], k["omega"]
@@ -251,14 +252,14 @@ class SwarmTask:
             if _count_nonzero(flag):
                 out[name] = m[name] + flag
         out["dist_sum"] = m["dist_sum"] + dist
-        out["steps"] = m["steps"] + 1.0
+        out["steps"] = np.add(m["steps"], self.c.one)
         last = m["last_dist"]
         new_last = np.empty_like(last)
         new_last[..., :-1, :] = last[..., 1:, :]
         new_last[..., -1, :] = dist
         out["last_dist"] = new_last
         reached = m["seg_reached"]
-        near = dist < metrics_lib.REACH_DISTANCE
+        near = np.less(dist, self.c.reach)
         if _count_nonzero(jump):
             close = jump & ((t - m["seg_start"]) >= metrics_lib.MIN_SEGMENT_S - 1e-9)
             out["seg_count"] = m["seg_count"] + close
@@ -293,7 +294,7 @@ class SwarmTask:
         if K > 0:  # observations.neighbor_obs: the K nearest others by distance (key: self.key, set above)
             self.pv_p[...] = pos
             self.pv_v[...] = vel
-            idx = np.argsort(self.key, axis=-1)[..., :K]
+            idx = self.key.argsort(axis=-1)[..., :K]
             d0 = self.self_dim
             np.subtract(self.pv.take((idx.reshape(B * N, K) + self.first).reshape(-1), axis=0).reshape(B, N, K, 6),
                         self.pv.take(self.own, axis=0).reshape(B, N, K, 6),
