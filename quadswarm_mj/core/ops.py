@@ -178,6 +178,8 @@ class NumpyOps(ModelForms):
         """:func:`quadswarm_mj.actuation.motor_noise_step` (one quad: on floats, same bits)."""
         if self._one and one_quad.ENABLED:
             return one_quad.motor_noise_step(eps, sigma, theta, normal)
+        if numpy_swarm.ENABLED and type(eps) is np.ndarray and eps.dtype == np.float64:
+            return numpy_swarm.motor_noise_step(eps, sigma, theta, normal)  # (0-d constants, same bits)
         return actuation.motor_noise_step(eps, sigma, theta, normal)
 
     def reward_terms(self, cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, action: Any, f_norm: Any,

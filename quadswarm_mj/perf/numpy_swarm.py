@@ -368,10 +368,27 @@ def action_to_command(action: np.ndarray) -> np.ndarray:
     same bits (the bounds are not zero, so no sign of zero can differ; NaN stays NaN)."""
     if _clip is None:
         return 0.5 * (np.minimum(np.maximum(action, -1.0), 1.0) + 1.0)
-    c = _clip(action, -1.0, 1.0)
-    c += 1.0
-    c *= 0.5
+    c = _clip(action, _C["-1"], _C["1"])
+    np.add(c, _C["1"], c)
+    np.multiply(c, _C["0.5"], c)
     return c
+
+
+def motor_noise_step(eps: np.ndarray, sigma: np.ndarray, theta: float, normal: np.ndarray) -> np.ndarray:
+    """:func:`quadswarm_mj.actuation.motor_noise_step` (eps + theta (0.0 - eps) + sigma[..., None] normal, in
+    that order) with 0-d operands for the constants: the same bits, a fresh array."""
+    th = _C.get(theta)
+    if th is None:
+        th = _C[theta] = np.full((), theta)
+    a = np.subtract(_C["0"], eps)
+    np.multiply(th, a, a)
+    np.add(eps, a, a)
+    np.add(a, np.multiply(sigma[..., None], normal), a)
+    return a
+
+
+#: 0-d float64 constants (a NumPy call converts a Python float operand on every call)
+_C: dict = {"-1": np.full((), -1.0), "1": np.ones(()), "0.5": np.full((), 0.5), "0": np.zeros(())}
 
 
 #: ``np.count_nonzero`` without its Python-level wrapper (the same function)
