@@ -91,12 +91,18 @@ class SwarmLoop:
         self._stage_rows = (np.empty((2, 1, n, 3), bool), np.empty((2, 3, n, n)), np.empty((3, n, n)),
                             np.empty((1, n, n)))
         self.W6 = np.empty((6, n))  # the world wrench (F_x, F_y, F_z, tau_x, tau_y, tau_z), put into xfrc_applied
+        ts, mix, rows, sm, rt = self._rotor  # (every view made once: a view costs as much as a small NumPy call)
+        W6, Rj = self.W6, self.Rj
+        self._wrench_args = (*self._motor, ts, mix, rows, *rows, sm, sm[:3], sm[3:].reshape(3, 3, n), rt, *rt, Rj,
+                             Rj[2], W6[:3], W6[3:])
         # the floor wrench's rows: H = (v_x, v_y, F_x, F_y, v_y, v_x, F_y, F_x), new = (F_x, F_y, F_z, tau_x, tau_y)
         # (tau rows stay 0.0), the ratios' rows (kinetic, kinetic, static, static)
         H, new, sq, m4 = np.empty((8, n)), np.zeros((5, n)), np.empty((8, n)), np.empty((4, n))
-        self._floor_rows = (H, H[:2], H[2:4], H[4:6], H[6:8], sq, sq[:4], sq[4:], m4, m4[0], m4[2], np.empty((2, n)),
-                            np.empty((4, n)), np.empty((4, n)), np.empty((4, n), bool), np.empty((2, n)), np.empty(n),
-                            np.empty(n), np.empty(n), new, new[:2], new[2], np.empty((5, n), bool))
+        num2, num4, positive = np.empty((2, n)), np.empty((4, n)), np.empty((4, n), bool)
+        self._floor_rows = (H, H[:2], H[2:4], H[4:6], H[6:8], sq, sq[:4], sq[4:], m4, m4[0], m4[2], num2, num2[0],
+                            num2[1], num4, num4[:2], num4[2:], np.empty((4, n)), positive, positive[:2],
+                            np.empty((2, n)), np.empty(n), np.empty(n), np.empty(n), new, new[:2], new[2],
+                            np.empty((5, n), bool), self.W6[:2], self.W6[1::-1], self.W6[2], self.W6[:5])
         # the landing's rows: one flat gather of qpos (z twice, the yaw entries' two factors, entry-major) into g
         g = np.empty(14 * n)
         le16, p, e = np.empty(2 * n, bool), np.empty(6 * n), np.empty(3 * n)
@@ -106,8 +112,8 @@ class SwarmLoop:
                               p[3 * n:], e, e[:n], e[n:2 * n], e[2 * n:], np.empty(n), np.empty(n), q5,
                               q5[:, 1], q5[:, 4], np.empty(n, bool), np.empty(n, bool))
         # rotation rows: the two factors of the 18 products per quad gathered as (2, 2, 9, N), product (2, 9, N)
-        self.t36 = np.empty((2, 2, 9, n))
-        self.t18 = np.empty((2, 9, n))
+        t36, t18 = np.empty((2, 2, 9, n)), np.empty((2, 9, n))
+        self._rot_rows = (t36, t36[0], t36[1], t18, t18[0], t18[1], self.R9)
         self._k = _constants(n, self.floor_z, self.floor_top, self.friction, self.dt)
         k = self._k
         k.wall_lo, k.wall_hi = (np.broadcast_to(b, (1, n, 3)).copy() for b in (self.out_lo, self.out_hi))
@@ -133,12 +139,13 @@ class SwarmLoop:
     def rotmat(self) -> None:
         """``self.Rj`` = ``perf.numpy_small.quat_to_rotmat_qpos`` of the physics' qpos, component-major (same bits:
         the same products, scales and sums, on rows gathered in one flat take)."""
-        t36, t, k = self.t36, self.t18, self._k
+        t36, a, b, t, t_a, t_b, R9 = self._rot_rows
+        k = self._k
         self._v.qf.take(k.rot_idx, None, t36, "wrap")  # (valid indices: wrap is raise, without its checks)
-        np.multiply(t36[0], t36[1], t)
+        np.multiply(a, b, t)
         np.multiply(t, k.rot_scale, t)
-        np.add(t[0], t[1], self.R9)
-        np.add(self.R9, k.rot_base, self.R9)  # base + (a + b): the same sum
+        np.add(t_a, t_b, R9)
+        np.add(R9, k.rot_base, R9)  # base + (a + b): the same sum
 
     def __call__(self, cfg: Any, carry: dict[str, Any], inp: dict[str, Any], consts: dict[str, Any],
                  ops: Any) -> dict[str, Any]:
@@ -188,9 +195,9 @@ class SwarmLoop:
         """A sub-step's rotor wrench (``numpy_loop.substep_wrench``: motor lag, thrusts, the body force and torque
         rotated to the world) on the component-major rows (the same products and left-to-right sums), written
         into ``self.W6``; u and f updated in place."""
-        u, f, root, cn, alpha, d = self._motor
-        ts, mix, rows, sm, rt = self._rotor
-        k, W6, Rj = self._k, self.W6, self.Rj
+        u, f, root, cn, alpha, d, ts, mix, rows, r0, r1, r2, r3, sm, sm_f, sm_t, rt, rt0, rt1, rt2, Rj, R_z, W_f, W_t \
+            = self._wrench_args
+        k = self._k
         np.subtract(root, u, d)
         np.multiply(d, alpha, d)
         np.add(u, d, u)
@@ -199,26 +206,25 @@ class SwarmLoop:
         _clip(f, k.zero, k.one, f)  # = min(max(f, 0), 1): u u + c n is never -0.0, so no sign of zero differs
         np.multiply(ts, f, rows)  # (thrust_max f) mix; (spin f) 1.0
         np.multiply(rows, mix, rows)
-        np.add(rows[0], rows[1], sm)  # the sum over the rotors, left to right (as np.add.reduce over 4)
-        np.add(sm, rows[2], sm)
-        np.add(sm, rows[3], sm)
-        np.multiply(sm[:3], Rj[2], W6[:3])  # F_z R[:, 2]
-        np.multiply(Rj, sm[3:].reshape(3, 3, -1), rt)  # R[i, j] tau_j at rt[j, i]
-        np.add(rt[0], rt[1], W6[3:])
-        np.add(W6[3:], rt[2], W6[3:])
+        np.add(r0, r1, sm)  # the sum over the rotors, left to right (as np.add.reduce over 4)
+        np.add(sm, r2, sm)
+        np.add(sm, r3, sm)
+        np.multiply(sm_f, R_z, W_f)  # F_z R[:, 2]
+        np.multiply(Rj, sm_t, rt)  # R[i, j] tau_j at rt[j, i]
+        np.add(rt0, rt1, W_t)
+        np.add(W_t, rt2, W_t)
 
     def _floor_wrench(self, V: _Views, on_floor: np.ndarray, mass: np.ndarray, weight: np.ndarray) -> None:
         """``numpy_floor.floor_wrench_inplace`` on ``self.W6`` (the same expressions and order) on component-major
         rows, pairs duplicated where a row meets a pair (x, y) (grounded quads only); max(0, x) and min(a, x) as the
         clip ufunc (the same bits: no operand is -0.0 here)."""
-        k, W6 = self._k, self.W6
-        H, H_v, h_f, H_vs, H_fs, sq, sq_a, sq_b, m4, speed, mag_f, num2, num4, den, positive, kv, normal, cap, tmp, \
-            new, new_h, new_z, mask5 = self._floor_rows
-        f_z = W6[2]
+        k = self._k
+        H, H_v, h_f, H_vs, H_fs, sq, sq_a, sq_b, m4, speed, mag_f, num2, num_k, num_s, num4, r_k, r_s, den, positive, \
+            moving, kv, normal, cap, tmp, new, new_h, new_z, mask5, W_h, W_hs, f_z, W5 = self._floor_rows
         V.vf.take(k.v_idx, None, H_v, "wrap")  # (v_x, v_y)
-        _copyto(h_f, W6[:2])  # (F_x, F_y)
+        _copyto(h_f, W_h)  # (F_x, F_y)
         V.vf.take(k.vs_idx, None, H_vs, "wrap")  # (v_y, v_x)
-        _copyto(H_fs, W6[1::-1])  # (F_y, F_x)
+        _copyto(H_fs, W_hs)  # (F_y, F_x)
         np.multiply(H, H, sq)
         np.add(sq_a, sq_b, m4)  # (x x + y y) twice (y y + x x: the same sum) for the speed and |F_h|
         np.sqrt(m4, m4)  # speed, speed, |F_h|, |F_h| (sqrt(x x + y y) as norm_last)
@@ -227,24 +233,24 @@ class SwarmLoop:
         np.multiply(k.friction, normal, cap)
         np.multiply(mass, speed, tmp)
         np.divide(tmp, k.dt, tmp)
-        _clip(cap, k.ninf, tmp, num2[0])  # kinetic: min(cap, m speed / dt)
+        _clip(cap, k.ninf, tmp, num_k)  # kinetic: min(cap, m speed / dt)
         np.subtract(mag_f, cap, tmp)
-        _clip(tmp, k.zero, k.inf, num2[1])  # static: max(0, |F_h| - cap)
+        _clip(tmp, k.zero, k.inf, num_s)  # static: max(0, |F_h| - cap)
         num2.take(k.pair_idx, None, num4, "wrap")  # (kinetic, kinetic, static, static)
         np.greater(m4, k.thresh, positive)  # moving, moving, |F_h| > 0 (twice)
         _copyto(den, k.ones4)
         _copyto(den, m4, where=positive)
         np.divide(num4, den, num4)  # the ratios
-        np.multiply(h_f, num4[2:], new_h)  # static friction
-        np.multiply(num4[:2], H_v, kv)
+        np.multiply(h_f, r_s, new_h)  # static friction
+        np.multiply(r_k, H_v, kv)
         np.subtract(h_f, kv, kv)
-        _copyto(new_h, kv, where=positive[:2])  # kinetic
+        _copyto(new_h, kv, where=moving)  # kinetic
         np.add(f_z, normal, new_z)
         if _count_nonzero(on_floor) == self.n:
-            _copyto(W6[:5], new)
+            _copyto(W5, new)
         else:  # the other quads' rows as they are
             on_floor.take(k.mask_idx, None, mask5, "wrap")
-            _copyto(W6[:5], new, where=mask5)
+            _copyto(W5, new, where=mask5)
 
     def _landing(self, V: _Views, u: np.ndarray, on_floor: np.ndarray, hit_row: np.ndarray) -> np.ndarray:
         """``numpy_loop.SmallLoop.floor_impact`` of the one world (``numpy_floor.floor_impact_rows``, offsets
@@ -272,8 +278,7 @@ class SwarmLoop:
             if yaw_draw is None:
                 yaw_draw = np.full(self.n, self.yaw_mean)
             yaw += np.where(hit & (e2 < 0), yaw_draw, 0.0)
-        else:
-            np.add(yaw, k.zero, yaw)
+        # (else yaw + 0.0 is yaw: e0 = (a + b) + 0.0 is never -0.0, so neither is arctan2(e0, e1))
         np.multiply(k.half, yaw, half)
         # (z, the yaw-only quaternion) where grounded: (floor_z, cos h, 0, 0, sin h) in one masked write
         np.cos(half, q5_cos)
