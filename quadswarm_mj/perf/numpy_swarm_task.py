@@ -105,9 +105,21 @@ class SwarmTask:
         # less than ones that broadcast or convert a Python float), the rotation's diagonal gathered in one take
         self.diag = np.empty((3, B, N))
         self.diag_idx = (9 * np.arange(B * N) + np.array([[0], [4], [8]])).reshape(3, B, N)
+        live, C, row, S = self.live, self.C, self.row, self.S
+        v = {k: (C[row[k]] if k in live else None) for k in ("crash", "orient", "yaw", "rot", "quad_collision",
+                                                            "proximity")}
+        self._w = SimpleNamespace(  # the views of the reward's rows, made once, and which of them are live
+            SQ=self.SQ, SQ0=self.SQ[0], SQ1=self.SQ[1], SQ2=self.SQ[2], SQ3=self.SQ[3], S=S, S3=S[:3], S2=S[3:],
+            norm2="vel" in live or "action_change" in live, C0=C[0], pos_off="pos" not in live, crash=v["crash"],
+            diag=any(k in live for k in ("orient", "yaw", "rot")), orient=v["orient"], yaw=v["yaw"], rot=v["rot"],
+            d0=self.diag[0], d1=self.diag[1], d2=self.diag[2], qc=v["quad_collision"], prox=v["proximity"],
+            key="proximity" in live or self.K > 0, out_shape=(T + 1, B, N), acc_last=self.acc[-1],
+            hits=[(C[row[n]], "hit_" + n[:-4]) for n in ("floor_hit", "wall_hit", "ceiling_hit") if n in live])
+        self.no_jump = _no_jump((B, N))
         self.c = SimpleNamespace(one=np.ones(()), two=np.full((), 2.0), neg_one=np.full((), -1.0),
                                  dt=np.full((), self.dt), reach=np.full((), metrics_lib.REACH_DISTANCE),
-                                 falloff=np.full((), self.falloff), inf=np.full((B, N, N), np.inf),
+                                 falloff=np.full((), self.falloff), diag_inf=np.where(off_diagonal(N), 0.0, np.inf)
+                                 * np.ones((B, 1, 1)),
                                  coef=np.broadcast_to(self.coef, (T, B, N)).copy(), far=np.empty((B, N, N), bool),
                                  low=np.broadcast_to(self.low, (B, N, self.D)).copy(),
                                  high=np.broadcast_to(self.high, (B, N, self.D)).copy())
@@ -143,13 +155,13 @@ class SwarmTask:
             return None
         steps, total_steps = s["steps"] + 1, s["total_steps"] + 1
         t = np.multiply(steps, self.c.dt)  # = steps.astype(float64) * dt
-        anneal = rewards.anneal_factor(cfg, total_steps)
+        anneal = rewards.anneal_factor(cfg, total_steps) if self.annealed else 1.0  # (read only when annealed)
         prev = s["sstate"]
         pos, vel, R, omega = k["pos"], k["vel"], k["R"], k["omega"]
         sstate = scenario.step(cfg, prev, t, pos, ops.draws("scenario", None, None))
         goals, goal_vel = sstate.goals, sstate.goal_vel
         if goals is prev.goals:
-            jump = _no_jump(goals.shape[:-1])
+            jump = self.no_jump
         else:
             jump = metrics_lib.goal_jump(prev.goals, goals, goal_vel, self.dt)
         new_contact = k["new_contact"]
@@ -158,7 +170,7 @@ class SwarmTask:
         hf, hw, hc = k["hit_floor"], k["hit_wall"], k["hit_ceiling"]
         m = self._metrics(s["metrics_acc"], t[..., None], dist_goal, new_contact, any_new, hf, hw, hc, jump)
         obs = self._obs(pos, vel, R, omega, goals, ops.draws("sensor", None, None), k["dist"],
-                        ops.draws("deck", None, None))
+                        ops.draws("deck", None, None) if self.cfg.sensors.any else None)  # (decks off: no draw)
         return {"steps": steps, "total_steps": total_steps, "t": t, "sstate": sstate, "goals": goals,
                 "goal_vel": goal_vel, "terms": dict(zip(self.terms, out[1:])), "reward": out[0], "metrics_acc": m,
                 "obst_metrics": None, "obs": obs, "done": steps >= self.episode_steps, "rows": out}
@@ -168,7 +180,7 @@ class SwarmTask:
         """:func:`quadswarm_mj.rewards.reward_terms` and ``total_reward`` (same values) and the goal distance:
         returns a fresh (1 + T, B, N) block (the reward, then the terms in ``rewards.TERMS`` order) and the
         distance (B, N) m; sets ``self.key`` (the pair distances, inf on the diagonal) for :meth:`_obs`."""
-        live, C, V = self.live, self.C, self.V
+        live, C, w = self.live, self.C, self._w
         pos, R = k["pos"], k["R"]
         # the norms (rewards.reward_terms' norm_last costs and task_stage's goal distance)
         np.subtract(goals, pos, out=self.V_goal)
@@ -179,66 +191,59 @@ class SwarmTask:
                 np.maximum(action, -1.0, out=self.V_act)
                 np.minimum(self.V_act, 1.0, out=self.V_act)
         if "spin" in live:
-            self.V_omega[...] = k["omega"]
+            _copyto(self.V_omega, k["omega"])
         if "vel" in live:
-            self.V_vel[...] = k["vel"]
+            _copyto(self.V_vel, k["vel"])
         if "action_change" in live:
             np.subtract(k["f_norm"], s["f_norm"], out=self.V_df)
-        SQ, S = self.SQ, self.S
-        np.multiply(V, V, SQ)
-        np.add(SQ[0], SQ[1], S)
-        np.add(S, SQ[2], S)
-        np.add(S, SQ[3], S)
-        np.sqrt(S[:3], self.C_norm3)
-        if "vel" in live or "action_change" in live:
-            np.sqrt(S[3:], out=self.C_norm2)
-        dist_goal = C[0].copy()
-        if "pos" not in live:  # a -0.0 term: its cost stays 0.0
-            C[0] = 0.0
-        on_floor = k["on_floor"]
-        row, c, diag = self.row, self.c, self.diag
-        if "crash" in live:
-            _copyto(C[row["crash"]], on_floor)
-        if "orient" in live or "yaw" in live or "rot" in live:  # R00, R11, R22
+        np.multiply(self.V, self.V, w.SQ)
+        np.add(w.SQ0, w.SQ1, w.S)
+        np.add(w.S, w.SQ2, w.S)
+        np.add(w.S, w.SQ3, w.S)
+        np.sqrt(w.S3, self.C_norm3)
+        if w.norm2:
+            np.sqrt(w.S2, self.C_norm2)
+        dist_goal = w.C0.copy()
+        if w.pos_off:  # a -0.0 term: its cost stays 0.0
+            w.C0[...] = 0.0
+        on_floor, c, diag = k["on_floor"], self.c, self.diag
+        if w.crash is not None:
+            _copyto(w.crash, on_floor)
+        if w.diag:  # R00, R11, R22
             R.reshape(-1).take(self.diag_idx, None, diag, "wrap")
-        if "orient" in live:
-            o = C[row["orient"]]
-            np.negative(diag[2], o)
-            _copyto(o, c.one, where=on_floor)
-        if "yaw" in live:
-            np.negative(diag[0], C[row["yaw"]])
-        if "rot" in live:  # -(R00 + R11 + R22 - 1.0) / 2.0
-            r = C[row["rot"]]
-            np.add(diag[0], diag[1], r)
-            np.add(r, diag[2], r)
+        if w.orient is not None:
+            np.negative(w.d2, w.orient)
+            _copyto(w.orient, c.one, where=on_floor)
+        if w.yaw is not None:
+            np.negative(w.d0, w.yaw)
+        if w.rot is not None:  # -(R00 + R11 + R22 - 1.0) / 2.0
+            r = w.rot
+            np.add(w.d0, w.d1, r)
+            np.add(r, w.d2, r)
             np.subtract(r, c.one, r)
             np.negative(r, r)
             np.divide(r, c.two, r)
-        if "quad_collision" in live:
-            qc = C[row["quad_collision"]]
+        if w.qc is not None:
             if any_new:
-                np.add.reduce(k["new_contact"], axis=-1, dtype=np.float64, out=qc)
+                np.add.reduce(k["new_contact"], axis=-1, dtype=np.float64, out=w.qc)
             else:
-                qc[...] = 0.0
+                w.qc[...] = 0.0
         key = self.key
-        if "proximity" in live or self.K > 0:
-            _copyto(key, c.inf)
-            _copyto(key, k["dist"], where=self.offdiag)
-        if "proximity" in live:
-            pr = C[row["proximity"]]
-            if _count_nonzero(np.greater_equal(key, c.falloff, c.far)) == key.size:  # no pair within the falloff: +0.0
-                pr[...] = 0.0
+        if w.key:  # the pair distances with inf on the diagonal: dist + 0.0 is dist (never -0.0), 0.0 + inf is inf
+            np.add(k["dist"], c.diag_inf, key)
+        if w.prox is not None:
+            if _count_nonzero(np.greater_equal(key, c.falloff, c.far)) == key.size:  # no pair within: +0.0
+                w.prox[...] = 0.0
             else:
-                np.add.reduce(np.maximum(1.0 - key / self.falloff, 0.0), axis=-1, out=pr)
-        for name in ("floor_hit", "wall_hit", "ceiling_hit"):
-            if name in live:
-                _copyto(C[row[name]], k["hit_" + name[:-4]])
+                np.add.reduce(np.maximum(1.0 - key / self.falloff, 0.0), axis=-1, out=w.prox)
+        for row, name in w.hits:
+            _copyto(row, k[name])
         coef = self._coef(anneal) if self.annealed else c.coef
-        out = np.empty((self.T + 1,) + C.shape[1:])  # reward, then the terms
+        out = np.empty(w.out_shape)  # reward, then the terms
         terms = out[1:]
-        np.multiply(C, coef, out=terms)
+        np.multiply(C, coef, terms)
         np.add.accumulate(terms, axis=0, out=self.acc)  # rewards.total_reward's running sum, TERMS order
-        out[0] = self.acc[-1]
+        _copyto(out[0], w.acc_last)
         return out, dist_goal
 
     def _metrics(self, m: dict[str, Any], t: Any, dist: np.ndarray, new_contact: np.ndarray, any_new: bool,
