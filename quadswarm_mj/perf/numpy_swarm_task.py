@@ -101,6 +101,12 @@ class SwarmTask:
         self.pv = np.empty((B * N, 6))
         self.pv_p, self.pv_v = self.pv[:, :3].reshape(B, N, 3), self.pv[:, 3:].reshape(B, N, 3)
         self.mpos = np.empty((B, N, 3))
+        W, d0, K = np.empty((B, N, self.D)), self.self_dim, self.K
+        self._o = SimpleNamespace(W=W, pos=W[..., 0:3], vel=W[..., 3:6], R=W[..., 6:15], omega=W[..., 15:18],
+                                  z=W[..., 18] if self.floor else None, nb=W[..., d0:d0 + 6 * K].reshape(B, N, K, 6))
+        if K > 0:
+            self._o.first = self.first.reshape(B, N, 1)  # quad 0's row of each world
+            self._o.own = self.own.reshape(B, N, K)  # each row's own index, K times
         # constant operands of the full shape of the other operand (NumPy calls on same-shape contiguous arrays cost
         # less than ones that broadcast or convert a Python float), the rotation's diagonal gathered in one take
         self.diag = np.empty((3, B, N))
@@ -278,37 +284,35 @@ class SwarmTask:
     def _obs(self, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray, goals: np.ndarray,
              noise: dict[str, Any] | None, dist: np.ndarray, deck_draws: dict[str, Any] | None) -> np.ndarray:
         """:func:`quadswarm_mj.observations.build_obs` (same values) for this layout."""
-        B, N = self.B, self.N
-        obs = np.empty((B, N, self.D))
+        B, N, o = self.B, self.N, self._o
+        W = o.W  # the observation before its bounds, written part by part into views made once
         mpos = self.mpos
         if noise is not None:
-            np.add(pos, noise["pos"], out=mpos)
-            np.subtract(mpos, goals, out=obs[..., 0:3])
-            np.add(vel, noise["vel"], out=obs[..., 3:6])
-            obs[..., 6:15] = R.reshape(B, N, 9)
-            np.add(omega, noise["omega"], out=obs[..., 15:18])
+            np.add(pos, noise["pos"], mpos)
+            np.subtract(mpos, goals, o.pos)
+            np.add(vel, noise["vel"], o.vel)
+            _copyto(o.R, R.reshape(B, N, 9))
+            np.add(omega, noise["omega"], o.omega)
         else:
             mpos = pos
-            np.subtract(pos, goals, out=obs[..., 0:3])
-            obs[..., 3:6] = vel
-            obs[..., 6:15] = R.reshape(B, N, 9)
-            obs[..., 15:18] = omega
+            np.subtract(pos, goals, o.pos)
+            _copyto(o.vel, vel)
+            _copyto(o.R, R.reshape(B, N, 9))
+            _copyto(o.omega, omega)
         if self.floor:
-            obs[..., 18] = mpos[..., 2]
+            _copyto(o.z, mpos[..., 2])
         K = self.K
         if K > 0:  # observations.neighbor_obs: the K nearest others by distance (key: self.key, set above)
-            self.pv_p[...] = pos
-            self.pv_v[...] = vel
-            idx = self.key.argsort(axis=-1)[..., :K]
-            d0 = self.self_dim
-            np.subtract(self.pv.take((idx.reshape(B * N, K) + self.first).reshape(-1), axis=0).reshape(B, N, K, 6),
-                        self.pv.take(self.own, axis=0).reshape(B, N, K, 6),
-                        out=obs[..., d0:d0 + 6 * K].reshape(B, N, K, 6))
+            _copyto(self.pv_p, pos)
+            _copyto(self.pv_v, vel)
+            idx = self.key.argsort(axis=-1)[..., :K]  # (B, N, K) quad indices in their world
+            if B > 1:
+                idx = idx + o.first
+            np.subtract(self.pv.take(idx, axis=0), self.pv.take(o.own, axis=0), o.nb)
         if self.cfg.sensors.any:  # the decks' readings of the true state, last
-            obs[..., self.self_dim + 6 * K:] = numpy_deck.deck_part(self.cfg, pos, vel, R, omega, None, deck_draws)
+            W[..., self.self_dim + 6 * K:] = numpy_deck.deck_part(self.cfg, pos, vel, R, omega, None, deck_draws)
         if _clip is not None:  # = min(max(obs, low), high) (the clip ufunc on same-shape bounds: the same bits)
-            _clip(obs, self.c.low, self.c.high, obs)
+            obs = _clip(W, self.c.low, self.c.high)  # fresh
         else:
-            np.maximum(obs, self.low, out=obs)
-            np.minimum(obs, self.high, out=obs)
+            obs = np.minimum(np.maximum(W, self.low), self.high)
         return obs if self.scale is None else obs / self.scale
