@@ -1,14 +1,16 @@
-"""The CPU engine's sub-step loop for one world of several quads, on preallocated work arrays.
+"""The CPU engine's sub-step loop for one world of several quads, on preallocated component-major rows.
 
 :class:`quadswarm_mj.perf.numpy_loop.SmallLoop` runs the paper's sub-step (rotor wrench, floor normal
 force and friction, ``mj_step``, floor landing, rotation of the new pose) in whole-array NumPy calls on
-(B, N, .) arrays; on one world of a few quads NumPy's fixed cost per call and per view dominates (about
-60 calls and as many views a sub-step). :class:`SwarmLoop` runs the same expressions in the same order
-(the same bits, signs of zero included; ``tests/test_numpy_swarm.py`` checks seeded episodes against
-``SmallLoop`` and the per-sub-step ops) on (N, .) work arrays allocated once per env, with every view
-of them and of MuJoCo's ``qpos``/``qvel``/``xfrc_applied`` made once, results written with ``out=``
-(the rotor wrench straight into ``xfrc_applied``) and the floor models' scratch rows reused. Used for
-one world (B = 1, offsets zero) with the paper's chain and floor. NumPy only.
+(B, N, .) arrays; on one world of a few quads NumPy's fixed cost per call dominates, and a call that
+broadcasts, reads a strided view, converts a Python float or makes a view costs two to four times a call on
+same-shape contiguous arrays. :class:`SwarmLoop` runs the same expressions in the same order (the same bits,
+signs of zero included; ``tests/test_numpy_swarm.py`` checks seeded episodes against ``SmallLoop`` and the
+per-sub-step ops) on component-major (., N) rows allocated once per env with every view made once: the
+motor state replicated over the rotor sums' rows, the rotation stored by column, constants as same-shape or
+0-d arrays, MuJoCo's ``qpos``/``qvel`` read by one flat ``take`` per stage and the world wrench written into
+``xfrc_applied`` by one ``put``. Used for one world (B = 1, offsets zero) with the paper's chain and floor.
+NumPy only.
 """
 
 from __future__ import annotations
