@@ -366,8 +366,18 @@ def _constants(n: int, floor_z: float, floor_top: float, friction: float, dt: fl
 
 #: ``np.copyto`` without its Python-level wrapper (the same function)
 _copyto = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "copyto", np.copyto)
-#: NumPy's clip ufunc (None if absent: the two ufuncs)
-_clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", None)
+
+
+def _clip_ufunc() -> Any:
+    """NumPy's clip ufunc (``numpy._core.umath.clip``; NumPy 1.x: ``numpy.core.umath.clip``)."""
+    umath = getattr(getattr(np, "_core", None), "umath", None)
+    if umath is None:  # NumPy 1.x
+        from numpy.core import umath
+    return umath.clip
+
+
+#: NumPy's clip ufunc: min(max(x, lo), hi) elementwise in one call
+_clip = _clip_ufunc()
 
 
 def action_to_command(action: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj import rewards
 from quadswarm_mj.collisions import off_diagonal
 from quadswarm_mj.observations import _gather_index, _neighbor_bounds, _obs_neighbor_bounds
-from quadswarm_mj.perf import numpy_deck
+from quadswarm_mj.perf import numpy_deck, numpy_swarm
 from quadswarm_mj.pipeline import _no_jump
 
 #: set to False for the model's functions (the same-values tests compare the two)
@@ -36,8 +36,8 @@ _count_nonzero = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath"
                          np.count_nonzero)
 #: ``np.copyto`` without its Python-level wrapper (the same function)
 _copyto = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "copyto", np.copyto)
-#: NumPy's clip ufunc (None if absent)
-_clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", None)
+#: NumPy's clip ufunc (NumPy 1.x included)
+_clip = numpy_swarm._clip
 # rows of the norm block: goal offset, clipped action, omega, velocity, thrust change
 _NORM_TERMS = ("pos", "effort", "spin", "vel", "action_change")
 
