@@ -118,3 +118,52 @@ def test_action_to_command_is_the_model_form_bitwise():
     rng = np.random.default_rng(0)
     a = np.concatenate([rng.uniform(-3, 3, 400), [-0.0, 0.0, -1.0, 1.0, -1.5, 1.5, 1e-300, -1e-300, np.inf, -np.inf]])
     _same(numpy_swarm.action_to_command(a.reshape(-1, 2, 1)), action_to_command(a.reshape(-1, 2, 1)))
+
+
+def test_motor_noise_step_is_the_model_form_bitwise():
+    from quadswarm_mj.actuation import motor_noise_step
+
+    rng = np.random.default_rng(1)
+    eps = np.concatenate([rng.normal(0, 0.1, (5, 3, 4)), np.full((1, 3, 4), -0.0)])
+    sigma, normal = rng.uniform(0, 0.2, (6, 3)), rng.standard_normal((6, 3, 4))
+    sigma[0, 0], normal[1] = 0.0, -0.0
+    _same(numpy_swarm.motor_noise_step(eps, sigma, 0.15, normal), motor_noise_step(eps, sigma, 0.15, normal))
+
+
+_SPECIAL = np.array([0.0, -0.0, np.nan, np.inf, -np.inf, 1.0, -1.0, 5e-324, -5e-324, 2.5, 1e-9])
+
+
+def test_clip_forms_are_the_max_min_they_replace_bitwise():
+    """perf.numpy_swarm(_task) write max(0, x), min(a, x) and min(max(x, lo), hi) as NumPy's clip ufunc, with
+    0-d bounds (floor wrench) or bounds of x's shape (the observation's bounds): the same bits on special
+    values, signs of zero and NaN included, in exactly those call forms."""
+    from quadswarm_mj.perf.numpy_swarm import _clip
+
+    a, b = (x.ravel() for x in np.meshgrid(_SPECIAL, _SPECIAL))
+    zero, inf, ninf = np.zeros(()), np.full((), np.inf), np.full((), -np.inf)
+    _same(_clip(a, zero, inf, np.empty_like(a)), np.maximum(0.0, a))  # normal, static friction
+    _same(_clip(b, ninf, a, np.empty_like(a)), np.minimum(b, a))  # kinetic friction: min(cap, x)
+    for x in _SPECIAL:  # the observation's bounds: lo, hi of the observation's own shape
+        _same(_clip(np.full(a.shape, x), a, b), np.minimum(np.maximum(np.full(a.shape, x), a), b))
+
+
+def test_event_free_stages_are_the_model_stages_bitwise():
+    """SwarmLoop.stages (gathered pair rows, left-to-right sums) gives velocity_stages' flags and distances."""
+    from quadswarm_mj.core.step import velocity_stages
+
+    env = QuadSwarmEnv(EnvConfig(num_quads=5))
+    env.reset(seed=3)
+    loop = env.core._ops._swarm_loop
+    rng = np.random.default_rng(4)
+    pos = rng.uniform(-1.0, 1.0, (1, 5, 3)) + np.array([0.0, 0.0, 2.0])
+    pos[0, 1] = pos[0, 0] + [0.0, -0.0, 1e-3]  # a pair in contact
+    z = np.zeros((1, 5), bool)
+    kin = {"pos": pos, "vel": np.zeros((1, 5, 3)), "omega": np.zeros((1, 5, 3)), "R": np.tile(np.eye(3), (1, 5, 1, 1)),
+           "quat": np.tile([1.0, 0, 0, 0], (1, 5, 1)), "u": np.zeros((1, 5, 4)), "on_floor": z, "hit_floor": z}
+    prev = {"on_floor": z, "at_wall": z, "at_ceiling": z, "contact": np.zeros((1, 5, 5), bool)}
+    assert loop.stages(env.cfg, kin, prev) is None  # a contact starts: the model's response runs
+    prev["contact"] = loop.stages(env.cfg, kin, {**prev, "contact": np.ones((1, 5, 5), bool)})["contact"]
+    got, ref = loop.stages(env.cfg, kin, prev), velocity_stages(env.cfg, kin, prev, env.core._ops)
+    assert got["contact"].any()
+    for key in ("contact", "new_contact", "dist", "at_wall", "at_ceiling", "hit_wall", "hit_ceiling"):
+        _same(got[key], ref[key])

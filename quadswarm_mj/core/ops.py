@@ -48,6 +48,7 @@ from quadswarm_mj.perf.one_quad_step import OneQuadLoop, OneQuadTask
 from quadswarm_mj.spatial import BIG
 
 ALL = slice(None)
+_ZERO = np.zeros(())  # 0.0 as a 0-d array (a NumPy call converts a Python float on every call)
 
 
 def sub(draws: dict[str, Any], prefix: str) -> dict[str, Any]:
@@ -120,6 +121,7 @@ class NumpyOps(ModelForms):
                                                  rewards.ANNEALED)
         self._deck_noise = cfg.sensors.any and cfg.sensors.noise
         self._deck_spec = None  # the deck draws' (name, uniform?, a, b, shape), made on first use
+        self._sensor_std_full: tuple | None = None  # (the engine's sensor std, it broadcast to the draw's shape)
         lo, hi = swarm._out_lo.tolist(), swarm._out_hi.tolist()
         self._out = (lo[0], lo[1], lo[2], hi[0], hi[1], hi[2])  # the walls' and ceiling's bounds (floats)
         self._sum_keys: dict[tuple, list[str]] = {}
@@ -176,6 +178,8 @@ class NumpyOps(ModelForms):
         """:func:`quadswarm_mj.actuation.motor_noise_step` (one quad: on floats, same bits)."""
         if self._one and one_quad.ENABLED:
             return one_quad.motor_noise_step(eps, sigma, theta, normal)
+        if numpy_swarm.ENABLED and type(eps) is np.ndarray and eps.dtype == np.float64:
+            return numpy_swarm.motor_noise_step(eps, sigma, theta, normal)  # (0-d constants, same bits)
         return actuation.motor_noise_step(eps, sigma, theta, normal)
 
     def reward_terms(self, cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, goals: Any, action: Any, f_norm: Any,
@@ -309,8 +313,11 @@ class NumpyOps(ModelForms):
             if not s._sensor_on:
                 return None
             z = s.rng.standard_normal(self._shapes[2])
-            z *= s._sensor_std
-            z += 0.0  # = 0.0 + std * z (in place: the same operations, the same bits)
+            std = self._sensor_std_full  # std of the full shape (a same-shape product costs less than a broadcast)
+            if std is None or std[0] is not s._sensor_std:
+                std = self._sensor_std_full = (s._sensor_std, np.broadcast_to(s._sensor_std, z.shape).copy())
+            np.multiply(z, std[1], z)
+            np.add(z, _ZERO, z)  # = 0.0 + std * z (in place: the same operations, the same bits)
             return dict(zip(s._sensor_keys, z))
         noise = s.cfg.noise
         if kind == "deck":  # deck sensor noise (quadswarm_mj.sensors), None: noise-free

@@ -4,7 +4,7 @@
 most of its time in NumPy's fixed cost per call on small (B, N, .) arrays. :class:`SwarmTask` computes the
 same values with the same operations in the same order (the same bits, signs of zero included;
 ``tests/test_numpy_swarm.py`` checks seeded episodes against the model's functions): the reward's five norms
-as one product and left-to-right sums over a zero-padded (5, 4, B, N) block (adding +0.0 to a sum of squares
+as one product and left-to-right sums over a zero-padded (4, 5, B, N) block (adding +0.0 to a sum of squares
 changes no bit); the terms as one product of a (T, B, N) cost block with the factors -dt * scale (the -0.0
 terms keep a zero cost) and the reward as their running sum in ``rewards.TERMS`` order (adding -0.0 changes
 no bit); the proximity term (+0.0 with no pair within the falloff), the collision count and the metric
@@ -16,6 +16,7 @@ several quads. NumPy only.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -24,7 +25,7 @@ from quadswarm_mj import metrics as metrics_lib
 from quadswarm_mj import rewards
 from quadswarm_mj.collisions import off_diagonal
 from quadswarm_mj.observations import _gather_index, _neighbor_bounds, _obs_neighbor_bounds
-from quadswarm_mj.perf import numpy_deck
+from quadswarm_mj.perf import numpy_deck, numpy_swarm
 from quadswarm_mj.pipeline import _no_jump
 
 #: set to False for the model's functions (the same-values tests compare the two)
@@ -33,8 +34,10 @@ ENABLED = True
 #: ``np.count_nonzero`` without its Python-level wrapper (the same function)
 _count_nonzero = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "count_nonzero",
                          np.count_nonzero)
-#: NumPy's clip ufunc (None if absent)
-_clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", None)
+#: ``np.copyto`` without its Python-level wrapper (the same function)
+_copyto = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "copyto", np.copyto)
+#: NumPy's clip ufunc (NumPy 1.x included)
+_clip = numpy_swarm._clip
 # rows of the norm block: goal offset, clipped action, omega, velocity, thrust change
 _NORM_TERMS = ("pos", "effort", "spin", "vel", "action_change")
 
@@ -83,12 +86,12 @@ class SwarmTask:
     def _alloc(self) -> None:
         """Work blocks and their views (made again in a copy: a deep copy does not keep views)."""
         B, N, T = self.B, self.N, self.T
-        self.V = np.zeros((5, 4, B, N))  # the norm block, components on axis 1 (padding stays 0.0)
-        self.V_goal = self.V[0, :3].transpose(1, 2, 0)  # (B, N, 3) views of the rows
-        self.V_act = self.V[1].transpose(1, 2, 0)
-        self.V_omega, self.V_vel = self.V[2, :3].transpose(1, 2, 0), self.V[3, :3].transpose(1, 2, 0)
-        self.V_df = self.V[4].transpose(1, 2, 0)
-        self.SQ = np.empty((5, 4, B, N))
+        self.V = np.zeros((4, 5, B, N))  # the norm block, components on axis 0 (padding stays 0.0)
+        self.V_goal = self.V[:3, 0].transpose(1, 2, 0)  # (B, N, 3) views of the rows
+        self.V_act = self.V[:, 1].transpose(1, 2, 0)
+        self.V_omega, self.V_vel = self.V[:3, 2].transpose(1, 2, 0), self.V[:3, 3].transpose(1, 2, 0)
+        self.V_df = self.V[:, 4].transpose(1, 2, 0)
+        self.SQ = np.empty((4, 5, B, N))
         self.S = np.empty((5, B, N))
         self.C = np.zeros((T, B, N))  # costs, rewards.TERMS order (rows of -0.0 terms stay 0.0)
         self.C_norm3 = self.C[0:3]  # pos, effort, spin
@@ -98,6 +101,34 @@ class SwarmTask:
         self.pv = np.empty((B * N, 6))
         self.pv_p, self.pv_v = self.pv[:, :3].reshape(B, N, 3), self.pv[:, 3:].reshape(B, N, 3)
         self.mpos = np.empty((B, N, 3))
+        W, d0, K = np.empty((B, N, self.D)), self.self_dim, self.K
+        self._o = SimpleNamespace(W=W, pos=W[..., 0:3], vel=W[..., 3:6], R=W[..., 6:15], omega=W[..., 15:18],
+                                  z=W[..., 18] if self.floor else None, nb=W[..., d0:d0 + 6 * K].reshape(B, N, K, 6))
+        if K > 0:
+            self._o.first = self.first.reshape(B, N, 1)  # quad 0's row of each world
+            self._o.own = self.own.reshape(B, N, K)  # each row's own index, K times
+        # constant operands of the full shape of the other operand (NumPy calls on same-shape contiguous arrays cost
+        # less than ones that broadcast or convert a Python float), the rotation's diagonal gathered in one take
+        self.diag = np.empty((3, B, N))
+        self.diag_idx = (9 * np.arange(B * N) + np.array([[0], [4], [8]])).reshape(3, B, N)
+        live, C, row, S = self.live, self.C, self.row, self.S
+        v = {k: (C[row[k]] if k in live else None) for k in ("crash", "orient", "yaw", "rot", "quad_collision",
+                                                            "proximity")}
+        self._w = SimpleNamespace(  # the views of the reward's rows, made once, and which of them are live
+            SQ=self.SQ, SQ0=self.SQ[0], SQ1=self.SQ[1], SQ2=self.SQ[2], SQ3=self.SQ[3], S=S, S3=S[:3], S2=S[3:],
+            norm2="vel" in live or "action_change" in live, C0=C[0], pos_off="pos" not in live, crash=v["crash"],
+            diag=any(k in live for k in ("orient", "yaw", "rot")), orient=v["orient"], yaw=v["yaw"], rot=v["rot"],
+            d0=self.diag[0], d1=self.diag[1], d2=self.diag[2], qc=v["quad_collision"], prox=v["proximity"],
+            key="proximity" in live or self.K > 0, out_shape=(T + 1, B, N), acc_last=self.acc[-1],
+            hits=[(C[row[n]], "hit_" + n[:-4]) for n in ("floor_hit", "wall_hit", "ceiling_hit") if n in live])
+        self.no_jump = _no_jump((B, N))
+        self.c = SimpleNamespace(one=np.ones(()), two=np.full((), 2.0), neg_one=np.full((), -1.0),
+                                 dt=np.full((), self.dt), reach=np.full((), metrics_lib.REACH_DISTANCE),
+                                 falloff=np.full((), self.falloff), diag_inf=np.where(off_diagonal(N), 0.0, np.inf)
+                                 * np.ones((B, 1, 1)),
+                                 coef=np.broadcast_to(self.coef, (T, B, N)).copy(), far=np.empty((B, N, N), bool),
+                                 low=np.broadcast_to(self.low, (B, N, self.D)).copy(),
+                                 high=np.broadcast_to(self.high, (B, N, self.D)).copy())
 
     _KEEP = ("cfg", "B", "N", "zero_terms", "dt", "episode_steps", "grace", "terms", "T", "factors", "row", "live",
              "annealed", "coef", "norm_rows", "falloff", "offdiag", "K", "self_dim", "D", "low", "high", "scale",
@@ -129,14 +160,14 @@ class SwarmTask:
         if cfg is not self.cfg or action.dtype != np.float64 or consts["zero_terms"] != self.zero_terms:
             return None
         steps, total_steps = s["steps"] + 1, s["total_steps"] + 1
-        t = steps.astype(np.float64) * self.dt
-        anneal = rewards.anneal_factor(cfg, total_steps)
+        t = np.multiply(steps, self.c.dt)  # = steps.astype(float64) * dt
+        anneal = rewards.anneal_factor(cfg, total_steps) if self.annealed else 1.0  # (read only when annealed)
         prev = s["sstate"]
         pos, vel, R, omega = k["pos"], k["vel"], k["R"], k["omega"]
         sstate = scenario.step(cfg, prev, t, pos, ops.draws("scenario", None, None))
         goals, goal_vel = sstate.goals, sstate.goal_vel
         if goals is prev.goals:
-            jump = _no_jump(goals.shape[:-1])
+            jump = self.no_jump
         else:
             jump = metrics_lib.goal_jump(prev.goals, goals, goal_vel, self.dt)
         new_contact = k["new_contact"]
@@ -145,7 +176,7 @@ class SwarmTask:
         hf, hw, hc = k["hit_floor"], k["hit_wall"], k["hit_ceiling"]
         m = self._metrics(s["metrics_acc"], t[..., None], dist_goal, new_contact, any_new, hf, hw, hc, jump)
         obs = self._obs(pos, vel, R, omega, goals, ops.draws("sensor", None, None), k["dist"],
-                        ops.draws("deck", None, None))
+                        ops.draws("deck", None, None) if self.cfg.sensors.any else None)  # (decks off: no draw)
         return {"steps": steps, "total_steps": total_steps, "t": t, "sstate": sstate, "goals": goals,
                 "goal_vel": goal_vel, "terms": dict(zip(self.terms, out[1:])), "reward": out[0], "metrics_acc": m,
                 "obst_metrics": None, "obs": obs, "done": steps >= self.episode_steps, "rows": out}
@@ -155,70 +186,70 @@ class SwarmTask:
         """:func:`quadswarm_mj.rewards.reward_terms` and ``total_reward`` (same values) and the goal distance:
         returns a fresh (1 + T, B, N) block (the reward, then the terms in ``rewards.TERMS`` order) and the
         distance (B, N) m; sets ``self.key`` (the pair distances, inf on the diagonal) for :meth:`_obs`."""
-        live, C, V = self.live, self.C, self.V
+        live, C, w = self.live, self.C, self._w
         pos, R = k["pos"], k["R"]
         # the norms (rewards.reward_terms' norm_last costs and task_stage's goal distance)
         np.subtract(goals, pos, out=self.V_goal)
         if "effort" in live:
             if _clip is not None:  # = min(max(a, -1), 1) (the bounds are not zero: the same bits)
-                _clip(action, -1.0, 1.0, out=self.V_act)
+                _clip(action, self.c.neg_one, self.c.one, self.V_act)
             else:
                 np.maximum(action, -1.0, out=self.V_act)
                 np.minimum(self.V_act, 1.0, out=self.V_act)
         if "spin" in live:
-            self.V_omega[...] = k["omega"]
+            _copyto(self.V_omega, k["omega"])
         if "vel" in live:
-            self.V_vel[...] = k["vel"]
+            _copyto(self.V_vel, k["vel"])
         if "action_change" in live:
             np.subtract(k["f_norm"], s["f_norm"], out=self.V_df)
-        SQ, S = self.SQ, self.S
-        np.multiply(V, V, out=SQ)
-        np.add(SQ[:, 0], SQ[:, 1], out=S)
-        S += SQ[:, 2]
-        S += SQ[:, 3]
-        np.sqrt(S[:3], out=self.C_norm3)
-        if "vel" in live or "action_change" in live:
-            np.sqrt(S[3:], out=self.C_norm2)
-        dist_goal = C[0].copy()
-        if "pos" not in live:  # a -0.0 term: its cost stays 0.0
-            C[0] = 0.0
-        on_floor = k["on_floor"]
-        row = self.row
-        if "crash" in live:
-            np.copyto(C[row["crash"]], on_floor)
-        if "orient" in live:
-            o = C[row["orient"]]
-            np.negative(R[..., 2, 2], out=o)
-            np.copyto(o, 1.0, where=on_floor)
-        if "yaw" in live:
-            np.negative(R[..., 0, 0], out=C[row["yaw"]])
-        if "rot" in live:
-            C[row["rot"]] = -(R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0
-        if "quad_collision" in live:
-            qc = C[row["quad_collision"]]
+        np.multiply(self.V, self.V, w.SQ)
+        np.add(w.SQ0, w.SQ1, w.S)
+        np.add(w.S, w.SQ2, w.S)
+        np.add(w.S, w.SQ3, w.S)
+        np.sqrt(w.S3, self.C_norm3)
+        if w.norm2:
+            np.sqrt(w.S2, self.C_norm2)
+        dist_goal = w.C0.copy()
+        if w.pos_off:  # a -0.0 term: its cost stays 0.0
+            w.C0[...] = 0.0
+        on_floor, c, diag = k["on_floor"], self.c, self.diag
+        if w.crash is not None:
+            _copyto(w.crash, on_floor)
+        if w.diag:  # R00, R11, R22
+            R.reshape(-1).take(self.diag_idx, None, diag, "wrap")
+        if w.orient is not None:
+            np.negative(w.d2, w.orient)
+            _copyto(w.orient, c.one, where=on_floor)
+        if w.yaw is not None:
+            np.negative(w.d0, w.yaw)
+        if w.rot is not None:  # -(R00 + R11 + R22 - 1.0) / 2.0
+            r = w.rot
+            np.add(w.d0, w.d1, r)
+            np.add(r, w.d2, r)
+            np.subtract(r, c.one, r)
+            np.negative(r, r)
+            np.divide(r, c.two, r)
+        if w.qc is not None:
             if any_new:
-                np.add.reduce(k["new_contact"], axis=-1, dtype=np.float64, out=qc)
+                np.add.reduce(k["new_contact"], axis=-1, dtype=np.float64, out=w.qc)
             else:
-                qc[...] = 0.0
+                w.qc[...] = 0.0
         key = self.key
-        if "proximity" in live or self.K > 0:
-            np.copyto(key, np.inf)
-            np.copyto(key, k["dist"], where=self.offdiag)
-        if "proximity" in live:
-            pr = C[row["proximity"]]
-            if _count_nonzero(key >= self.falloff) == key.size:  # no pair within the falloff: +0.0
-                pr[...] = 0.0
+        if w.key:  # the pair distances with inf on the diagonal: dist + 0.0 is dist (never -0.0), 0.0 + inf is inf
+            np.add(k["dist"], c.diag_inf, key)
+        if w.prox is not None:
+            if _count_nonzero(np.greater_equal(key, c.falloff, c.far)) == key.size:  # no pair within: +0.0
+                w.prox[...] = 0.0
             else:
-                np.add.reduce(np.maximum(1.0 - key / self.falloff, 0.0), axis=-1, out=pr)
-        for name in ("floor_hit", "wall_hit", "ceiling_hit"):
-            if name in live:
-                np.copyto(C[row[name]], k["hit_" + name[:-4]])
-        coef = self._coef(anneal) if self.annealed else self.coef
-        out = np.empty((self.T + 1,) + C.shape[1:])  # reward, then the terms
+                np.add.reduce(np.maximum(1.0 - key / self.falloff, 0.0), axis=-1, out=w.prox)
+        for row, name in w.hits:
+            _copyto(row, k[name])
+        coef = self._coef(anneal) if self.annealed else c.coef
+        out = np.empty(w.out_shape)  # reward, then the terms
         terms = out[1:]
-        np.multiply(C, coef, out=terms)
+        np.multiply(C, coef, terms)
         np.add.accumulate(terms, axis=0, out=self.acc)  # rewards.total_reward's running sum, TERMS order
-        out[0] = self.acc[-1]
+        _copyto(out[0], w.acc_last)
         return out, dist_goal
 
     def _metrics(self, m: dict[str, Any], t: Any, dist: np.ndarray, new_contact: np.ndarray, any_new: bool,
@@ -232,14 +263,14 @@ class SwarmTask:
             if _count_nonzero(flag):
                 out[name] = m[name] + flag
         out["dist_sum"] = m["dist_sum"] + dist
-        out["steps"] = m["steps"] + 1.0
+        out["steps"] = np.add(m["steps"], self.c.one)
         last = m["last_dist"]
         new_last = np.empty_like(last)
         new_last[..., :-1, :] = last[..., 1:, :]
         new_last[..., -1, :] = dist
         out["last_dist"] = new_last
         reached = m["seg_reached"]
-        near = dist < metrics_lib.REACH_DISTANCE
+        near = np.less(dist, self.c.reach)
         if _count_nonzero(jump):
             close = jump & ((t - m["seg_start"]) >= metrics_lib.MIN_SEGMENT_S - 1e-9)
             out["seg_count"] = m["seg_count"] + close
@@ -253,34 +284,35 @@ class SwarmTask:
     def _obs(self, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray, goals: np.ndarray,
              noise: dict[str, Any] | None, dist: np.ndarray, deck_draws: dict[str, Any] | None) -> np.ndarray:
         """:func:`quadswarm_mj.observations.build_obs` (same values) for this layout."""
-        B, N = self.B, self.N
-        obs = np.empty((B, N, self.D))
+        B, N, o = self.B, self.N, self._o
+        W = o.W  # the observation before its bounds, written part by part into views made once
         mpos = self.mpos
         if noise is not None:
-            np.add(pos, noise["pos"], out=mpos)
-            np.subtract(mpos, goals, out=obs[..., 0:3])
-            np.add(vel, noise["vel"], out=obs[..., 3:6])
-            obs[..., 6:15] = R.reshape(B, N, 9)
-            np.add(omega, noise["omega"], out=obs[..., 15:18])
+            np.add(pos, noise["pos"], mpos)
+            np.subtract(mpos, goals, o.pos)
+            np.add(vel, noise["vel"], o.vel)
+            _copyto(o.R, R.reshape(B, N, 9))
+            np.add(omega, noise["omega"], o.omega)
         else:
             mpos = pos
-            np.subtract(pos, goals, out=obs[..., 0:3])
-            obs[..., 3:6] = vel
-            obs[..., 6:15] = R.reshape(B, N, 9)
-            obs[..., 15:18] = omega
+            np.subtract(pos, goals, o.pos)
+            _copyto(o.vel, vel)
+            _copyto(o.R, R.reshape(B, N, 9))
+            _copyto(o.omega, omega)
         if self.floor:
-            obs[..., 18] = mpos[..., 2]
+            _copyto(o.z, mpos[..., 2])
         K = self.K
         if K > 0:  # observations.neighbor_obs: the K nearest others by distance (key: self.key, set above)
-            self.pv_p[...] = pos
-            self.pv_v[...] = vel
-            idx = np.argsort(self.key, axis=-1)[..., :K]
-            d0 = self.self_dim
-            np.subtract(self.pv.take((idx.reshape(B * N, K) + self.first).reshape(-1), axis=0).reshape(B, N, K, 6),
-                        self.pv.take(self.own, axis=0).reshape(B, N, K, 6),
-                        out=obs[..., d0:d0 + 6 * K].reshape(B, N, K, 6))
+            _copyto(self.pv_p, pos)
+            _copyto(self.pv_v, vel)
+            idx = self.key.argsort(axis=-1)[..., :K]  # (B, N, K) quad indices in their world
+            if B > 1:
+                idx = idx + o.first
+            np.subtract(self.pv.take(idx, axis=0), self.pv.take(o.own, axis=0), o.nb)
         if self.cfg.sensors.any:  # the decks' readings of the true state, last
-            obs[..., self.self_dim + 6 * K:] = numpy_deck.deck_part(self.cfg, pos, vel, R, omega, None, deck_draws)
-        np.maximum(obs, self.low, out=obs)
-        np.minimum(obs, self.high, out=obs)
+            W[..., self.self_dim + 6 * K:] = numpy_deck.deck_part(self.cfg, pos, vel, R, omega, None, deck_draws)
+        if _clip is not None:  # = min(max(obs, low), high) (the clip ufunc on same-shape bounds: the same bits)
+            obs = _clip(W, self.c.low, self.c.high)  # fresh
+        else:
+            obs = np.minimum(np.maximum(W, self.low), self.high)
         return obs if self.scale is None else obs / self.scale
