@@ -181,8 +181,16 @@ def _offsets(xp: Any, pos: Any, R: Any, radius: float) -> tuple[list[Any], Any, 
         ob = [o[0] * R[..., :, None, 0, c] + o[1] * R[..., :, None, 1, c] + o[2] * R[..., :, None, 2, c]
               for c in range(3)]
         d2 = o[0] * o[0] + o[1] * o[1] + o[2] * o[2]
-    c = xp.where(np.eye(n, dtype=bool), xp.inf, d2 - radius * radius)
+    c = xp.where(_diagonal(n), xp.inf, d2 - radius * radius)
     return ob, c, xp.any(c < 0.0, axis=-1)
+
+
+@functools.lru_cache(maxsize=16)
+def _diagonal(n: int) -> np.ndarray:
+    """(N, N) read-only: True on the diagonal (a quad's own hitbox)."""
+    eye = np.eye(n, dtype=bool)
+    eye.setflags(write=False)
+    return eye
 
 
 _SIGNS = np.array([1.0, -1.0])
@@ -298,7 +306,18 @@ def _pixel_constants(shape: tuple[int, int], fov_deg: tuple[float, float]) -> tu
     return out
 
 
-def _depth_spheres_numpy(pos: np.ndarray, R: np.ndarray, t: np.ndarray, u: np.ndarray, v: np.ndarray,
+_ZERO_INDEX = np.zeros(1, np.intp)
+
+
+@functools.lru_cache(maxsize=32)
+def _pyramid_bounds(shape: tuple[int, int], fov_deg: tuple[float, float], radius: float) -> tuple[float, ...]:
+    """(u_max, v_max, r sqrt(1 + u_max^2), r sqrt(1 + v_max^2)) of the depth camera's pixel tangents."""
+    u, v = _pixel_constants(shape, fov_deg)[:2]
+    u_max, v_max = float(np.abs(u).max()), float(np.abs(v).max())
+    return u_max, v_max, radius * math.sqrt(1.0 + u_max * u_max), radius * math.sqrt(1.0 + v_max * v_max)
+
+
+def _depth_spheres_numpy(pos: np.ndarray, R: np.ndarray, t: np.ndarray, bounds: tuple[float, ...],
                          uk: np.ndarray, vk: np.ndarray, norm: np.ndarray, radius: float) -> np.ndarray:
     """``t`` (..., N, H W) with the other quads' hitboxes of :func:`depth_hits` (NumPy; the same values).
 
@@ -307,17 +326,19 @@ def _depth_spheres_numpy(pos: np.ndarray, R: np.ndarray, t: np.ndarray, u: np.nd
     |Z| - v_max X <= r sqrt(1 + v_max^2) (the sphere reaches into each of the pyramid's half-spaces; a
     necessary condition). Usually few pairs pass: the arrays shrink from N N H W numbers."""
     ob, c, inside = _offsets(np, pos, R, radius)
-    u_max, v_max = float(np.abs(u).max()), float(np.abs(v).max())
+    u_max, v_max, y_lim, z_lim = bounds  # _pyramid_bounds
     x, y, z = ob
-    cand = ((x >= -radius) & (np.abs(y) - u_max * x <= radius * math.sqrt(1.0 + u_max * u_max))
-            & (np.abs(z) - v_max * x <= radius * math.sqrt(1.0 + v_max * v_max)) & (c < np.inf))
-    idx = np.nonzero(cand)  # (..., i, j) of the pairs cast
+    cand = ((x >= -radius) & (np.abs(y) - u_max * x <= y_lim) & (np.abs(z) - v_max * x <= z_lim) & (c < np.inf))
+    idx = np.nonzero(cand)  # (..., i, j) of the pairs cast, in C order: each quad i's pairs are one run
     if idx[0].size:
         beta = x[idx][:, None] + uk * y[idx][:, None] + vk * z[idx][:, None]  # (P, H W)
         disc = beta * beta - (norm * norm) * c[idx][:, None]
         ts = np.where((beta > 0.0) & (disc >= 0.0), beta - np.sqrt(np.maximum(disc, 0.0)), np.inf)
-        nearest = np.full(t.shape, np.inf)
-        np.minimum.at(nearest, idx[:-1], ts)  # the nearest per quad i
+        quad = np.ravel_multi_index(idx[:-1], t.shape[:-1]) if len(idx) > 2 else idx[0]
+        first = np.flatnonzero(quad[1:] != quad[:-1]) + 1
+        starts = np.concatenate((_ZERO_INDEX, first))
+        nearest = np.full(t.shape, np.inf)  # the nearest per quad i (a minimum: exact in any order)
+        nearest.reshape(-1, t.shape[-1])[quad[starts]] = np.minimum.reduceat(ts, starts, axis=0)
         t = np.minimum(t, nearest * (1.0 / norm))
     if inside.any():
         t = np.where(inside[..., None], 0.0, t)
@@ -369,7 +390,8 @@ def depth_hits(pos: Any, R: Any, shape: tuple[int, int], fov_deg: tuple[float, f
             t = ta if t is None else xp.minimum(t, ta)
         t = t * xp.asarray(norm, dtype=f)  # parameter along e -> range (m)
         if quad_radius is not None and pos.shape[-2] > 1 and xp is np:
-            t = _depth_spheres_numpy(pos, R, t, u, v, uk, vk, norm, quad_radius)
+            bounds = _pyramid_bounds(tuple(shape), tuple(fov_deg), float(quad_radius))
+            t = _depth_spheres_numpy(pos, R, t, bounds, uk, vk, norm, quad_radius)
         elif quad_radius is not None and pos.shape[-2] > 1:  # range (beta - sqrt(disc)) / |e| of the nearest
             ob, c, inside = _offsets(xp, pos, R, quad_radius)
             ts = (pixel_spheres or sphere_pixel_hits)(ob, c, uk, vk, xp.asarray(norm * norm, dtype=f))
