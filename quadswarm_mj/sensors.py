@@ -446,6 +446,13 @@ def deck_bounds(cfg: Any) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(lo, dtype=np.float32), np.asarray(hi, dtype=np.float32)
 
 
+def _numpy_entries(s: SensorConfig, plan: tuple[tuple[str, int, int, int], ...], part: np.ndarray) -> dict[str, Any]:
+    """The info entries as views of ``part`` (a fresh float32 deck part, metres) and of one flags array."""
+    flags = part > 0.5
+    return {name: (flags if kind == 1 else part)[..., a:b] if kind != 2 else
+            part[..., a:b].reshape(part.shape[:-1] + s.depth) for name, a, b, kind in plan}
+
+
 def numpy_deck_info(cfg: Any, scale: Any = None) -> Any:
     """:func:`deck_info` as a function of the observation alone, its plan made once (a gym env's per-step
     info): ``f(obs)`` = ``deck_info(cfg, obs, scale)`` (the same arrays)."""
@@ -461,9 +468,7 @@ def numpy_deck_info(cfg: Any, scale: Any = None) -> Any:
         part = obs[..., dim - width:].astype(np.float32)
         if sc is not None:
             part *= sc
-        flags = part > 0.5
-        return {name: (flags if kind == 1 else part)[..., a:b] if kind != 2 else
-                part[..., a:b].reshape(part.shape[:-1] + s.depth) for name, a, b, kind in plan}
+        return _numpy_entries(s, plan, part)
 
     return f
 
@@ -483,9 +488,7 @@ def deck_info(cfg: Any, obs: Any, scale: Any = None) -> dict[str, Any]:
         part = obs[..., start:].astype(np.float32)
         if scale is not None:
             part *= np.asarray(scale, dtype=np.float32)[start:]
-        flags = part > 0.5
-        return {name: (flags if kind == 1 else part)[..., a:b] if kind != 2 else
-                part[..., a:b].reshape(part.shape[:-1] + s.depth) for name, a, b, kind in _split_plan(s)}
+        return _numpy_entries(s, _split_plan(s), part)
     xp = array_namespace(obs)
     part = obs[..., start:]
     if scale is not None:

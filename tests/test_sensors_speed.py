@@ -432,3 +432,26 @@ def test_decks_on_the_lean_model_are_the_visual_models_bitwise():
             run += [o["obs"], o["rewards"]]
         runs.append(run)
     assert all(a.tobytes() == b.tobytes() for a, b in zip(*runs))
+
+
+@pytest.mark.parametrize("lead", [(), (1,), (3,), (2, 2)])
+def test_numpy_depth_hitbox_test_is_the_array_form_bitwise(lead):
+    """sensor_rays' NumPy depth caster casts only the pairs whose hitbox can meet the camera's pyramid and
+    scatters each quad's nearest hit by one minimum.reduceat over its run of pairs: the same bits as the
+    array-API form (every pair, :func:`sphere_pixel_hits`) in crowded scenes, a quad inside another's hitbox,
+    any leading batch shape."""
+    from quadswarm_mj import sensor_rays as sr
+
+    c = EnvConfig(num_quads=8, room_size=(6.0, 5.0, 3.0))
+    for seed in range(4):
+        pos, R, _ = _scene(seed, lead=lead)
+        for shape, fov in (((8, 8), (87.0, 58.0)), ((3, 5), (60.0, 45.0))):
+            got = depth_hits(pos, R, shape, fov, c.room_low, c.room_high, None, c.hitbox)
+            room = depth_hits(pos, R, shape, fov, c.room_low, c.room_high, None, None)
+            norm = sr._pixel_constants(shape, fov)[4]
+            uk, vk = sr._pixel_constants(shape, fov)[2:4]
+            ob, cc, inside = sr._offsets(np, pos, R, c.hitbox)
+            ts = sr.sphere_pixel_hits(ob, cc, uk, vk, norm * norm)
+            want = np.where(inside[..., None], 0.0, np.minimum(room, ts * (1.0 / norm)))
+            assert (got < room).any() and (got == 0.0).any()  # hitboxes seen, one quad inside another's
+            assert got.tobytes() == want.tobytes()

@@ -369,11 +369,15 @@ _copyto = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None)
 
 
 def _clip_ufunc() -> Any:
-    """NumPy's clip ufunc (``numpy._core.umath.clip``; NumPy 1.x: ``numpy.core.umath.clip``)."""
+    """NumPy's clip ufunc (``numpy._core.umath.clip``; NumPy 1.x: ``numpy.core.umath.clip``), else ``np.clip``
+    (its Python wrapper: the same results, a slower call)."""
     umath = getattr(getattr(np, "_core", None), "umath", None)
     if umath is None:  # NumPy 1.x
-        from numpy.core import umath
-    return umath.clip
+        try:
+            from numpy.core import umath
+        except ImportError:  # pragma: no cover
+            return np.clip
+    return getattr(umath, "clip", np.clip)
 
 
 #: NumPy's clip ufunc: min(max(x, lo), hi) elementwise in one call
@@ -383,8 +387,6 @@ _clip = _clip_ufunc()
 def action_to_command(action: np.ndarray) -> np.ndarray:
     """:func:`quadswarm_mj.actuation.action_to_command` (0.5 (clip(a, -1, 1) + 1)) with the clip as one ufunc: the
     same bits (the bounds are not zero, so no sign of zero can differ; NaN stays NaN)."""
-    if _clip is None:
-        return 0.5 * (np.minimum(np.maximum(action, -1.0), 1.0) + 1.0)
     c = _clip(action, _C["-1"], _C["1"])
     np.add(c, _C["1"], c)
     np.multiply(c, _C["0.5"], c)
