@@ -86,12 +86,6 @@ def obs_scale(cfg: EnvConfig) -> np.ndarray:
     return scale
 
 
-def self_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any) -> Any:
-    """(..., N, self_obs_dim) own-state observation (no noise, no clipping)."""
-    xp = array_namespace(pos, vel)
-    return xp.concatenate(_self_parts(xp, cfg, pos, vel, R, omega, goals), axis=-1)
-
-
 def _self_parts(xp: Any, cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any) -> list[Any]:
     parts = [pos - goals, vel, R.reshape(R.shape[:-2] + (9,)), omega]
     if cfg.obs_self == "floor":

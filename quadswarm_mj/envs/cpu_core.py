@@ -134,7 +134,6 @@ class CpuSwarm:
         self._zero_terms = zero_terms(cfg)
         self.scenario = get_scenario(cfg.scenario)
         self.paper_floor = cfg.collision_model == "paper"
-        self.paper_quads = cfg.collision_model in ("paper", "blend")
         self.floor_z = cfg.quad.arm
         low, high = obs_bounds(cfg)
         self.obs_low, self.obs_high = low.astype(np.float64), high.astype(np.float64)
@@ -154,7 +153,6 @@ class CpuSwarm:
         # the three sensor-noise draws as one standard-normal draw (same stream, same values)
         self._sensor_keys = tuple(spec_sensor)
         self._sensor_std = np.array([spec_sensor[k].std for k in self._sensor_keys])[:, None, None, None]
-        self._motor_noise = cfg.noise.motor_noise_ratio > 0
         self._n_scn = scenario_num_uniforms(self.scenario, cfg)
         zeros = np.zeros((B, N))
         params = pipeline.dynamics_params(cfg, nominal_draws(cfg, zeros, (B,)))

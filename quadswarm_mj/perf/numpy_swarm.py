@@ -47,9 +47,9 @@ class _Views:
         self.q, self.v = q, v
         # flat views (MuJoCo's arrays are contiguous): the sources of the flat gathers
         self.qf, self.vf, self.xf = q.reshape(-1), v.reshape(-1), x.reshape(-1)
-        self.z2, self.zq, self.qp = q[:, 2:3], q[:, 2:7], q[:, :3]
+        self.z2, self.zq = q[:, 2:3], q[:, 2:7]
         self.v_h, self.v_stay = v[:, :2], v[:, 2:5]
-        self.force, self.torque, self.f_h, self.f_z, self.t_xy = x[:, :3], x[:, 3:], x[:, :2], x[:, 2], x[:, 3:5]
+        self.force, self.torque, self.f_h, self.f_z = x[:, :3], x[:, 3:], x[:, :2], x[:, 2]
 
 
 class SwarmLoop:

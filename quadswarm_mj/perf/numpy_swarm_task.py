@@ -68,7 +68,6 @@ class SwarmTask:
         self.annealed = any(k in rewards.ANNEALED and k in self.live for k in self.terms) and \
             cfg.rewards.anneal_steps > 0
         self.coef = self._coef(1.0)
-        self.norm_rows = [i for i, k in enumerate(_NORM_TERMS) if k in self.live]
         self.falloff = cfg.rewards.proximity_falloff_arms * cfg.quad.arm
         self.offdiag = off_diagonal(N)
         # observation layout and bounds (the neighbour bounds folded in, as build_obs does every step)
@@ -131,7 +130,7 @@ class SwarmTask:
                                  high=np.broadcast_to(self.high, (B, N, self.D)).copy())
 
     _KEEP = ("cfg", "B", "N", "zero_terms", "dt", "episode_steps", "grace", "terms", "T", "factors", "row", "live",
-             "annealed", "coef", "norm_rows", "falloff", "offdiag", "K", "self_dim", "D", "low", "high", "scale",
+             "annealed", "coef", "falloff", "offdiag", "K", "self_dim", "D", "low", "high", "scale",
              "floor", "first", "own")
 
     def __getstate__(self) -> dict[str, Any]:
