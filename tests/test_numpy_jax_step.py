@@ -16,7 +16,7 @@ max(1, |value|)): the rotor cases agree to 2e-15, the "ctbr" case to 1e-8 (see `
 ``STEP`` is the package's one control step's physics half, :func:`quadswarm_mj.core.control.physics_stage`
 (the sub-step loop and the stages after it, written once for both engines), with the free-body physics
 :class:`quadswarm_mj.physics.freebody.FreeBodyPhysics` and the dense-draw ops
-:class:`quadswarm_mj.core.dense_ops.DenseOps` in either namespace: the NumPy and JAX runs of it must
+:class:`dense_ops.DenseOps` (tests/dense_ops.py) in either namespace: the NumPy and JAX runs of it must
 agree, and in NumPy it must agree with ``physics_half`` (the leaf chain) to round-off. The whole
 :func:`quadswarm_mj.core.control.control_step` (plus scenario, rewards, metrics, observations) is run
 the same way by ``test_the_whole_control_step_numpy_equals_jax_float64``.
@@ -168,8 +168,9 @@ def physics_half(xp: Any, cfg: EnvConfig, s: dict[str, Any], action: Any, params
 def control_step_physics(xp: Any, cfg: EnvConfig, s: dict[str, Any], action: Any, params: dict[str, Any],
                          d: dict[str, Any], yaw_cs: bool) -> dict[str, Any]:
     """``physics_half``'s contract through the package's ``core.control.physics_stage``."""
+    from dense_ops import DenseOps
+
     from quadswarm_mj.core.control import physics_stage
-    from quadswarm_mj.core.dense_ops import DenseOps
     from quadswarm_mj.physics.freebody import FreeBodyPhysics
 
     act = pipeline.make_substep_actuation(cfg)
@@ -389,8 +390,9 @@ def whole_step(xp: Any, cfg: EnvConfig, s: dict[str, Any], action: Any, params: 
                consts: dict[str, Any]) -> dict[str, Any]:
     """``core.control.control_step`` (free-body physics, dense draws) on ``s``: the physics state of
     ``control_step_physics`` plus the task state; returns the next state and the step's outputs."""
+    from dense_ops import DenseOps
+
     from quadswarm_mj.core.control import control_step
-    from quadswarm_mj.core.dense_ops import DenseOps
     from quadswarm_mj.physics.freebody import FreeBodyPhysics
     from quadswarm_mj.scenarios import get_scenario
 

@@ -1,4 +1,4 @@
-"""Engine ops with every draw given dense (for every quad), in NumPy or ``jax.numpy``: the plain
+"""Engine ops with every draw given dense (for every quad), in NumPy or ``jax.numpy``: the tests' plain
 reference beside :class:`~quadswarm_mj.core.ops.NumpyOps` (per-event draws from a ``Generator``) and
 :class:`~quadswarm_mj.core.ops.JaxOps` (budgeted slots). Every stage runs on every quad, so the same
 inputs give the same step in either namespace (``tests/test_numpy_jax_step.py``)."""
