@@ -1,22 +1,11 @@
 """Observations (SPEC §7): own state relative to the goal, K nearest neighbours, sensor noise.
 
-Layout per quad (``cfg.obs_dim`` floats):
-
-====================== ===== ==========================================================
-slice                  size  content (units; frame)
-====================== ===== ==========================================================
-0:3                    3     p - goal (m; world)
-3:6                    3     v (m/s; world)
-6:15                   9     R body-to-world, row-major
-15:18                  3     omega (rad/s; body)
-18 ("floor" only)      1     z (m)
-18:24 ("wall" only)    6     distances to the walls -x, +x, -y, +y, floor, ceiling (m, <= 5)
-then, per neighbour    6     p_j - p_i (m), v_j - v_i (m/s), nearest first
-then (obstacles on)    9     obstacle distance features (m; SPEC_obstacles A.2, true positions;
-                             none when ``obstacles.observe_features`` is False)
-last (sensors on)      S     deck readings (``sensors.deck_layout``: multi-ranger 5 ranges m + 5
-                             flags, flow deck range m, flow x, y px/frame + 2 flags, depth H W m)
-====================== ===== ==========================================================
+Layout per quad (``cfg.obs_dim`` floats; the table with bounds: docs/model.md, "Observations"):
+p - goal (m, world), v (m/s, world), R body-to-world row-major (9), omega (rad/s, body), then z (m,
+``obs_self="floor"``) or the 6 wall/floor/ceiling distances (m, <= 5, ``obs_self="wall"``), then per
+neighbour p_j - p_i (m) and v_j - v_i (m/s) nearest first, then with obstacles the 9 column distance
+features (m; SPEC_obstacles A.2; none when ``obstacles.observe_features`` is False), last with sensors
+the deck readings (``sensors.deck_layout``).
 
 Sensor noise (Gaussian: p 0.005 m, v 0.01 m/s, omega 1.75e-4 rad/s) perturbs the quad's own
 measurements; neighbour terms are noise-free by default (``noise.neighbor_obs_noise``), as in the

@@ -1,29 +1,15 @@
 """Reward terms (SPEC §8), per quad and control step, with the original's time scaling:
 
-* state terms (``STATE_TERMS``): r = -sim_dt * scale * cost (sim_dt = 1 / sim_hz = 0.005 s by default;
-  the original multiplies by its simulation step although it computes the reward once per control step);
+* state terms (``STATE_TERMS``): r = -sim_dt * scale * cost (sim_dt = 0.005 s by default, as the original
+  scales although it computes the reward once per control step);
 * ``proximity``: r = -control_dt * scale * cost (0.01 s);
-* event terms (``EVENT_TERMS``): r = -scale * count, not time-scaled: one new quad-quad collision at the
-  baseline scale costs 5.0 per quad involved, as much as 1,000 control steps 1 m from the goal.
+* event terms (``EVENT_TERMS``): r = -scale * count, not time-scaled.
 
-Terms (keys of ``info["reward_terms"]``) and their costs per quad:
-
-* ``pos`` ||goal - p||; ``effort`` ||clip(a_raw, -1, 1)||; ``spin`` ||omega||; ``crash`` 1 while on the floor;
-  ``orient`` -R_22 in the air, 1 on the floor; ``vel`` ||v||; ``action_change``
-  ||f_t - f_{t-1}|| (normalized thrusts); ``yaw`` -R_00; ``rot`` -(tr R - 1) / 2;
-* ``quad_collision`` number of pairs the quad is in whose contact started this step;
-  ``proximity`` sum over other quads within the falloff of (1 - d / falloff);
-* ``floor_hit``, ``wall_hit``, ``ceiling_hit`` 1 on the step of the hit.
-
-``a_raw`` is the per-rotor action of the "rotor" control mode, clipped into [-1, 1] as the
-actuation clips it (so an out-of-range action costs what the action at its bound costs, and a
-huge finite one never makes the reward infinite). In the physical-unit
-modes (``EnvConfig.control_mode`` "ctbr", "attitude", "velocity") the engines pass instead the
-equivalent raw rotor action 2 cmd - 1 of the mode controller's rotor command ``cmd`` in [0, 1] (its
-last physics sub-step of the control step, :func:`quadswarm_mj.pipeline.effort_action`), so the
-effort scale means the same in every mode (a thrust in N or a rate in rad/s would not be comparable).
-
-The collision and proximity scales are multiplied by an annealing factor in [0, 1].
+The terms (keys of ``info["reward_terms"]``), their costs and baseline scales are tabled in docs/model.md
+("Rewards and episode metrics"). ``effort`` sees ``a_raw``, the "rotor" mode's per-rotor action clipped
+into [-1, 1]; the physical-unit control modes pass the equivalent raw action 2 cmd - 1 of the mode
+controller's last rotor command (:func:`quadswarm_mj.pipeline.effort_action`), so its scale means the
+same in every mode. The collision and proximity scales are multiplied by an annealing factor in [0, 1].
 The per-quad reward is the exact sum of the terms. Pure, any batch dims, NumPy or ``jax.numpy``.
 """
 

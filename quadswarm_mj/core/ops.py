@@ -10,16 +10,13 @@
   (:func:`quadswarm_mj.collisions.expand_per_quad`; beyond the budget events reuse slots, new
   quad-quad pairs wait a step: ``collisions.quad_collisions_budgeted``).
 
-Both offer, for the sub-steps (:mod:`quadswarm_mj.core.substeps`): ``loop(body, carry, n)``,
-``wrench`` (``substep_wrench``), ``rotmat`` (``quat_to_rotmat``), ``floor_wrench`` and ``floor_impact``
-(the paper's floor, event-gated on the CPU engine); for the stages after them (:mod:`quadswarm_mj.core.
-step`): ``room`` (room_low, room_high), ``gate(mask_fn)``, ``wall_gate``, ``put(arr, w, value)``,
-``zeros_like``, ``draws(kind, mask_fn, w)`` (kind: "motor", "wall", "yaw", "down"), ``pairwise_contacts``,
-``quad_quad`` and ``obstacles``; ``mask_fn`` is called only where the engine needs the mask; for the task
-step (:func:`quadswarm_mj.core.control.task_step`): ``dtype`` (the float dtype), ``terms``, the draws
-"scenario", "sensor", "deck", and the model's task functions ``reward_terms``, ``total_reward``,
-``metrics_update``, ``obs`` (:class:`ModelForms`: the model's own; the engines' same-values speed
-forms of :mod:`quadswarm_mj.perf` are reached only here).
+Both offer the sub-steps' ops (:mod:`quadswarm_mj.core.substeps`: ``loop``, ``wrench``, ``rotmat``,
+``floor_wrench``, ``floor_impact``), the later stages' (:mod:`quadswarm_mj.core.step`: ``room``, ``gate``,
+``wall_gate``, ``put``, ``zeros_like``, ``draws(kind, mask_fn, w)``, ``pairwise_contacts``, ``quad_quad``,
+``obstacles``; ``mask_fn`` is called only where the engine needs the mask) and the task step's
+(:func:`quadswarm_mj.core.control.task_step`: ``dtype``, ``terms``, the draws "scenario", "sensor", "deck",
+and the task functions of :class:`ModelForms`). The engines' same-values speed forms of
+:mod:`quadswarm_mj.perf` are reached only here.
 """
 
 from __future__ import annotations
