@@ -363,33 +363,6 @@ def quad_collision_slot_spec(tries: int, slots: int, shared_std: float, own_std:
     }
 
 
-def new_pairs_upper(pos: Any, prev_contact: Any, hitbox: float) -> Any:
-    """(N, N) mask of the new contact pairs with i < j (the events ranked by the budget)."""
-    contact, _ = pairwise_contacts(pos, hitbox)
-    n = pos.shape[-2]
-    return contact & ~prev_contact & np.triu(np.ones((n, n), bool), k=1)
-
-
-def expand_quad_draws(new_upper: Any, slots: dict[str, Any]) -> dict[str, Any]:
-    """Dense draws of :func:`quad_collisions` (one world) from per-slot draws (:func:`quad_collision_slot_spec`)."""
-    from quadswarm_mj.random_draws import event_slots, spread
-
-    xp = array_namespace(new_upper, slots["shared"])
-    n = new_upper.shape[-1]
-    S = slots["kick_mag"].shape[-1]
-    hot = event_slots(xp, new_upper.reshape(n * n), S)  # (N N, S)
-
-    def pairs(x: Any) -> Any:  # (S, *shape) -> (N, N, *shape), zero off the new upper pairs
-        return spread(xp, hot, x).reshape((n, n) + tuple(x.shape[1:]))
-
-    def tries(x: Any) -> Any:  # (T, S, 3) -> (T, N, N, 3)
-        return xp.stack([pairs(x[t]) for t in range(x.shape[0])])
-
-    own = tries(slots["own_i"]) + xp.swapaxes(tries(slots["own_j"]), -2, -3)
-    return {"shared": tries(slots["shared"]), "own": own, "decay": slots["decay"],
-            "kick_dir": pairs(slots["kick_dir"]), "kick_mag": pairs(slots["kick_mag"])}
-
-
 def wall_bounces(pos: Any, prev_wall: Any, prev_ceiling: Any, room_low: Any, room_high: Any) -> Any:
     """(N,) mask of the quads that newly hit a wall or the ceiling (as :func:`wall_collisions`)."""
     xp = array_namespace(pos, prev_wall)
@@ -428,8 +401,8 @@ def quad_collisions_budgeted(pos: Any, vel: Any, omega: Any, prev_contact: Any, 
 
     ``slots`` are the per-slot draws of :func:`quad_collision_slot_spec` (S slots). The new pairs
     (i < j) are ranked row-major; the first S take slots 0..S-1 and get exactly the response that
-    :func:`quad_collisions` gives them with :func:`expand_quad_draws`' draws (the same formulas
-    per pair, summed per quad). New pairs beyond the budget are *deferred*: they get no response
+    :func:`quad_collisions` gives them with the slots' draws spread densely (the same formulas per pair,
+    summed per quad; tests/test_draw_budget.py). New pairs beyond the budget are *deferred*: they get no response
     this step and are left out of the returned ``contact`` (and ``new_contact``), so they are new
     pairs again at the next control step. Returns ``vel, omega, contact, new_contact`` as
     :func:`quad_collisions` (``new_contact``: the resolved pairs, symmetric). ``pair_dist``, ``pair_events``:

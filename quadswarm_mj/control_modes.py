@@ -96,14 +96,6 @@ def _yaw(xp: Any, R: Any) -> Any:
     return xp.arctan2(R[..., 1, 0], R[..., 0, 0])
 
 
-def euler_zyx(R: Any) -> tuple[Any, Any, Any]:
-    """(roll, pitch, yaw) rad of body->world ``R`` = Rz(yaw) Ry(pitch) Rx(roll)."""
-    xp = array_namespace(R)
-    roll = xp.arctan2(R[..., 2, 1], R[..., 2, 2])
-    pitch = -xp.arcsin(xp.clip(R[..., 2, 0], -1.0, 1.0))
-    return roll, pitch, _yaw(xp, R)
-
-
 def _rot_zyx(xp: Any, roll: Any, pitch: Any, yaw: Any) -> Any:
     cr, sr, cp, sp, cy, sy = xp.cos(roll), xp.sin(roll), xp.cos(pitch), xp.sin(pitch), xp.cos(yaw), xp.sin(yaw)
     return xp.stack([xp.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),

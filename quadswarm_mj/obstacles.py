@@ -64,11 +64,6 @@ def cell_centers(ocfg: ObstacleConfig) -> np.ndarray:
     return out
 
 
-def cell_of(ocfg: ObstacleConfig, row: int, col: int) -> int:
-    """Flat cell id of grid cell (row, col)."""
-    return int(row) * ocfg.grid[0] + int(col)
-
-
 def map_draw_spec(ocfg: ObstacleConfig) -> DrawSpec:
     """Uniforms of one map: one per cell (the permutation that picks the cells without replacement),
     one for the density and one for the size (used only when randomized). These are always drawn

@@ -126,19 +126,10 @@ def yaw_cos_sin_components(c0: Any, s0: Any) -> tuple[Any, Any]:
     return xp.where(ok, c0 * inv, 1.0), xp.where(ok, s0 * inv, 0.0)
 
 
-def yaw_quat_cs(c: Any, s: Any) -> Any:
-    """:func:`yaw_quat` of the yaw with cosine ``c`` and sine ``s`` (trig-free, the half-angle
-    formulas in their well-conditioned branches; the representative with w >= 0, as ``yaw_quat``
-    of an angle in [-pi, pi])."""
-    xp = array_namespace(c, s)
-    ch, sh = yaw_half_cos_sin(c, s)
-    z = xp.zeros_like(c)
-    return xp.stack([ch, z, z, sh], axis=-1)
-
-
 def yaw_half_cos_sin(c: Any, s: Any) -> tuple[Any, Any]:
-    """(cos, sin) of half the yaw with cosine ``c`` and sine ``s``: the w and z components of
-    :func:`yaw_quat_cs` (x = y = 0)."""
+    """(cos, sin) of half the yaw with cosine ``c`` and sine ``s`` (trig-free, the half-angle formulas in
+    their well-conditioned branches): the w and z components of :func:`yaw_quat` of that yaw in [-pi, pi]
+    (x = y = 0; the representative with w >= 0)."""
     xp = array_namespace(c, s)
     pos_branch = c >= 0
     ch_a = xp.sqrt(xp.maximum(0.5 * (1.0 + c), 0.0))

@@ -133,7 +133,8 @@ def test_yaw_entries_are_quat_to_rotmats_bitwise():
     q[0, :4] = np.eye(4)  # exact zeros, of both signs
     q[1, :4] = -np.eye(4)
     R = small.quat_to_rotmat(q)
-    _same(small.yaw_entries(q), np.stack([R[..., 1, 0], R[..., 0, 0], R[..., 2, 2]], axis=-1))
+    qpos = np.concatenate([np.zeros(q.shape[:-1] + (3,)), q], axis=-1)
+    _same(small.yaw_entries_qpos(qpos), np.stack([R[..., 1, 0], R[..., 0, 0], R[..., 2, 2]], axis=-1))
 
 
 @pytest.mark.parametrize("worlds", ["all", "some"])

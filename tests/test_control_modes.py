@@ -17,12 +17,18 @@ from quadswarm_mj.config import EnvConfig, QuadParams
 from quadswarm_mj.control_modes import (
     MAX_SPEED,
     control_action_bounds,
-    euler_zyx,
     init_control_state,
     make_mode_controller,
     mode_command,
 )
 from quadswarm_mj.spatial import quat_to_rotmat
+
+
+def euler_zyx(R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(roll, pitch, yaw) rad of body->world ``R`` = Rz(yaw) Ry(pitch) Rx(roll)."""
+    roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    pitch = -np.arcsin(np.clip(R[..., 2, 0], -1.0, 1.0))
+    return roll, pitch, np.arctan2(R[..., 1, 0], R[..., 0, 0])
 
 
 def _params(cfg: EnvConfig, seed: int | None = None) -> dict:

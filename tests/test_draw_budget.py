@@ -8,9 +8,33 @@ import numpy as np
 import pytest
 
 from quadswarm_mj import EnvConfig, QuadSwarmEnv
-from quadswarm_mj.collisions import expand_per_quad, expand_quad_draws
+from quadswarm_mj.collisions import expand_per_quad, pairwise_contacts
 from quadswarm_mj.downwash import expand_downwash_draws
-from quadswarm_mj.random_draws import event_slots
+from quadswarm_mj.random_draws import event_slots, spread
+
+
+def new_pairs_upper(pos: np.ndarray, prev_contact: np.ndarray, hitbox: float) -> np.ndarray:
+    """(N, N) mask of the new contact pairs with i < j (the events ranked by the budget)."""
+    contact, _ = pairwise_contacts(pos, hitbox)
+    n = pos.shape[-2]
+    return contact & ~prev_contact & np.triu(np.ones((n, n), bool), k=1)
+
+
+def expand_quad_draws(new_upper: np.ndarray, slots: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The reference: dense draws of ``collisions.quad_collisions`` (one world) from the per-slot draws of
+    ``collisions.quad_collision_slot_spec``, slot r to the r-th new upper pair in row-major order."""
+    n = new_upper.shape[-1]
+    hot = event_slots(np, new_upper.reshape(n * n), slots["kick_mag"].shape[-1])  # (N N, S)
+
+    def pairs(x: np.ndarray) -> np.ndarray:  # (S, *shape) -> (N, N, *shape), zero off the new upper pairs
+        return spread(np, hot, x).reshape((n, n) + tuple(x.shape[1:]))
+
+    def tries(x: np.ndarray) -> np.ndarray:  # (T, S, 3) -> (T, N, N, 3)
+        return np.stack([pairs(x[t]) for t in range(x.shape[0])])
+
+    own = tries(slots["own_i"]) + np.swapaxes(tries(slots["own_j"]), -2, -3)
+    return {"shared": tries(slots["shared"]), "own": own, "decay": slots["decay"],
+            "kick_dir": pairs(slots["kick_dir"]), "kick_mag": pairs(slots["kick_mag"])}
 
 
 def test_event_slots_rank_in_index_order_and_wrap_beyond_budget():
@@ -132,8 +156,8 @@ def test_post_collision_speed_and_spin_distributions_match_cpu_engine():
 
 
 def test_budgeted_quad_collisions_equal_the_dense_model_within_the_budget_and_defer_beyond():
-    from quadswarm_mj.collisions import new_pairs_upper, quad_collisions, quad_collisions_budgeted
-    from quadswarm_mj.spatial import yaw_cos_sin, yaw_of, yaw_quat, yaw_quat_cs
+    from quadswarm_mj.collisions import quad_collisions, quad_collisions_budgeted
+    from quadswarm_mj.spatial import yaw_cos_sin, yaw_half_cos_sin, yaw_of, yaw_quat
 
     rng = np.random.default_rng(3)
     n, T, S, hb = 6, 3, 2, 0.3
@@ -159,4 +183,5 @@ def test_budgeted_quad_collisions_equal_the_dense_model_within_the_budget_and_de
     assert seen["within"] > 50 and seen["beyond"] > 0
     R = rng.normal(size=(200, 3, 3))
     c, s = yaw_cos_sin(R)
-    np.testing.assert_allclose(yaw_quat_cs(c, s), yaw_quat(yaw_of(R)), atol=1e-12)
+    ch, sh = yaw_half_cos_sin(c, s)
+    np.testing.assert_allclose(np.stack([ch, 0 * c, 0 * c, sh], -1), yaw_quat(yaw_of(R)), atol=1e-12)

@@ -75,7 +75,7 @@ def test_map_layout_d3():
     cc = ob.cell_centers(o)
     for r in range(8):
         for c in range(8):
-            np.testing.assert_allclose(cc[ob.cell_of(o, r, c)], (c - 3.5, 3.5 - r))
+            np.testing.assert_allclose(cc[r * o.grid[0] + c], (c - 3.5, 3.5 - r))
     rng = np.random.default_rng(3)
     for _ in range(20):
         m, ids = ob.generate_map(o, NumpySampler(rng).draw(ob.map_draw_spec(o)))

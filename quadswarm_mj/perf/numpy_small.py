@@ -136,15 +136,6 @@ _YAW_SCALE = np.array([2.0, -2.0, -2.0, 2.0, -2.0, -2.0])
 _YAW_BASE = np.array([0.0, 1.0, 1.0])
 
 
-def yaw_entries(q: Any) -> Any:
-    """(..., 4) unit quaternions (w, x, y, z) -> (..., 3): the entries R10, R00, R22 of
-    :func:`quat_to_rotmat` (bit-identical, signs of zero included): ``arctan2(R10, R00)`` is the
-    heading (:func:`quadswarm_mj.spatial.yaw_of`), R22 < 0 an upside-down body."""
-    p = q.take(_YAW_I1, axis=-1) * q.take(_YAW_I2, axis=-1)
-    p *= _YAW_SCALE
-    return _YAW_BASE + (p[..., :3] + p[..., 3:])
-
-
 # the same products taken straight from qpos rows (..., 7) (position, then the quaternion at 3:7): two
 # gathers of a contiguous last axis instead of a strided quaternion view's outer product (same bits)
 _QPOS_A, _QPOS_B = _Q_IAB // 4 + 3, _Q_IAB % 4 + 3
@@ -160,7 +151,9 @@ def quat_to_rotmat_qpos(qpos: Any) -> Any:
 
 
 def yaw_entries_qpos(qpos: Any) -> Any:
-    """(..., 7) free-body qpos rows -> (..., 3): :func:`yaw_entries` of ``qpos[..., 3:7]`` (same bits)."""
+    """(..., 7) free-body qpos rows -> (..., 3): the entries R10, R00, R22 of :func:`quat_to_rotmat` of
+    ``qpos[..., 3:7]`` (bit-identical, signs of zero included): ``arctan2(R10, R00)`` is the heading
+    (:func:`quadswarm_mj.spatial.yaw_of`), R22 < 0 an upside-down body."""
     p = qpos.take(_QPOS_YAW_1, axis=-1) * qpos.take(_QPOS_YAW_2, axis=-1)
     p *= _YAW_SCALE
     return _YAW_BASE + (p[..., :3] + p[..., 3:])
