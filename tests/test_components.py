@@ -108,8 +108,9 @@ def test_floor_wrench_matches_bitwise(lead):
 
 
 @pytest.mark.parametrize("lead", SHAPES)
-def test_floor_impact_angle_path_matches_bitwise(lead):
-    """The floor impact's angle path (the CPU engine's): perf's small form, the model's body."""
+def test_floor_impact_angle_path_without_rotmat_drops_only_R(lead):
+    """The floor impact's angle path (the CPU engine's reference; its in-place forms are checked against it
+    below and in tests/test_perf_one_quad.py): ``with_rotmat=False`` leaves out R and nothing else."""
     rng = np.random.default_rng(12)
     arm = 0.046
     pos = rng.uniform(-1, 1, lead + (3,))
@@ -120,11 +121,11 @@ def test_floor_impact_angle_path_matches_bitwise(lead):
     u = rng.uniform(size=lead + (4,))
     yaw = rng.uniform(-np.pi, np.pi, lead)
     args = (pos, vel, omega, quat, R, u, on_floor, arm, yaw)
-    ref, got = small.floor_impact(*args), collisions.floor_impact(*args)
+    ref, got = collisions.floor_impact(*args), collisions.floor_impact(*args, with_rotmat=False)
     assert (ref["hit_floor"] & (R[..., 2, 2] < 0)).any()  # an upside-down landing takes its yaw draw
-    for key in ref:
+    assert set(ref) - set(got) == {"R"}
+    for key in got:
         _same(ref[key], got[key])
-    assert "R" not in small.floor_impact(*args, with_rotmat=False)
 
 
 def test_yaw_entries_are_quat_to_rotmats_bitwise():
@@ -139,7 +140,7 @@ def test_yaw_entries_are_quat_to_rotmats_bitwise():
 
 @pytest.mark.parametrize("worlds", ["all", "some"])
 def test_engine_floor_impact_is_the_small_form_bitwise(worlds):
-    """The CPU engine's in-place floor impact (masked writes into qpos/qvel) = perf's small form."""
+    """The CPU engine's in-place floor impact (masked writes into qpos/qvel) = the model's angle path."""
     import copy
 
     from quadswarm_mj.envs.cpu_core import CpuSwarm
@@ -164,8 +165,8 @@ def test_engine_floor_impact_is_the_small_form_bitwise(worlds):
                         core.offsets[w] if core.offsets.shape[0] > 1 else core.offsets)
     d = core._spec_floor["yaw"]
     yaw = copy.deepcopy(core.rng).uniform(d.low, d.high, size=q.shape[:2])
-    ref = small.floor_impact(q[..., :3] - off, v[..., :3], v[..., 3:], q[..., 3:7], small.quat_to_rotmat(q[..., 3:7]),
-                             u, on, arm, yaw)
+    ref = collisions.floor_impact(q[..., :3] - off, v[..., :3], v[..., 3:], q[..., 3:7],
+                                  small.quat_to_rotmat(q[..., 3:7]), u, on, arm, yaw)
     assert (ref["hit_floor"] & (small.quat_to_rotmat(q[..., 3:7])[..., 2, 2] < 0)).any()
     hit_floor = np.zeros((B, N), bool)
     core._floor_impact(w, hit_floor)

@@ -126,8 +126,8 @@ def test_engine_floor_impact_is_the_array_form_bitwise(stochastic):
         d = core._spec_floor["yaw"]
         yaw = (copy.deepcopy(core.rng).uniform(d.low, d.high, size=(1, 1)) if stochastic
                else np.full((1, 1), d.mean))
-        ref = small.floor_impact(q[..., :3], v[..., :3], v[..., 3:], q[..., 3:7], small.quat_to_rotmat(q[..., 3:7]),
-                                 u, on, fz, yaw)
+        ref = collisions.floor_impact(q[..., :3], v[..., :3], v[..., 3:], q[..., 3:7],
+                                      small.quat_to_rotmat(q[..., 3:7]), u, on, fz, yaw)
         hit_floor = np.zeros((1, 1), bool)
         core._floor_impact(slice(None), hit_floor)
         _same(core.qpos[..., :3], ref["pos"])

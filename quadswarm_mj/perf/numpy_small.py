@@ -1,13 +1,12 @@
 """The sub-step model functions in the fewest NumPy calls, for the small arrays of the CPU engine.
 
 The model defines :func:`quadswarm_mj.actuation.substep_wrench`, :func:`quadswarm_mj.collisions.
-floor_wrench`, :func:`quadswarm_mj.collisions.floor_impact` and :func:`quadswarm_mj.spatial.
-quat_to_rotmat` once each (component form, :mod:`quadswarm_mj.components`). On a single env's (1, N, .)
-arrays NumPy's per-call overhead dominates, so the CPU engine calls these instead: whole-array
-expressions of the same formulas with the same rounding (bit-identical, signs of zero included where
-stated; ``tests/test_components.py``). From ``spatial.BIG`` elements on they call the model's body
-(NumPy's per-row overhead of reductions over short axes then dominates; the component form wins).
-NumPy only.
+floor_wrench` and :func:`quadswarm_mj.spatial.quat_to_rotmat` once each (component form,
+:mod:`quadswarm_mj.components`). On a single env's (1, N, .) arrays NumPy's per-call overhead dominates,
+so the CPU engine calls these instead: whole-array expressions of the same formulas with the same
+rounding (bit-identical, signs of zero included where stated; ``tests/test_components.py``). From
+``spatial.BIG`` elements on they call the model's body (NumPy's per-row overhead of reductions over
+short axes then dominates; the component form wins). NumPy only.
 """
 
 from __future__ import annotations
@@ -18,9 +17,8 @@ import numpy as np
 
 from quadswarm_mj import actuation, collisions, spatial
 from quadswarm_mj.actuation import SPIN, motor_lag, rotor_thrust, thrust_map, wrench_matrix
-from quadswarm_mj.constants import FLOOR_TOL
 from quadswarm_mj.perf import one_quad
-from quadswarm_mj.spatial import BIG, norm_last, sum_last, yaw_of, yaw_quat, yaw_rotmat
+from quadswarm_mj.spatial import BIG, norm_last, sum_last
 
 
 def substep_wrench(u: Any, cmd: Any, noise: Any, params: dict[str, Any], R: Any, rotor_pos: Any,
@@ -75,30 +73,6 @@ def floor_wrench(on_floor: Any, force_w: Any, torque_w: Any, vel: Any, mass: Any
     if np.count_nonzero(on_floor) < on_floor.size:
         new = np.where(on_floor[..., None], new, np.concatenate([force_w, torque_w], axis=-1))
     return new[..., :3], new[..., 3:]
-
-
-def floor_impact(pos: Any, vel: Any, omega: Any, quat: Any, R: Any, u: Any, on_floor: Any, floor_z: float,
-                 yaw_draw: Any, with_rotmat: bool = True) -> dict[str, Any]:
-    """:func:`quadswarm_mj.collisions.floor_impact` on its angle path (yaw draws in rad; same bits)."""
-    if pos.size >= BIG:
-        return collisions.floor_impact(pos, vel, omega, quat, R, u, on_floor, floor_z, yaw_draw, with_rotmat)
-    z = pos[..., 2]
-    hit = (z <= floor_z) & ~on_floor
-    staying = on_floor & (z <= floor_z + FLOOR_TOL)
-    grounded = hit | staying
-    yaw = yaw_of(R) + np.where(hit & (R[..., 2, 2] < 0), yaw_draw, 0.0)
-    new_pos = np.concatenate([pos[..., :2], np.where(grounded, floor_z, z)[..., None]], axis=-1)
-    zero2 = np.zeros_like(vel[..., :2])
-    vel_stay = np.concatenate([vel[..., :2], zero2[..., :1]], axis=-1)
-    new_vel = np.where(hit[..., None], 0.0 * vel, np.where(staying[..., None], vel_stay, vel))
-    omega_stay = np.concatenate([zero2, omega[..., 2:]], axis=-1)
-    new_omega = np.where(hit[..., None], 0.0 * omega, np.where(staying[..., None], omega_stay, omega))
-    out = {"pos": new_pos, "vel": new_vel, "omega": new_omega,
-           "quat": np.where(grounded[..., None], yaw_quat(yaw), quat), "u": np.where(hit[..., None], 0.0 * u, u),
-           "on_floor": grounded, "hit_floor": hit}
-    if with_rotmat:
-        out["R"] = np.where(grounded[..., None, None], yaw_rotmat(yaw), R)
-    return out
 
 
 # quat_to_rotmat as one gather: R_k = base_k + coef_k * (P[ia_k] + sign_k * P[ib_k]) with P the outer

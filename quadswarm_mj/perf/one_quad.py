@@ -123,7 +123,7 @@ def floor_impact_inplace(q: Any, v: Any, u: Any, on_floor: bool, floor_z: float,
                          yaw_draw: float) -> tuple[bool, bool, Any]:
     """The paper's floor model after a sub-step for one quad, written into ``q`` (7,) = qpos (position
     with the world ``offset`` (3,) added, quaternion) and ``v`` (6,) = qvel (vel, omega) in place: the
-    values of ``perf.numpy_small.floor_impact`` (``CpuSwarm._floor_impact``'s masked writes). ``u`` (1, 1, 4)
+    values of ``collisions.floor_impact``'s angle path (``CpuSwarm._floor_impact``'s masked writes). ``u`` (1, 1, 4)
     motor state; ``yaw_draw`` (rad) the upside-down landing's draw. Returns (grounded, hit, u) with ``u``
     a fresh array zeroed (0.0 * u) on a hit, else ``u`` itself."""
     grounded, hit = floor_impact_qv(q, v, on_floor, floor_z, offset.tolist(), yaw_draw)
