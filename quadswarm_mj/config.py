@@ -249,8 +249,6 @@ class RewardScales:
         return cls()
 
 
-
-
 @dataclass(frozen=True)
 class AeroConfig:
     """Aerodynamic effects beyond the paper (off by default), see :mod:`quadswarm_mj.aerodynamics`.
@@ -405,18 +403,11 @@ class EnvConfig:
             raise ValueError(f"sim_hz must be a multiple of control_hz, got sim_hz={self.sim_hz}, "
                              f"control_hz={self.control_hz}")
         self._check_episode_seconds()
-        if self.collision_model not in COLLISION_MODELS:
-            raise ValueError(f"collision_model must be one of {COLLISION_MODELS}, got {self.collision_model!r}")
-        if self.motor_start not in MOTOR_STARTS:
-            raise ValueError(f"motor_start must be one of {MOTOR_STARTS}, got {self.motor_start!r}")
-        if self.obs_self not in OBS_SELF_VARIANTS:
-            raise ValueError(f"obs_self must be one of {OBS_SELF_VARIANTS}, got {self.obs_self!r}")
-        if self.control_mode not in CONTROL_MODES:
-            raise ValueError(f"control_mode must be one of {CONTROL_MODES}, got {self.control_mode!r}")
-        if self.info_mode not in ("nested", "flat"):
-            raise ValueError(f"info_mode must be one of ('nested', 'flat'), got {self.info_mode!r}")
-        if self.neighbor_sort not in NEIGHBOR_SORTS:
-            raise ValueError(f"neighbor_sort must be one of {NEIGHBOR_SORTS}, got {self.neighbor_sort!r}")
+        for n, choices in (("collision_model", COLLISION_MODELS), ("motor_start", MOTOR_STARTS),
+                           ("obs_self", OBS_SELF_VARIANTS), ("control_mode", CONTROL_MODES),
+                           ("info_mode", ("nested", "flat")), ("neighbor_sort", NEIGHBOR_SORTS)):
+            if getattr(self, n) not in choices:
+                raise ValueError(f"{n} must be one of {choices}, got {getattr(self, n)!r}")
         # a collision never speeds a quad up (decay multiplies the speed)
         object.__setattr__(self, "collision_decay", _check_pair("collision_decay", self.collision_decay, 0.0, 1.0))
         if self.num_quads > MAX_QUADS:

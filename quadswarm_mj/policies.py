@@ -239,7 +239,6 @@ def load_policy_file(path: str | os.PathLike, name: str | None = None) -> MLPPol
     return pol
 
 
-
 # ---------------------------------------------------------------------------- pretrained
 def pretrained_dir() -> Path:
     """Directory of the shipped policies (package data)."""

@@ -43,7 +43,6 @@ class KeyStream:
         return self.rng.integers(0, 2**32, size=tuple(lead) + self.shape, dtype=np.uint32)
 
 
-
 def _outputs(s: State, new_collisions: jax.Array, extra: dict[str, jax.Array]) -> dict[str, jax.Array]:
     """Everything the host reads after a reset or step of one world (unbatched)."""
     info = s.info

@@ -64,7 +64,6 @@ def layout_bytes(layout: list) -> int:
     return sum(-(-int(np.prod(s)) * np.dtype(d).itemsize // 64) * 64 for _, s, d in layout)
 
 
-
 class WorkerError(RuntimeError):
     """A vector-env worker failed: raised an exception (``traceback`` holds its text) or died."""
 

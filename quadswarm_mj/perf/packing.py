@@ -111,7 +111,6 @@ class LeafPacker:
         return jax.tree.unflatten(self.treedef, [wrap_keys(x) if k else x for x, k in zip(bufs, self.is_key)])
 
 
-
 class OutputLayout:
     """Names, shapes and offsets of the packed per-world output (one float array)."""
 

@@ -96,7 +96,6 @@ class MjxPhysics:
         return JaxSubstep(self.integrator(physics, params, obstacle_radius), max_omega)
 
 
-
 class JaxSubstep(WorldLocal):
     """The sub-step interface of :func:`quadswarm_mj.core.substeps.substep_loop` around an integrator
     ``integrate(q, v, wrench, aux) -> (q, v, aux)`` (:meth:`MjxPhysics.integrator`), with the angular
