@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from quadswarm_mj.perf import numpy_floor, numpy_small
-from quadswarm_mj.spatial import BIG, sum_last
+from quadswarm_mj.perf import numpy_floor
+from quadswarm_mj.spatial import sum_last
 
 #: set to False for the per-sub-step ops (the same-values tests compare the two)
 ENABLED = True
@@ -27,39 +27,12 @@ ENABLED = True
 class SmallLoop:
     """``fused_loop`` of :func:`quadswarm_mj.core.substeps.substep_loop` for a
     :class:`~quadswarm_mj.envs.cpu_core.CpuSwarm` ``swarm`` with small (B, N) arrays; ``ops`` its
-    :class:`~quadswarm_mj.core.ops.NumpyOps` (the floor landing, the floor mirror)."""
+    :class:`~quadswarm_mj.core.ops.NumpyOps` (the floor landing)."""
 
     def __init__(self, swarm: Any) -> None:
         cfg = swarm.cfg
         self.s = swarm
         self.friction, self.dt, self.max_omega = cfg.collision.floor_friction, cfg.sim_dt, cfg.quad.max_omega
-        self.one_world = swarm.B == 1  # then the floor landing below (else NumpyOps.floor_impact)
-        self.floor_z = swarm.floor_z
-        d = swarm._spec_floor["yaw"]
-        self.yaw = (d.low, d.high) if cfg.noise.stochastic_collisions else None
-        self.yaw_mean = d.mean
-        self.offsets = None if swarm._offsets_zero else swarm.offsets
-
-    def floor_impact(self, q: np.ndarray, v: np.ndarray, u: np.ndarray, on_floor: np.ndarray,
-                     hit_floor: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``NumpyOps.floor_impact`` of one world (``CpuSwarm._floor_impact`` on all its quads, the same draw
-        and writes): the landing written into ``q``/``v`` (qpos, qvel) and ``hit_floor`` in place where a quad
-        is at or below the floor height or grounded; returns (u, on_floor, R of the new ``q``)."""
-        s = self.s
-        grounded = q[..., 2] <= self.floor_z
-        if s._any_on_floor:
-            grounded |= on_floor
-        if np.count_nonzero(grounded):
-            shape = on_floor.shape
-            yaw = (s.rng.uniform(*self.yaw, size=shape) if self.yaw is not None else np.full(shape, self.yaw_mean))
-            hit, on_floor, any_hit = numpy_floor.floor_impact_rows(q, v, on_floor, self.floor_z, self.offsets, yaw)
-            if any_hit:  # a hit zeroes the motors (0.0 * u: signs kept)
-                u = np.where(hit[..., None], 0.0 * u, u)
-                hit_floor |= hit
-            s.phys.touch()
-            s._any_on_floor = np.count_nonzero(on_floor) > 0
-        R = numpy_small.quat_to_rotmat_qpos(q) if 7 < q.size < BIG else numpy_small.quat_to_rotmat(q[..., 3:7])
-        return u, on_floor, R
 
     def __call__(self, cfg: Any, carry: dict[str, Any], inp: dict[str, Any], consts: dict[str, Any],
                  ops: Any) -> dict[str, Any]:
@@ -84,11 +57,7 @@ class SmallLoop:
             xfrc[..., :3] = force
             xfrc[..., 3:] = torque
             phys.step(self.max_omega)
-            q, v = phys.qpos, phys.qvel
-            if self.one_world:
-                u, on_floor, R = self.floor_impact(q, v, u, on_floor, hit_floor)
-            else:
-                q, v, u, on_floor, hit_floor, R = ops.floor_impact(cfg, i, q, v, u, on_floor, hit_floor)
+            q, v, u, on_floor, hit_floor, R = ops.floor_impact(cfg, i, phys.qpos, phys.qvel, u, on_floor, hit_floor)
         return {"q": q, "v": v, "R": R, "u": u, "f_norm": f, "on_floor": on_floor, "hit_floor": hit_floor,
                 "aux": carry["aux"], "ctrl": carry["ctrl"]}
 
