@@ -55,7 +55,7 @@ from quadswarm_mj.core.state import State
 from quadswarm_mj.core.swarm import SwarmState, from_info, step_state, to_info
 from quadswarm_mj.devices import check_mjx_batch
 from quadswarm_mj.downwash import DOWNWASH_BUDGET, downwash_slot_spec
-from quadswarm_mj.envs.autoreset import AutoResetWrapper, _run_if, _select  # noqa: F401  re-exported
+from quadswarm_mj.envs.autoreset import AutoResetWrapper
 from quadswarm_mj.envs.validation import check_obstacles, check_state
 from quadswarm_mj.observations import build_obs, obs_bounds, obs_scale, sensor_noise_spec
 from quadswarm_mj.perf import xla_cpu
