@@ -1,14 +1,15 @@
-"""The CPU engine's sub-step loop for small arrays (several quads, or several worlds), in NumPy.
+"""The CPU engine's sub-step loop for small arrays of several worlds, in NumPy.
 
 :func:`quadswarm_mj.core.substeps.substep_loop` calls, per sub-step, the engine's ops for the wrench
 (``perf.numpy_small.substep_wrench``), the paper's floor wrench (``perf.numpy_floor``), the physics step
-and the floor landing. On a single env's (1, N, .) arrays NumPy's fixed cost per call dominates, and
+and the floor landing. On small (B, N, .) arrays NumPy's fixed cost per call dominates, and
 part of each sub-step does not change within a control step: the rotor command's square root (motor
 lag), the command times the motor noise (thrust) and the quads' weight (floor normal force).
 :class:`SmallLoop` computes those once per control step and runs the sub-steps with the same
 expressions in the same order (the same bits; ``tests/test_numpy_loop.py`` checks seeded episodes
 against the per-sub-step ops). Used for the paper's chain (rotor control, linear thrust map, no
-aerodynamics) with the paper's floor, below ``spatial.BIG`` elements. NumPy only.
+aerodynamics) with the paper's floor, below ``spatial.BIG`` elements, where neither one quad's float loop
+(``perf.one_quad_step``) nor one world's (``perf.numpy_swarm``) applies. NumPy only.
 """
 
 from __future__ import annotations
