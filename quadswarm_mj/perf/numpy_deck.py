@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from quadswarm_mj import sensors
+from quadswarm_mj.perf import numpy_depth
 from quadswarm_mj.sensor_rays import column_hits_xy
 
 _clip = np._core.umath.clip
@@ -230,8 +231,11 @@ def _axis_hits(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray) -> 
 def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
               draws: dict[str, Any] | None = None) -> Any:
     """:func:`quadswarm_mj.sensors.deck_part` (same arguments, the same bits) for NumPy arrays with the
-    multi-ranger and/or flow deck (no depth camera, float64); otherwise the model's function."""
+    multi-ranger and/or flow deck (no depth camera, float64); the depth camera alone:
+    :func:`quadswarm_mj.perf.numpy_depth.deck_part`; otherwise the model's function."""
     s = cfg.sensors
+    if s.depth is not None and not (s.multiranger or s.flow):  # the depth camera alone
+        return numpy_depth.deck_part(cfg, pos, vel, R, omega, obstacles, draws)
     if (s.depth is not None or type(pos) is not np.ndarray or pos.dtype != np.float64 or not s.any
             or (draws is not None and "range_u" not in draws)):
         return sensors.deck_part(cfg, pos, vel, R, omega, obstacles, draws)
