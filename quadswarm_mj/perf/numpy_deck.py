@@ -34,6 +34,7 @@ _add, _sub, _mul, _div, _abs = np.add, np.subtract, np.multiply, np.divide, np.a
 _max, _min, _le, _ge, _exp, _sqrt, _matmul = np.maximum, np.minimum, np.less_equal, np.greater_equal, np.exp, \
     np.sqrt, np.matmul
 _and, _putmask = np.logical_and, np.putmask
+_copyto = np._core._multiarray_umath.copyto  # np.copyto without its Python wrapper
 _add_reduce, _min_reduce, _fmax_reduce, _fmin_reduce = np.add.reduce, np.minimum.reduce, np.fmax.reduce, \
     np.fmin.reduce
 
@@ -192,8 +193,8 @@ def _axis_hits(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray) -> 
     """``sensor_rays._axis_hits_numpy`` (the same bits) into ``p.t`` (..., N, 3, 2): the ranges along the
     +-body axes. Call with the divide and invalid errors ignored."""
     if p.vel_row:
-        p.pv_pos[...] = pos
-        p.pv_vel[...] = vel
+        _copyto(p.pv_pos, pos)
+        _copyto(p.pv_vel, vel)
         p.pv.take(p.pos_idx, None, p.pg, "wrap")
     else:
         pos.take(p.pos_idx, None, p.pg, "wrap")
@@ -255,19 +256,17 @@ def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
         dx, dy = (np.stack([R[..., a, :], -R[..., a, :]], axis=-1).reshape(p.t6.shape) for a in range(2))
         _min(p.t6, column_hits_xy(pos, dx, dy, *obstacles), out=p.t6)
     if p.t_rays is not None:
-        p.ranges[...] = p.t_rays
+        _copyto(p.ranges, p.t_rays)
     rows, m = p.rows, p.m_ok
-    p.buf[...] = p.template  # invalid readings: the limit, flow 0, flags 0
+    _copyto(p.buf, p.template)  # invalid readings: the limit, flow 0, flags 0
     if p.f:  # the flow lanes: the body velocity over the down range, + (-omega_y, omega_x, .)
-        if p.vel_row:  # (..., N, 1, 3) the body velocity (x, y used)
-            flow = p.flow
-            flow[...] = p.ob_vel
-        else:
-            flow = _matmul(vel[..., None, :], R, out=p.flow)
         dd = rows.take(p.d_idx, None, p.dd, "wrap")
         _ge(dd, p.min_range, out=p.gf)  # high enough for the flow
         _max(dd, p.d_min, out=dd)
-        _div(flow, dd, out=flow)
+        if p.vel_row:  # (..., N, 1, 3) the body velocity (x, y used)
+            flow = _div(p.ob_vel, dd, out=p.flow)
+        else:
+            flow = _div(_matmul(vel[..., None, :], R, out=p.flow), dd, out=p.flow)
         om = omega.take(p.om_idx, None, p.om, "wrap")
         _add(flow, _mul(om, p.om_signs, out=om), out=flow)
     ab = _abs(rows, out=p.ab)  # the ranges (>= 0) and the flow's |x|, |y|
@@ -282,7 +281,7 @@ def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
         _and(p.mf, p.gf, out=p.mf)
     if p.f:
         if p.dark:  # too dark: the flow never valid
-            p.mf[...] = False
+            p.mf.fill(False)
         _mul(p.flow, p.gain, out=p.flow)
     a = p.a
     if draws is not None:  # VL53L1x: t + tof_std(t) tof_normal(u); the flow: + FLOW_STD_PX flow_noise
@@ -298,12 +297,12 @@ def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
         _max(w, p.tiny, out=w)
         p.ndtri(w, out=p.bk)
         if p.f:
-            p.bf2[...] = draws["flow_noise"]
+            _copyto(p.bf2, draws["flow_noise"])
         _mul(a, p.b, out=a)
         _add(a, rows, out=a)
         _clip(a, p.lo, p.hi, out=a)  # the ranges to [0, limit], the flow to +-FLOW_LIMIT_PX
     else:
         _clip(rows, p.lo, p.hi, out=a)
     _putmask(p.vals, m, a)  # the valid readings (the invalid keep the template's)
-    p.flags[...] = m
+    _copyto(p.flags, m)
     return p.buf.take(p.cols)
