@@ -255,11 +255,15 @@ def test_numpy_deck_part_is_the_plain_model_bit_for_bit(noise):
 
 @pytest.mark.parametrize("sensors", [{"multiranger": True, "flow": True}, {"multiranger": True}, {"flow": True},
                                      {"multiranger": True, "flow": True, "noise": False},
-                                     {"multiranger": True, "flow": True, "light_lux": 10.0, "dropout": 0.2}])
+                                     {"multiranger": True, "flow": True, "light_lux": 10.0, "dropout": 0.2},
+                                     {"multiranger": True, "flow": True, "depth": (3, 5), "dropout": 0.2},
+                                     {"multiranger": True, "depth": (8, 8)},
+                                     {"flow": True, "depth": (4, 4), "noise": False}])
 def test_numpy_deck_speed_form_is_the_model_bit_for_bit(sensors):
-    """perf.numpy_deck.deck_part (the MuJoCo engine's form, through core.ops.NumpyOps) gives the model's
-    bits: crowded scenes (a quad inside another's hitbox, rays meeting hitboxes), level quads on the floor
-    (rays parallel to the room's planes), columns, one world, three worlds, one quad, no leading dims."""
+    """perf.numpy_deck.deck_part (the MuJoCo engine's form, through core.ops.NumpyOps; with the depth camera
+    too, its part by perf.numpy_depth) gives the model's bits: crowded scenes (a quad inside another's hitbox,
+    rays meeting hitboxes), level quads on the floor (rays parallel to the room's planes), columns, one world,
+    three worlds, one quad, no leading dims."""
     from quadswarm_mj.perf import numpy_deck
     from quadswarm_mj.sensors import deck_part
 

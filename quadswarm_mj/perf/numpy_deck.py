@@ -14,12 +14,14 @@ unused), so the noise, the clip and the masked copy are one call each (per-lane 
 ToF-noise chain give the flow's noise scale on its lanes: clip to 0, exp(0) = 1). The body-frame
 products stay BLAS products as the model's (they round with FMA); with the flow deck the body velocity is
 row N of the neighbours' product (offset vel - 0), one product instead of two (the same bits here; the
-bitwise tests check it). Other configurations (the depth camera, JAX arrays, noise given as ``range_z``)
-go to the model's function. ``core.ops.NumpyOps`` passes it to ``build_obs`` as ``deck_fn``.
+bitwise tests check it). With the depth camera its part comes from :mod:`quadswarm_mj.perf.numpy_depth`
+(joined after this one's); other inputs (JAX arrays, float32, noise given as ``range_z``) go to the model's
+function. ``core.ops.NumpyOps`` passes it to ``build_obs`` as ``deck_fn``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from typing import Any
 
@@ -34,7 +36,6 @@ _add, _sub, _mul, _div, _abs = np.add, np.subtract, np.multiply, np.divide, np.a
 _max, _min, _le, _ge, _exp, _sqrt, _matmul = np.maximum, np.minimum, np.less_equal, np.greater_equal, np.exp, \
     np.sqrt, np.matmul
 _and, _putmask = np.logical_and, np.putmask
-_copyto = np._core._multiarray_umath.copyto  # np.copyto without its Python wrapper
 _add_reduce, _min_reduce, _fmax_reduce, _fmin_reduce = np.add.reduce, np.minimum.reduce, np.fmax.reduce, \
     np.fmin.reduce
 
@@ -193,8 +194,8 @@ def _axis_hits(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray) -> 
     """``sensor_rays._axis_hits_numpy`` (the same bits) into ``p.t`` (..., N, 3, 2): the ranges along the
     +-body axes. Call with the divide and invalid errors ignored."""
     if p.vel_row:
-        _copyto(p.pv_pos, pos)
-        _copyto(p.pv_vel, vel)
+        p.pv_pos[...] = pos
+        p.pv_vel[...] = vel
         p.pv.take(p.pos_idx, None, p.pg, "wrap")
     else:
         pos.take(p.pos_idx, None, p.pg, "wrap")
@@ -232,11 +233,14 @@ def _axis_hits(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray) -> 
 def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
               draws: dict[str, Any] | None = None) -> Any:
     """:func:`quadswarm_mj.sensors.deck_part` (same arguments, the same bits) for NumPy arrays with the
-    multi-ranger and/or flow deck (no depth camera, float64); the depth camera alone:
+    multi-ranger and/or flow deck (float64); the depth camera's part by
     :func:`quadswarm_mj.perf.numpy_depth.deck_part`; otherwise the model's function."""
     s = cfg.sensors
-    if s.depth is not None and not (s.multiranger or s.flow):  # the depth camera alone
-        return numpy_depth.deck_part(cfg, pos, vel, R, omega, obstacles, draws)
+    if s.depth is not None:
+        if not (s.multiranger or s.flow):  # the depth camera alone
+            return numpy_depth.deck_part(cfg, pos, vel, R, omega, obstacles, draws)
+        if type(pos) is np.ndarray and pos.dtype == np.float64 and (draws is None or "range_u" in draws):
+            return _with_depth(cfg, pos, vel, R, omega, obstacles, draws)
     if (s.depth is not None or type(pos) is not np.ndarray or pos.dtype != np.float64 or not s.any
             or (draws is not None and "range_u" not in draws)):
         return sensors.deck_part(cfg, pos, vel, R, omega, obstacles, draws)
@@ -244,6 +248,32 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     p = last[1] if last is not None and last[0] is cfg and last[1].shape == pos.shape else _scratch(cfg, pos.shape)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         return _deck_part(p, pos, vel, R, omega, obstacles, draws)
+
+
+_SPLIT: dict[int, tuple[Any, Any, Any]] = {}  # id(cfg) -> (cfg, its decks without the camera, the camera alone)
+
+
+def _with_depth(cfg: Any, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray, obstacles: Any,
+                draws: dict[str, Any] | None) -> np.ndarray:
+    """:func:`deck_part` with the depth camera and the multi-ranger and/or flow deck: the two parts of configs
+    with the decks apart (made once per config), joined (the same bits: the model's readings are per ray, its
+    deck part the body-axis rays' columns then the depth image's; ``range_u`` splits at the camera's rays)."""
+    split = _SPLIT.get(id(cfg))
+    if split is None or split[0] is not cfg:
+        s = cfg.sensors
+        split = (cfg, cfg.replace(sensors=dataclasses.replace(s, depth=None)),
+                 cfg.replace(sensors=dataclasses.replace(s, multiranger=False, flow=False)))
+        with _LAST_LOCK:
+            _SPLIT[id(cfg)] = split
+            while len(_SPLIT) > 32:
+                _SPLIT.pop(next(iter(_SPLIT)))
+    k = split[1].sensors.num_rays  # the body-axis rays first
+    d_axis = d_depth = None
+    if draws is not None:
+        u = draws["range_u"]
+        d_axis, d_depth = {**draws, "range_u": u[..., :k]}, {"range_u": u[..., k:]}
+    return np.concatenate([deck_part(split[1], pos, vel, R, omega, obstacles, d_axis),
+                           numpy_depth.deck_part(split[2], pos, vel, R, omega, obstacles, d_depth)], axis=-1)
 
 
 def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray, obstacles: Any,
@@ -256,17 +286,19 @@ def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
         dx, dy = (np.stack([R[..., a, :], -R[..., a, :]], axis=-1).reshape(p.t6.shape) for a in range(2))
         _min(p.t6, column_hits_xy(pos, dx, dy, *obstacles), out=p.t6)
     if p.t_rays is not None:
-        _copyto(p.ranges, p.t_rays)
+        p.ranges[...] = p.t_rays
     rows, m = p.rows, p.m_ok
-    _copyto(p.buf, p.template)  # invalid readings: the limit, flow 0, flags 0
+    p.buf[...] = p.template  # invalid readings: the limit, flow 0, flags 0
     if p.f:  # the flow lanes: the body velocity over the down range, + (-omega_y, omega_x, .)
+        if p.vel_row:  # (..., N, 1, 3) the body velocity (x, y used)
+            flow = p.flow
+            flow[...] = p.ob_vel
+        else:
+            flow = _matmul(vel[..., None, :], R, out=p.flow)
         dd = rows.take(p.d_idx, None, p.dd, "wrap")
         _ge(dd, p.min_range, out=p.gf)  # high enough for the flow
         _max(dd, p.d_min, out=dd)
-        if p.vel_row:  # (..., N, 1, 3) the body velocity (x, y used)
-            flow = _div(p.ob_vel, dd, out=p.flow)
-        else:
-            flow = _div(_matmul(vel[..., None, :], R, out=p.flow), dd, out=p.flow)
+        _div(flow, dd, out=flow)
         om = omega.take(p.om_idx, None, p.om, "wrap")
         _add(flow, _mul(om, p.om_signs, out=om), out=flow)
     ab = _abs(rows, out=p.ab)  # the ranges (>= 0) and the flow's |x|, |y|
@@ -281,7 +313,7 @@ def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
         _and(p.mf, p.gf, out=p.mf)
     if p.f:
         if p.dark:  # too dark: the flow never valid
-            p.mf.fill(False)
+            p.mf[...] = False
         _mul(p.flow, p.gain, out=p.flow)
     a = p.a
     if draws is not None:  # VL53L1x: t + tof_std(t) tof_normal(u); the flow: + FLOW_STD_PX flow_noise
@@ -297,12 +329,12 @@ def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
         _max(w, p.tiny, out=w)
         p.ndtri(w, out=p.bk)
         if p.f:
-            _copyto(p.bf2, draws["flow_noise"])
+            p.bf2[...] = draws["flow_noise"]
         _mul(a, p.b, out=a)
         _add(a, rows, out=a)
         _clip(a, p.lo, p.hi, out=a)  # the ranges to [0, limit], the flow to +-FLOW_LIMIT_PX
     else:
         _clip(rows, p.lo, p.hi, out=a)
     _putmask(p.vals, m, a)  # the valid readings (the invalid keep the template's)
-    _copyto(p.flags, m)
+    p.flags[...] = m
     return p.buf.take(p.cols)

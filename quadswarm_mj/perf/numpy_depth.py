@@ -68,23 +68,22 @@ class _Scratch:
         self.r_idx = np.ascontiguousarray(np.moveaxis(r_id, (-1, -2), (0, 1))[..., None])
         self.rg = e(self.r_idx.shape)
         self.rg0, self.rg1, self.rg2 = self.rg[0], self.rg[1], self.rg[2]
-        rays = (3,) + lead + (hw,)
-        self.E, self.tmp, self.inv, self.M = e(rays), e(rays), e(rays), e(rays)
+        rays = (3,) + lead + (hw,)  # two work arrays: e_a then 1 / e_a in place; v_k e_a2 then the quotients
+        self.E, self.tmp = e(rays), e(rays)
         self.E0, self.E1 = self.E[0], self.E[1]
-        self.M0, self.M1, self.M2 = self.M[0], self.M[1], self.M[2]
+        self.M0, self.M1, self.M2 = self.tmp[0], self.tmp[1], self.tmp[2]
         gshape = (2, 3) + lead + (1,)
         pos_id = np.arange(nq * 3).reshape(shape)
         self.p_idx = np.broadcast_to(np.moveaxis(pos_id, -1, 0)[None, ..., None], gshape).copy()
         self.gaps = e(gshape)
+        self.gap_hi, self.gap_lo = self.gaps[0], self.gaps[1]
         ex = (...,) + (None,) * (len(lead) + 1)
         self.planes = full(np.array([room_high, room_low], float)[ex], gshape)
         self.g_lo = full(np.array([[1e-30] * 3, [-np.inf] * 3])[ex], gshape)  # gaps kept > 0 (high), < 0 (low)
         self.g_hi = full(np.array([[np.inf] * 3, [-1e-30] * 3])[ex], gshape)
-        self.Q = e((2,) + rays)
-        self.Q0, self.Q1 = self.Q[0], self.Q[1]
         self.one = c0(1.0)
         self.t = e(lead + (hw,))
-        self.norm = full(norm, lead + (hw,))
+        self.norm = norm  # (H W,) read-only
         self.inv_n1 = 1.0 / norm  # (H W,)
         self.inv_n1.setflags(write=False)
         # --- the hitboxes (radius None or one quad: none)
@@ -135,7 +134,7 @@ class _Scratch:
         self.valid, self.kept = e(lead + (hw,), bool), e(lead + (hw,), bool)
         self.ndtri = sensors._ndtri()
         assert np.all(sensors.ray_limits(s) == s.depth_max_range)
-        for x in (self.r_idx, self.p_idx, self.planes, self.g_lo, self.g_hi, self.one, self.norm,
+        for x in (self.r_idx, self.p_idx, self.planes, self.g_lo, self.g_hi, self.one,
                   self.limit, self.zero, self.four, self.point_a, self.k, self.std_a, self.dropout, self.scale,
                   self.tiny, *((self.pair_idx, self.r2, self.mask, self.coef, self.lim) if self.hit else ())):
             x.setflags(write=False)
@@ -185,12 +184,14 @@ def _ranges(p: _Scratch, pos: np.ndarray, R: np.ndarray, obstacles: Any) -> np.n
     E = _mul(p.rg1, p.uk, out=p.E)  # e_a = R[a, 0] + u_k R[a, 1] + v_k R[a, 2] (a, ..., N, H W)
     _add(p.rg0, E, out=E)
     _add(E, _mul(p.rg2, p.vk, out=p.tmp), out=E)
-    inv = _div(p.one, E, out=p.inv)
+    if obstacles is not None:  # the rays' world x and y components, for the columns below
+        ex, ey = p.E0 * p.inv_n1, p.E1 * p.inv_n1
+    inv = _div(p.one, E, out=E)  # (in place: the work arrays stay few, the cache warm)
     gaps = pos.take(p.p_idx, None, p.gaps, "wrap")
     _sub(p.planes, gaps, out=gaps)  # high and low planes minus pos
     _clip(gaps, p.g_lo, p.g_hi, out=gaps)  # kept > 0 (high) and < 0 (low)
-    _mul(gaps, inv, out=p.Q)  # (hi/lo, a, ..., N, H W)
-    _max(p.Q0, p.Q1, out=p.M)  # the plane ahead along each world axis
+    q_hi = _mul(p.gap_hi, inv, out=p.tmp)  # (a, ..., N, H W)
+    _max(q_hi, _mul(p.gap_lo, inv, out=inv), out=q_hi)  # the plane ahead along each world axis
     t = _min(p.M0, p.M1, out=p.t)
     _min(t, p.M2, out=t)
     _mul(t, p.norm, out=t)  # parameter along e -> range (m)
@@ -225,7 +226,7 @@ def _ranges(p: _Scratch, pos: np.ndarray, R: np.ndarray, obstacles: Any) -> np.n
             inside = _or_reduce(c < 0.0, axis=-1)
             t[inside] = 0.0
     if obstacles is not None:
-        _min(t, sensor_rays.column_hits_xy(pos, p.E0 * p.inv_n1, p.E1 * p.inv_n1, *obstacles), out=t)
+        _min(t, sensor_rays.column_hits_xy(pos, ex, ey, *obstacles), out=t)
     return t
 
 
