@@ -1,28 +1,17 @@
-"""The depth camera's observation part in NumPy with few, cheap array calls (the MuJoCo engine's (1, 8, .)
-arrays: NumPy's per-call cost dominates), the counterpart of :mod:`quadswarm_mj.perf.numpy_deck` for the
-depth camera alone (no multi-ranger or flow deck).
+"""The depth camera's observation part (alone) in NumPy with few, cheap array calls, the counterpart of
+:mod:`quadswarm_mj.perf.numpy_deck` (the MuJoCo engine's (1, 8, .) arrays: NumPy's per-call cost dominates).
 
-:func:`deck_part` gives the same bits as :func:`quadswarm_mj.sensors.deck_part` (its NumPy forms
-``sensor_rays.depth_hits``, ``sensor_rays._depth_spheres_numpy`` and ``sensors._deck_part_numpy``;
-``tests/test_sensors_speed.py``): the same floating-point operations on the same operands, in work arrays
-made once per (config, shape, thread):
-
-* the room: R gathered once into (c, a, ..., N, 1) so that the pixel rays' world components
-  ``e_a = R[a, 0] + u_k R[a, 1] + v_k R[a, 2]`` of the 3 world axes are 4 calls on one (a, ..., N, H W)
-  array, the gaps' quotients one (hi/lo, a, ..., N, H W) product, the plane ahead and the nearest over the
-  axes 3 calls on contiguous blocks;
-* the hitboxes: the pairs' body-frame offsets as ``perf.numpy_deck`` makes them (gathered pos, one BLAS
-  product ``o @ R`` as the model's); the camera-pyramid test of the model on one (..., N, N, 3) array
-  (``[-x, |y| - u_max x, |z| - v_max x] <= [r, y_lim, z_lim]``, the diagonal's first bound -inf: the own
-  sphere never counts); the candidate pairs cast as the model casts them, each hit kept as the unsigned
-  integer of its bits (a hit ahead is a float >= 0, ordered as the floats; a miss (NaN) or a hit behind
-  (< 0) orders above +inf) and the nearest of the room and the quad's pairs one minimum over a (..., N,
-  N, H W) block whose diagonal holds the room's range. A pair whose ``|offset|^2 - r^2`` is exactly 0 (a
-  quad on another's sphere: ``beta = +0`` would pass as a hit at 0) sends the call to the model;
-* the VL53L1x readings: the model's chain on 0-d constants with ``out=``, the valid readings picked by one
-  ``np.where``.
-
-Other configurations go to the model's function. Reached through :func:`quadswarm_mj.perf.numpy_deck.deck_part`.
+:func:`deck_part` gives the same bits as :func:`quadswarm_mj.sensors.deck_part` (``sensor_rays.depth_hits``,
+``sensor_rays._depth_spheres_numpy``, ``sensors._deck_part_numpy``; ``tests/test_sensors_speed.py``): the same
+floating-point operations on the same operands, in work arrays made once per (config, shape, thread).
+R is gathered once so that the pixel rays' world components ``e_a = R[a, 0] + u_k R[a, 1] + v_k R[a, 2]``
+of the 3 world axes are 4 calls on one (a, ..., N, H W) array; the hitbox test's camera-pyramid check is
+one (..., N, N, 3) array; the candidate pairs are cast as the model casts them, each hit kept as the
+unsigned integer of its bits (a hit ahead is a float >= 0, ordered as the floats; a miss (NaN) or a hit
+behind (< 0) orders above +inf), and each quad's nearest of the room and its pairs is one minimum over a
+(..., N, N, H W) block holding the room's range on its diagonal. A pair with ``|offset|^2 - r^2`` exactly
+0 (``beta = +0`` would pass as a hit at 0) sends the call to the model; so do other configurations.
+Reached through :func:`quadswarm_mj.perf.numpy_deck.deck_part`; docs/sensors.md gives the figures.
 """
 
 from __future__ import annotations
