@@ -506,3 +506,24 @@ def test_numpy_depth_speed_form_is_the_model_bit_for_bit(noise):
         assert numpy_depth._ranges(p, pos, R, None) is None  # the fallback
     want = deck_part(c, pos, zeros, R, zeros)
     assert numpy_deck.deck_part(c, pos, zeros, R, zeros).tobytes() == want.tobytes()
+
+
+@pytest.mark.parametrize("sensors", [{"multiranger": True, "flow": True}, {"depth": (4, 4)},
+                                     {"multiranger": True, "flow": True, "depth": (3, 3)}])
+def test_fused_task_with_decks_is_the_model_task_bitwise(sensors):
+    """Three worlds of 5 quads with decks: the fused NumPy task (perf.numpy_swarm_task, the deck part written
+    into its observation) gives the model's task_step observations bit for bit."""
+    from quadswarm_mj.envs.cpu_core import CpuSwarm
+    from quadswarm_mj.perf import numpy_fast_forms
+
+    cfg = EnvConfig(num_quads=5, sensors=SensorConfig(**sensors))
+    runs = []
+    for fast in (True, False):
+        with numpy_fast_forms(fast):
+            core = CpuSwarm(cfg, 3)
+            core.seed(4)
+            core.reset()
+            rng = np.random.default_rng(0)
+            runs.append([core.step(np.clip(rng.standard_normal((3, 5, 4)), -1, 1))["obs"].tobytes()
+                         for _ in range(40)])
+    assert runs[0] == runs[1]
