@@ -461,14 +461,22 @@ def numpy_deck_info(cfg: Any, scale: Any = None) -> Any:
         return lambda obs: {}
     width, plan = s.obs_dim, _split_plan(s)
     sc = None if scale is None else np.asarray(scale, dtype=np.float32)[dim - width:]
+    cut = (Ellipsis, slice(dim - width, None))
+    keys = tuple((name, (Ellipsis, slice(a, b)), kind) for name, a, b, kind in plan)  # _numpy_entries' views
+    flagged = any(kind == 1 for *_, kind in plan)
 
     def f(obs: Any) -> dict[str, Any]:
         if type(obs) is not np.ndarray or obs.shape[-1] != dim:
             return deck_info(cfg, obs, scale)
-        part = obs[..., dim - width:].astype(np.float32)
+        part = obs[cut].astype(np.float32)
         if sc is not None:
             part *= sc
-        return _numpy_entries(s, plan, part)
+        flags = part > 0.5 if flagged else None
+        out: dict[str, Any] = {}
+        for name, key, kind in keys:
+            out[name] = part[key] if kind == 0 else flags[key] if kind == 1 else part[key].reshape(
+                part.shape[:-1] + s.depth)
+        return out
 
     return f
 

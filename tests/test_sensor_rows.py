@@ -39,4 +39,5 @@ def test_part_timings_numpy_rows():
     labels = [label for label, _ in rows]
     assert "NumPy, 1 x 8, deck part, multiranger + flow" in labels and "NumPy, 1 x 8, axis_hits" in labels
     assert "NumPy, 1 x 8, deck part (perf.numpy_deck), multiranger + flow" in labels
-    assert len(rows) == 7 and all(us > 0 for _, us in rows)
+    assert "NumPy, 1 x 8, deck part (perf.numpy_depth), depth 8 x 8" in labels
+    assert len(rows) == 8 and all(us > 0 for _, us in rows)

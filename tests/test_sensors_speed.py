@@ -255,11 +255,15 @@ def test_numpy_deck_part_is_the_plain_model_bit_for_bit(noise):
 
 @pytest.mark.parametrize("sensors", [{"multiranger": True, "flow": True}, {"multiranger": True}, {"flow": True},
                                      {"multiranger": True, "flow": True, "noise": False},
-                                     {"multiranger": True, "flow": True, "light_lux": 10.0, "dropout": 0.2}])
+                                     {"multiranger": True, "flow": True, "light_lux": 10.0, "dropout": 0.2},
+                                     {"multiranger": True, "flow": True, "depth": (3, 5), "dropout": 0.2},
+                                     {"multiranger": True, "depth": (8, 8)},
+                                     {"flow": True, "depth": (4, 4), "noise": False}])
 def test_numpy_deck_speed_form_is_the_model_bit_for_bit(sensors):
-    """perf.numpy_deck.deck_part (the MuJoCo engine's form, through core.ops.NumpyOps) gives the model's
-    bits: crowded scenes (a quad inside another's hitbox, rays meeting hitboxes), level quads on the floor
-    (rays parallel to the room's planes), columns, one world, three worlds, one quad, no leading dims."""
+    """perf.numpy_deck.deck_part (the MuJoCo engine's form, through core.ops.NumpyOps; with the depth camera
+    too, its part by perf.numpy_depth) gives the model's bits: crowded scenes (a quad inside another's hitbox,
+    rays meeting hitboxes), level quads on the floor (rays parallel to the room's planes), columns, one world,
+    three worlds, one quad, no leading dims."""
     from quadswarm_mj.perf import numpy_deck
     from quadswarm_mj.sensors import deck_part
 
@@ -455,3 +459,71 @@ def test_numpy_depth_hitbox_test_is_the_array_form_bitwise(lead):
             want = np.where(inside[..., None], 0.0, np.minimum(room, ts * (1.0 / norm)))
             assert (got < room).any() and (got == 0.0).any()  # hitboxes seen, one quad inside another's
             assert got.tobytes() == want.tobytes()
+
+
+@pytest.mark.parametrize("noise", [True, False])
+def test_numpy_depth_speed_form_is_the_model_bit_for_bit(noise):
+    """perf.numpy_depth.deck_part (the MuJoCo engine's form of the depth camera alone, through
+    perf.numpy_deck and core.ops.NumpyOps) gives the model's bits over many random scenes: crowded quads
+    (rays meeting hitboxes), a quad inside another's hitbox, level axis-aligned and upside-down quads, quads
+    packed within 0.3 m, columns on and off, odd and even images, any leading batch shape, one quad; and a
+    quad exactly on another's hitbox sphere (its call goes to the model)."""
+    from quadswarm_mj.perf import numpy_deck, numpy_depth
+    from quadswarm_mj.sensors import deck_part
+
+    seen = {"hit": 0, "inside": 0, "calls": 0}
+    for shape, fov in (((8, 8), (45.0, 45.0)), ((3, 5), (60.0, 45.0)), ((7, 7), (87.0, 58.0)), ((1, 1), (45.0, 45.0))):
+        s = SensorConfig(depth=shape, depth_fov=fov, noise=noise, dropout=0.2)
+        for seed in range(12):
+            for n, lead in ((8, (1,)), (8, (3,)), (8, (2, 2)), (1, (1,)), (3, ())):
+                c = EnvConfig(num_quads=n, room_size=(6.0, 5.0, 3.0), sensors=s)
+                pos, R, omap = _scene(seed, n=n, lead=lead, crowded=n >= 5)
+                rng = np.random.default_rng(seed)
+                if seed % 3 == 1:  # level quads on the floor
+                    pos[..., 2], R[...] = 0.046, np.eye(3)
+                elif seed % 3 == 2 and n > 1:  # packed within 0.3 m of quad 0
+                    pos[...] = pos[..., :1, :] + rng.uniform(-0.3, 0.3, pos.shape)
+                vel, omega = rng.normal(size=lead + (n, 3)), rng.normal(size=lead + (n, 3))
+                draws = {"range_u": rng.uniform(size=lead + (n, s.num_rays))} if noise else None
+                for cols in (None, omap):
+                    want = deck_part(c, pos, vel, R, omega, cols, draws)
+                    got = numpy_deck.deck_part(c, pos, vel, R, omega, cols, draws)
+                    assert np.all(np.isfinite(got)) and got.tobytes() == want.tobytes()
+                    seen["calls"] += 1
+                if n > 1 and not noise:
+                    room = depth_hits(pos, R, shape, fov, c.room_low, c.room_high)
+                    t = depth_hits(pos, R, shape, fov, c.room_low, c.room_high, None, c.hitbox)
+                    seen["hit"] += np.count_nonzero((t < room) & (t > 0.0))
+                    seen["inside"] += np.count_nonzero(np.all(t == 0.0, axis=-1))
+    assert seen["calls"] == 480 and (noise or (seen["hit"] > 0 and seen["inside"] > 0))
+    # quad 1 exactly on quad 0's sphere, straight to its left (|offset|^2 - r^2 = 0; an odd image has a
+    # centre column: beta = +0 there)
+    c = EnvConfig(num_quads=2, sensors=SensorConfig(depth=(3, 3), noise=False))
+    pos, R = np.array([[[0.0, 0.0, 1.0], [0.0, c.hitbox, 1.0]]]), np.broadcast_to(np.eye(3), (1, 2, 3, 3)).copy()
+    zeros = np.zeros_like(pos)
+    p = numpy_depth._scratch(c, pos.shape)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        assert numpy_depth._ranges(p, pos, R, None) is None  # the fallback
+    want = deck_part(c, pos, zeros, R, zeros)
+    assert numpy_deck.deck_part(c, pos, zeros, R, zeros).tobytes() == want.tobytes()
+
+
+@pytest.mark.parametrize("sensors", [{"multiranger": True, "flow": True}, {"depth": (4, 4)},
+                                     {"multiranger": True, "flow": True, "depth": (3, 3)}])
+def test_fused_task_with_decks_is_the_model_task_bitwise(sensors):
+    """Three worlds of 5 quads with decks: the fused NumPy task (perf.numpy_swarm_task, the deck part written
+    into its observation) gives the model's task_step observations bit for bit."""
+    from quadswarm_mj.envs.cpu_core import CpuSwarm
+    from quadswarm_mj.perf import numpy_fast_forms
+
+    cfg = EnvConfig(num_quads=5, sensors=SensorConfig(**sensors))
+    runs = []
+    for fast in (True, False):
+        with numpy_fast_forms(fast):
+            core = CpuSwarm(cfg, 3)
+            core.seed(4)
+            core.reset()
+            rng = np.random.default_rng(0)
+            runs.append([core.step(np.clip(rng.standard_normal((3, 5, 4)), -1, 1))["obs"].tobytes()
+                         for _ in range(40)])
+    assert runs[0] == runs[1]

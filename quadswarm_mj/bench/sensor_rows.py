@@ -170,7 +170,8 @@ def part_timings(worlds: int = 512, reps: int = 30, jax_rows: bool = True) -> li
     """(label, microseconds) of the deck part alone: NumPy (one world of 8 quads, best of 5 x ``reps``
     calls, wall time) and ``jax.jit(jax.vmap(...))`` over ``worlds`` worlds (CPU time of this process per
     call, best of 5 x ``reps``), for the deck part with noise and for the casters against the reference
-    caster (``cast_rays`` of ``world_rays``); NumPy also the MuJoCo engine's form (``perf.numpy_deck``), JAX
+    caster (``cast_rays`` of ``world_rays``); NumPy also the MuJoCo engine's forms (``perf.numpy_deck``, with
+    the depth camera ``perf.numpy_depth``), JAX
     the JAX engine's forms (``core.ops.jax_deck_part``). ``jax_rows=False``: the NumPy rows only."""
     import timeit
 
@@ -200,10 +201,11 @@ def part_timings(worlds: int = 512, reps: int = 30, jax_rows: bool = True) -> li
         draws = NumpySampler(np.random.default_rng(1)).draw(deck_draw_spec(cfg), (1,))
         f = lambda: deck_part(cfg, pos, vel, R, om, None, draws)  # noqa: B023,E731
         out.append((f"NumPy, 1 x 8, deck part, {name}", min(timeit.repeat(f, number=reps, repeat=5)) / reps * 1e6))
-        if cfg.sensors.depth is None:  # the MuJoCo engine's form (core.ops.NumpyOps)
-            f = lambda: numpy_deck.deck_part(cfg, pos, vel, R, om, None, draws)  # noqa: B023,E731
-            out.append((f"NumPy, 1 x 8, deck part (perf.numpy_deck), {name}",
-                        min(timeit.repeat(f, number=reps, repeat=5)) / reps * 1e6))
+        # the MuJoCo engine's form (core.ops.NumpyOps; the depth camera's part: perf.numpy_depth)
+        f = lambda: numpy_deck.deck_part(cfg, pos, vel, R, om, None, draws)  # noqa: B023,E731
+        form = "perf.numpy_deck" if cfg.sensors.depth is None else "perf.numpy_depth"
+        us = min(timeit.repeat(f, number=reps, repeat=5)) / reps * 1e6
+        out.append((f"NumPy, 1 x 8, deck part ({form}), {name}", us))
     for label, g in casters(_cfg({}, 8)).items():
         f = lambda: g(pos, R)  # noqa: B023,E731
         out.append((f"NumPy, 1 x 8, {label}", min(timeit.repeat(f, number=reps, repeat=5)) / reps * 1e6))

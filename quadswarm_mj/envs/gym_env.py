@@ -140,7 +140,7 @@ class QuadSwarmEnv(gym.Env):
                 deck = self._deck_info_args = (numpy_deck_info(
                     self.cfg, obs_scale(self.cfg) if self.cfg.normalize_obs else None),
                     (self.cfg.num_quads, self.cfg.obs_dim))
-            info.update(deck[0](np.reshape(obs, deck[1])))
+            info.update(deck[0](obs.reshape(deck[1]) if type(obs) is np.ndarray else np.reshape(obs, deck[1])))
         return info if self._flat is None else self._flat(info)
 
     # ------------------------------------------------------------------ API

@@ -3,8 +3,8 @@ model or the engines (a same-values test checks it), only faster on some platfor
 it through their ops (:mod:`quadswarm_mj.core.ops`), never the model.
 
 * ``numpy_small``: fewest-NumPy-calls forms of the sub-step functions for small arrays (same bits);
-  ``numpy_floor``: the paper's floor model on the grounded quads' rows only (same bits); ``numpy_deck``:
-  the multi-ranger and flow decks' observation part on few, cheap calls (same bits).
+  ``numpy_floor``: the paper's floor model on the grounded quads' rows only; ``numpy_deck``, ``numpy_depth``:
+  the decks' and the depth camera's observation parts on few, cheap calls (same bits).
 * ``one_quad``: one quad in one world on Python floats (wrench, floor, rotation, rewards, metrics,
   observation), bit-identical to the array forms; ``one_quad_step``: on those bodies, the whole sub-step
   loop and the whole task stage of one quad (``NumpyOps.fused_loop``, ``fused_task``).

@@ -14,18 +14,21 @@ unused), so the noise, the clip and the masked copy are one call each (per-lane 
 ToF-noise chain give the flow's noise scale on its lanes: clip to 0, exp(0) = 1). The body-frame
 products stay BLAS products as the model's (they round with FMA); with the flow deck the body velocity is
 row N of the neighbours' product (offset vel - 0), one product instead of two (the same bits here; the
-bitwise tests check it). Other configurations (the depth camera, JAX arrays, noise given as ``range_z``)
-go to the model's function. ``core.ops.NumpyOps`` passes it to ``build_obs`` as ``deck_fn``.
+bitwise tests check it). With the depth camera its part comes from :mod:`quadswarm_mj.perf.numpy_depth`
+(joined after this one's); other inputs (JAX arrays, float32, noise given as ``range_z``) go to the model's
+function. ``core.ops.NumpyOps`` passes it to ``build_obs`` as ``deck_fn``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from typing import Any
 
 import numpy as np
 
 from quadswarm_mj import sensors
+from quadswarm_mj.perf import numpy_depth
 from quadswarm_mj.sensor_rays import column_hits_xy
 
 _clip = np._core.umath.clip
@@ -230,8 +233,14 @@ def _axis_hits(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray) -> 
 def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
               draws: dict[str, Any] | None = None) -> Any:
     """:func:`quadswarm_mj.sensors.deck_part` (same arguments, the same bits) for NumPy arrays with the
-    multi-ranger and/or flow deck (no depth camera, float64); otherwise the model's function."""
+    multi-ranger and/or flow deck (float64); the depth camera's part by
+    :func:`quadswarm_mj.perf.numpy_depth.deck_part`; otherwise the model's function."""
     s = cfg.sensors
+    if s.depth is not None:
+        if not (s.multiranger or s.flow):  # the depth camera alone
+            return numpy_depth.deck_part(cfg, pos, vel, R, omega, obstacles, draws)
+        if type(pos) is np.ndarray and pos.dtype == np.float64 and (draws is None or "range_u" in draws):
+            return _with_depth(cfg, pos, vel, R, omega, obstacles, draws)
     if (s.depth is not None or type(pos) is not np.ndarray or pos.dtype != np.float64 or not s.any
             or (draws is not None and "range_u" not in draws)):
         return sensors.deck_part(cfg, pos, vel, R, omega, obstacles, draws)
@@ -239,6 +248,32 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     p = last[1] if last is not None and last[0] is cfg and last[1].shape == pos.shape else _scratch(cfg, pos.shape)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         return _deck_part(p, pos, vel, R, omega, obstacles, draws)
+
+
+_SPLIT: dict[int, tuple[Any, Any, Any]] = {}  # id(cfg) -> (cfg, its decks without the camera, the camera alone)
+
+
+def _with_depth(cfg: Any, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray, obstacles: Any,
+                draws: dict[str, Any] | None) -> np.ndarray:
+    """:func:`deck_part` with the depth camera and the multi-ranger and/or flow deck: the two parts of configs
+    with the decks apart (made once per config), joined (the same bits: the model's readings are per ray, its
+    deck part the body-axis rays' columns then the depth image's; ``range_u`` splits at the camera's rays)."""
+    split = _SPLIT.get(id(cfg))
+    if split is None or split[0] is not cfg:
+        s = cfg.sensors
+        split = (cfg, cfg.replace(sensors=dataclasses.replace(s, depth=None)),
+                 cfg.replace(sensors=dataclasses.replace(s, multiranger=False, flow=False)))
+        with _LAST_LOCK:
+            _SPLIT[id(cfg)] = split
+            while len(_SPLIT) > 32:
+                _SPLIT.pop(next(iter(_SPLIT)))
+    k = split[1].sensors.num_rays  # the body-axis rays first
+    d_axis = d_depth = None
+    if draws is not None:
+        u = draws["range_u"]
+        d_axis, d_depth = {**draws, "range_u": u[..., :k]}, {"range_u": u[..., k:]}
+    return np.concatenate([deck_part(split[1], pos, vel, R, omega, obstacles, d_axis),
+                           numpy_depth.deck_part(split[2], pos, vel, R, omega, obstacles, d_depth)], axis=-1)
 
 
 def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray, obstacles: Any,

@@ -102,7 +102,8 @@ class SwarmTask:
         self.mpos = np.empty((B, N, 3))
         W, d0, K = np.empty((B, N, self.D)), self.self_dim, self.K
         self._o = SimpleNamespace(W=W, pos=W[..., 0:3], vel=W[..., 3:6], R=W[..., 6:15], omega=W[..., 15:18],
-                                  z=W[..., 18] if self.floor else None, nb=W[..., d0:d0 + 6 * K].reshape(B, N, K, 6))
+                                  z=W[..., 18] if self.floor else None, nb=W[..., d0:d0 + 6 * K].reshape(B, N, K, 6),
+                                  deck=W[..., d0 + 6 * K:])
         if K > 0:
             self._o.first = self.first.reshape(B, N, 1)  # quad 0's row of each world
             self._o.own = self.own.reshape(B, N, K)  # each row's own index, K times
@@ -309,7 +310,7 @@ class SwarmTask:
                 idx = idx + o.first
             np.subtract(self.pv.take(idx, axis=0), self.pv.take(o.own, axis=0), o.nb)
         if self.cfg.sensors.any:  # the decks' readings of the true state, last
-            W[..., self.self_dim + 6 * K:] = numpy_deck.deck_part(self.cfg, pos, vel, R, omega, None, deck_draws)
+            _copyto(o.deck, numpy_deck.deck_part(self.cfg, pos, vel, R, omega, None, deck_draws))
         if _clip is not None:  # = min(max(obs, low), high) (the clip ufunc on same-shape bounds: the same bits)
             obs = _clip(W, self.c.low, self.c.high)  # fresh
         else:
