@@ -296,6 +296,16 @@ def test_pretrained_swarm8_reproduces_recorded_metrics():
     _check_recorded("swarm8", ["static_diff_goal", "swap_goals"])
 
 
+def test_pretrained_swarm8_rl_is_ppo_alone_and_reproduces_recorded_metrics():
+    """issue 35: the swarm policy trained by PPO alone (no teacher, no imitation loss), its stages' commands
+    and budget recorded; a fresh evaluation on other seeds agrees with the recorded figures."""
+    train = load_policy("pretrained:swarm8_rl").meta["manifest"]["train"]
+    assert train["method"] == "ppo" and train["teacher"] is None and train["imitation_loss"] is False
+    assert all(s["command"].startswith("quadswarm-train --preset swarm8_rl") for s in train["stages"])
+    assert train["budget"]["agent_steps"] == sum(s["checkpoint_env_steps"] for s in train["stages"])
+    _check_recorded("swarm8_rl", ["static_diff_goal", "swap_goals"])
+
+
 def test_pretrained_swarm8_deployable_reproduces_recorded_metrics():
     _check_recorded("swarm8_deployable", ["static_diff_goal"])
 
