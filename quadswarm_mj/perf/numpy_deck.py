@@ -127,16 +127,21 @@ class _Scratch:
             self.o = self.xb[nr:].reshape(pair)
             self.cc = e(lead + (nv,))
             self.c_neg = e(lead + (nv,), bool)  # |offset|^2 < r^2 (inside another's hitbox)
-            self.ob, self.disc = self.hb[:size].reshape(pair), self.hb[size:2 * size].reshape(pair)
-            self.meets = e(pair, bool)  # disc >= 0: the line of a ray meets a hitbox
+            # disc component first (c, ..., N (i), N (j) (+ 1)): |ob|^2 and its subtraction on contiguous blocks
+            cm = (3,) + lead + (nv,)
+            self.ob, self.disc = self.hb[:size].reshape(pair), self.hb[size:2 * size].reshape(cm)
+            self.ob_cm = np.moveaxis(self.ob, -1, 0)  # a view of ob, component first
+            self.meets = e(cm, bool)  # disc >= 0: the line of a ray meets a hitbox
             self.ob_vel = self.ob[..., n:, :]  # (..., N, 1, 3) the body velocity (with the flow deck)
-            self.cc3 = self.cc[..., None]
-            self.disc0, self.disc1, self.disc2 = self.disc[..., 0], self.disc[..., 1], self.disc[..., 2]
+            self.cc1 = self.cc[None]
+            self.disc0, self.disc1, self.disc2 = self.disc[0], self.disc[1], self.disc[2]
             hits = (n + 3,) + lead + (3, 2)  # rows N, N + 1, N + 2: the room per world axis (times 1, minus 0)
             ob_id = np.moveaxis(np.arange(size).reshape(pair)[..., :n, :], -2, 0)[..., None]
             ob_id = np.concatenate([np.broadcast_to(ob_id, (n,) + hits[1:]),
                                     (2 * size + 1 + np.arange(nm)).reshape((3,) + hits[1:])])
-            sq_id = np.concatenate([ob_id[:n] + size, np.full((3,) + hits[1:], 2 * size)])
+            disc_id = np.moveaxis(size + np.arange(size).reshape(cm), 0, -1)  # (..., N, N (+ 1), c) -> its place
+            sq_id = np.moveaxis(disc_id[..., :n, :], -2, 0)[..., None]
+            sq_id = np.concatenate([np.broadcast_to(sq_id, (n,) + hits[1:]), np.full((3,) + hits[1:], 2 * size)])
             self.h_idx = np.concatenate([ob_id.ravel(), sq_id.ravel()])
             self.hg = e(self.h_idx.size)
             self.obg, self.sqg = self.hg[:self.hg.size // 2].reshape(hits), self.hg[self.hg.size // 2:].reshape(hits)
@@ -240,12 +245,12 @@ def _axis_hits(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
     t = p.t
     if p.r2 is not None:
         # p.o (..., N (i), N (j) (+ 1), 3): quad j - quad i (, vel); body frame of quad i:
-        ob = _matmul(p.o, R, out=p.ob)  # ob[i, j, c] = sum_a o[i, j, a] R[i, a, c]
-        disc = _mul(ob, ob, out=p.disc)
+        _matmul(p.o, R, out=p.ob)  # ob[i, j, c] = sum_a o[i, j, a] R[i, a, c]
+        disc = _mul(p.ob_cm, p.ob_cm, out=p.disc)  # (c, ..., N, N (+ 1))
         c = _add(p.disc0, p.disc1, out=p.cc)  # (np.add.reduce over the 3 components: the same sums)
         _add(c, p.disc2, out=c)
         _sub(c, p.r2, out=c)  # |offset|^2 - r^2 (a rotation keeps the length); inf on the diagonal
-        _sub(disc, p.cc3, out=disc)  # >= 0: the line of ray +-c meets the sphere
+        _sub(disc, p.cc1, out=disc)  # >= 0: the line of ray +-c meets the sphere
         if _count_nonzero(_ge(disc, p.zero, out=p.meets)):  # (= fmax.reduce(disc) >= 0: disc is never NaN)
             # along +-c the hit is +-ob_c - sqrt(disc); kept where >= 0 (a miss: NaN, behind: < 0; both order
             # above +inf as unsigned integers)
