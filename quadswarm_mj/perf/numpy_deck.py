@@ -2,21 +2,21 @@
 engine's (1, 8, .) arrays: NumPy's per-call cost dominates, and a call's cost depends on its form).
 
 :func:`deck_part` gives the same bits as :func:`quadswarm_mj.sensors.deck_part` (its NumPy forms
-``sensor_rays._axis_hits_numpy`` and ``sensors._deck_part_numpy``; ``tests/test_sensors_speed.py``):
-the same floating-point operations on the same operands, nearly every call in NumPy's cheapest form
-(contiguous operands of one shape or 0-d; ``maximum``, ``minimum`` and reductions with a keyword ``out``).
-Each input is gathered once (``ndarray.take``) into work arrays (per config, shape and thread) laid out so
-that reductions are calls on contiguous blocks: the room's quotients world axis first; the hitbox hits
-neighbour first, the room's ranges beside them, one minimum over both on the unsigned integers of their
-bits (a hit ahead is a float >= 0, ordered as the floats; a miss (NaN) or a hit behind (< 0) orders
-above +inf, as in ``perf/depth_xla.py``). The readings: one row of the ranges, then the flow lanes (x, y,
-unused), so the noise, the clip and the masked copy are one call each (per-lane constants make the
-ToF-noise chain give the flow's noise scale on its lanes: clip to 0, exp(0) = 1). The body-frame
-products stay BLAS products as the model's (they round with FMA); with the flow deck the body velocity is
-row N of the neighbours' product (offset vel - 0), one product instead of two (the same bits here; the
-bitwise tests check it). With the depth camera its part comes from :mod:`quadswarm_mj.perf.numpy_depth`
-(joined after this one's); other inputs (JAX arrays, float32, noise given as ``range_z``) go to the model's
-function. ``core.ops.NumpyOps`` passes it to ``build_obs`` as ``deck_fn``.
+``sensor_rays._axis_hits_numpy`` and ``sensors._deck_part_numpy``; ``tests/test_sensors_speed.py``,
+``tests/test_numpy_deck_bits.py``): the same floating-point operations on the same operands, nearly every
+call on contiguous operands of one shape or 0-d. The inputs (pos m, vel m/s world; omega rad/s body; R
+body -> world) are gathered (one ``concatenate`` and one ``take``; R one ``take``) into work arrays (per
+config, shape and thread) laid out so that one call serves several of the model's operations (one
+subtraction makes the room's gaps and the pairs' offsets, one product the room's quotients and the flow's
+rate terms) and reductions are calls on contiguous blocks (a ray's nearest of the neighbours and the
+room's 3 world axes: one minimum on the distances' bits as unsigned integers, where a miss (NaN) or a hit
+behind (< 0) orders above +inf); "any" tests are a comparison and ``count_nonzero``. The readings: one
+row of the ranges, then the flow lanes (x, y, unused), so the noise, the clip and the masked copy are one
+call each (per-lane constants make the ToF-noise chain give the flow's noise scale on its lanes). The
+body-frame products stay BLAS products as the model's (they round with FMA); with the flow deck the body
+velocity is row N of the neighbours' product (offset vel - 0). The error state is set from a cached one
+(``np.errstate`` costs several calls). The depth camera's part: :mod:`quadswarm_mj.perf.numpy_depth`;
+other inputs (JAX, float32, noise as ``range_z``) go to the model. ``core.ops.NumpyOps`` passes it on.
 """
 
 from __future__ import annotations
