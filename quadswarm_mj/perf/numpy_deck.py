@@ -271,6 +271,10 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     """:func:`quadswarm_mj.sensors.deck_part` (same arguments, the same bits) for NumPy arrays with the
     multi-ranger and/or flow deck (float64); the depth camera's part by
     :func:`quadswarm_mj.perf.numpy_depth.deck_part`; otherwise the model's function."""
+    last = getattr(_LOCAL, "last", None)
+    if (last is not None and last[0] is cfg and type(pos) is np.ndarray and pos.dtype is _F64
+            and last[1].shape == pos.shape and (draws is None or "range_u" in draws)):  # as last call's
+        return _run(last[1], pos, vel, R, omega, obstacles, draws)
     s = cfg.sensors
     if s.depth is not None:
         if not (s.multiranger or s.flow):  # the depth camera alone
@@ -280,8 +284,16 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     if (s.depth is not None or type(pos) is not np.ndarray or pos.dtype != np.float64 or not s.any
             or (draws is not None and "range_u" not in draws)):
         return sensors.deck_part(cfg, pos, vel, R, omega, obstacles, draws)
-    last = getattr(_LOCAL, "last", None)
     p = last[1] if last is not None and last[0] is cfg and last[1].shape == pos.shape else _scratch(cfg, pos.shape)
+    return _run(p, pos, vel, R, omega, obstacles, draws)
+
+
+_F64 = np.dtype(np.float64)
+
+
+def _run(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray, obstacles: Any,
+         draws: dict[str, Any] | None) -> np.ndarray:
+    """:func:`_deck_part` with the divide, invalid and overflow errors ignored (the caller's state back after)."""
     if _ERR_STATE is None:  # pragma: no cover
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             return _deck_part(p, pos, vel, R, omega, obstacles, draws)
