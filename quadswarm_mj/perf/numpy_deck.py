@@ -2,21 +2,21 @@
 engine's (1, 8, .) arrays: NumPy's per-call cost dominates, and a call's cost depends on its form).
 
 :func:`deck_part` gives the same bits as :func:`quadswarm_mj.sensors.deck_part` (its NumPy forms
-``sensor_rays._axis_hits_numpy`` and ``sensors._deck_part_numpy``; ``tests/test_sensors_speed.py``):
-the same floating-point operations on the same operands, nearly every call in NumPy's cheapest form
-(contiguous operands of one shape or 0-d; ``maximum``, ``minimum`` and reductions with a keyword ``out``).
-Each input is gathered once (``ndarray.take``) into work arrays (per config, shape and thread) laid out so
-that reductions are calls on contiguous blocks: the room's quotients world axis first; the hitbox hits
-neighbour first, the room's ranges beside them, one minimum over both on the unsigned integers of their
-bits (a hit ahead is a float >= 0, ordered as the floats; a miss (NaN) or a hit behind (< 0) orders
-above +inf, as in ``perf/depth_xla.py``). The readings: one row of the ranges, then the flow lanes (x, y,
-unused), so the noise, the clip and the masked copy are one call each (per-lane constants make the
-ToF-noise chain give the flow's noise scale on its lanes: clip to 0, exp(0) = 1). The body-frame
-products stay BLAS products as the model's (they round with FMA); with the flow deck the body velocity is
-row N of the neighbours' product (offset vel - 0), one product instead of two (the same bits here; the
-bitwise tests check it). With the depth camera its part comes from :mod:`quadswarm_mj.perf.numpy_depth`
-(joined after this one's); other inputs (JAX arrays, float32, noise given as ``range_z``) go to the model's
-function. ``core.ops.NumpyOps`` passes it to ``build_obs`` as ``deck_fn``.
+``sensor_rays._axis_hits_numpy`` and ``sensors._deck_part_numpy``; ``tests/test_sensors_speed.py``,
+``tests/test_numpy_deck_bits.py``): the same floating-point operations on the same operands, nearly every
+call on contiguous operands of one shape or 0-d. The inputs (pos m, vel m/s world; omega rad/s body; R
+body -> world) are gathered (one ``concatenate`` and one ``take``; R one ``take``) into work arrays (per
+config, shape and thread) laid out so that one call serves several of the model's operations (one
+subtraction makes the room's gaps and the pairs' offsets, one product the room's quotients and the flow's
+rate terms) and reductions are calls on contiguous blocks (a ray's nearest of the neighbours and the
+room's 3 world axes: one minimum on the distances' bits as unsigned integers, where a miss (NaN) or a hit
+behind (< 0) orders above +inf); "any" tests are a comparison and ``count_nonzero``. The readings: one
+row of the ranges, then the flow lanes (x, y, unused), so the noise, the clip and the masked copy are one
+call each (per-lane constants make the ToF-noise chain give the flow's noise scale on its lanes). The
+body-frame products stay BLAS products as the model's (they round with FMA); with the flow deck the body
+velocity is row N of the neighbours' product (offset vel - 0). The error state is set from a cached one
+(``np.errstate`` costs several calls). The depth camera's part: :mod:`quadswarm_mj.perf.numpy_depth`;
+other inputs (JAX, float32, noise as ``range_z``) go to the model. ``core.ops.NumpyOps`` passes it on.
 """
 
 from __future__ import annotations
@@ -35,9 +35,10 @@ _clip = np._core.umath.clip
 _add, _sub, _mul, _div, _abs = np.add, np.subtract, np.multiply, np.divide, np.abs
 _max, _min, _le, _ge, _exp, _sqrt, _matmul = np.maximum, np.minimum, np.less_equal, np.greater_equal, np.exp, \
     np.sqrt, np.matmul
-_and, _putmask = np.logical_and, np.putmask
-_add_reduce, _min_reduce, _fmax_reduce, _fmin_reduce = np.add.reduce, np.minimum.reduce, np.fmax.reduce, \
-    np.fmin.reduce
+_and, _lt = np.logical_and, np.less
+_min_reduce = np.minimum.reduce
+_count_nonzero = np._core._multiarray_umath.count_nonzero
+_copyto, _concatenate = np._core._multiarray_umath.copyto, np._core._multiarray_umath.concatenate
 
 
 class _Scratch:
@@ -54,68 +55,103 @@ class _Scratch:
         self.shape, self.k, self.f = shape, k, f
         # --- the cast. The room: (hi/lo, a, ..., N, c, +-) quotients gap_a / (+-R[a, c]), gathered from pos, R
         room = (2, 3) + lead + (3, 2)
-        pos_id = np.arange(nq * 3).reshape(shape)
-        self.pos_idx = np.broadcast_to(np.moveaxis(pos_id, -1, 0)[(None, ...) + (None,) * 2], room).ravel()
-        self.r_idx = np.broadcast_to(np.moveaxis(np.arange(nq * 9).reshape(lead + (3, 3)), -2, 0)[None, ..., None],
-                                     room).copy()
+        nr = int(np.prod(room))
+        src_id = np.arange(nq * 3).reshape(shape)  # pos in the gathers' source (pv: [pos | vel | omega | 0])
+        room_idx = np.broadcast_to(np.moveaxis(src_id, -1, 0)[(None, ...) + (None,) * 2], room).ravel()
+        r_idx = np.broadcast_to(np.moveaxis(np.arange(nq * 9).reshape(lead + (3, 3)), -2, 0)[None, ..., None], room)
         ex = (...,) + (None,) * (len(lead) + 2)
-        self.planes = full(np.array([room_high, room_low], float)[ex], room)
+        planes = full(np.array([room_high, room_low], float)[ex], room)
         self.g_lo = full(np.array([[1e-30] * 3, [-np.inf] * 3])[ex], room)  # the gaps kept > 0 (high), < 0 (low)
         self.g_hi = full(np.array([[np.inf] * 3, [-1e-30] * 3])[ex], room)
-        self.signs = full(np.array([1.0, -1.0]), room)  # a body axis' two rays
-        self.inv, self.q, self.m = e(room), e(room), e(room[1:])
-        self.q0, self.q1, self.m0, self.m1, self.m2 = self.q[0], self.q[1], self.m[0], self.m[1], self.m[2]
-        # hb = [ob | sqrt(disc) (the hitboxes) | 0 | t6 (the ranges along the 6 body axes)], with both decks t6
-        # the first 6 lanes of the rows [ranges (..., N, K) | flow (..., N, 1, 3)]. With the flow deck the body
-        # velocity is the pairs' matrix product's row N (its offset row: vel - 0; never a hit)
+        self.m = e(room[1:])
+        self.m0, self.m1, self.m2 = self.m[0], self.m[1], self.m[2]
         hit = radius is not None and n > 1
-        self.vel_row = hit and f > 0
+        self.vel_row = hit and f > 0  # the body velocity: the pairs' product's row N (offset vel - 0; never a hit)
         nv = n + self.vel_row
         pair = lead + (nv, 3)
-        size = int(np.prod(pair)) if hit else 0
+        npair = int(np.prod(pair)) if hit else 0
+        nom = nq * 3 if f else 0  # the flow's rate lanes (omega_y, omega_x, omega_z per quad)
+        # xs = [planes | quad j | omega (y, x, z) | pos | quad i] (the pairs' parts empty without the hitbox
+        # test, omega's without the flow deck): one gather fills all but the planes; one subtraction [planes |
+        # quad j] - [pos | quad i] makes [gaps | offsets] in place of [pos | quad i]; one product [omega | gaps]
+        # x [(-1, 1, 1) | 1 / (+-R)] (one quotient [(-1, 1, 1) | +-1] / [1 | R]) makes [the flow's rate terms |
+        # the room's quotients]
+        self.xs = e(2 * (nr + npair) + nom)
+        self.xs[:nr] = planes.ravel()
+        self.pg = self.xs[nr:]  # the gather's out
+        self.xa, self.xb = self.xs[:nr + npair], self.xs[nr + npair + nom:]
+        self.gaps = self.xb[:nr].reshape(room)
+        self.xq = self.xs[nr + npair:nr + npair + nom + nr]  # [omega | gaps]
+        self.rg = np.ones(nom + nr)  # [1 | R gathered]
+        self.rg_r = self.rg[nom:]
+        self.r_idx = r_idx.ravel().copy()
+        signs = np.ones(nom + nr)  # the rates' (-1, 1, 1); a body axis' two rays (+1, -1)
+        signs[nom:] = np.broadcast_to(np.array([1.0, -1.0]), room).ravel()
+        if f:
+            signs[:nom] = np.tile([-1.0, 1.0, 1.0], nq)
+        self.signs, self.inv, self.qx = signs, e(nom + nr), e(nom + nr)
+        self.q = self.qx[nom:].reshape(room)
+        self.q0, self.q1 = self.q[0], self.q[1]
+        if f:
+            self.om_terms = self.qx[:nom].reshape(lead + (1, 3))  # (-omega_y, omega_x, omega_z)
+        pj_idx = pi_idx = np.zeros(0, np.intp)
+        om_idx = (2 * nq * 3 + 3 * np.arange(nq)[:, None] + np.array([1, 0, 2])).ravel() if f else pj_idx
+        # hb = [ob | sqrt(disc) (the hitboxes) | 0 | m (the room per world axis) | t6 (the ranges along the 6
+        # body axes)], with both decks t6 the first 6 lanes of the rows [ranges (..., N, K) | flow (..., N, 1, 3)]
         both = s.multiranger and s.flow
-        self.hb = np.zeros(2 * size + 1 + (rs if both else nq * 6))
-        self.rows = self.hb[2 * size + 1:] if both else e(rs)
+        size, nm = npair, 3 * nq * 6
+        self.hb = np.zeros(2 * size + 1 + nm + (rs if both else nq * 6))
+        self.m = self.hb[2 * size + 1:2 * size + 1 + nm].reshape(room[1:])
+        self.m0, self.m1, self.m2 = self.m[0], self.m[1], self.m[2]
+        at = 2 * size + 1 + nm
+        self.rows = self.hb[at:] if both else e(rs)
         self.ranges = self.rows[:nq * k].reshape(lead + (k,))
-        self.t6 = self.hb[2 * size + 1:2 * size + 1 + nq * 6].reshape(lead + (6,))
+        self.t6 = self.hb[at:at + nq * 6].reshape(lead + (6,))
         self.t = self.t6.reshape(lead + (3, 2))
         self.tu = self.t.view(np.uint64)
         self.t_rays = None if both else self.t6[..., slice(0, 5) if s.multiranger else slice(5, 6)]
         self.r2 = None  # (..., N, N (+ 1)) hitbox radius^2, -inf on the diagonal (None: no hitbox test)
-        self.pv = np.zeros(2 * nq * 3 + 1)  # [pos | vel | 0]: the gathers' source with the velocity row
-        self.pv_pos, self.pv_vel = self.pv[:nq * 3].reshape(shape), self.pv[nq * 3:2 * nq * 3].reshape(shape)
-        if hit:  # offsets, body frame, disc and its root; the hits and the room's t gathered (j, ..., N, c, +-)
+        self.pv = np.zeros(3 * nq * 3 + 1)  # [pos | vel | omega | 0]: the gathers' source with the flow deck
+        self.pv3 = self.pv[:3 * nq * 3].reshape((3 * shape[0],) + shape[1:])  # (pos, vel, omega) along axis 0
+        if hit:  # offsets, body frame, disc and its root; the hits and the room gathered (j, ..., N, c, +-)
             r2 = np.full((n, nv), radius * radius)
             r2[:, n:] = -np.inf
             np.fill_diagonal(r2, -np.inf)
             self.r2 = full(r2, lead + (nv,))
-            pj = np.broadcast_to(pos_id[..., None, :, :], lead + (n, 3))  # (..., N (i), N (j), 3): quad j, quad i
-            pi = np.broadcast_to(pos_id[..., :, None, :], lead + (n, 3))
+            pj = np.broadcast_to(src_id[..., None, :, :], lead + (n, 3))  # (..., N (i), N (j), 3): quad j, quad i
+            pi = np.broadcast_to(src_id[..., :, None, :], lead + (n, 3))
             if self.vel_row:
-                pj = np.concatenate([pj, (nq * 3 + pos_id)[..., None, :]], axis=-2)
-                pi = np.concatenate([pi, np.full(lead + (1, 3), 2 * nq * 3)], axis=-2)
-            self.pos_idx = np.concatenate([self.pos_idx, pj.ravel(), pi.ravel()])
+                pj = np.concatenate([pj, (nq * 3 + src_id)[..., None, :]], axis=-2)
+                pi = np.concatenate([pi, np.full(lead + (1, 3), 3 * nq * 3)], axis=-2)
+            pj_idx, pi_idx = pj.ravel(), pi.ravel()
+            self.o = self.xb[nr:].reshape(pair)
             self.cc = e(lead + (nv,))
-            self.ob, self.disc = self.hb[:size].reshape(pair), self.hb[size:2 * size].reshape(pair)
+            self.c_neg = e(lead + (nv,), bool)  # |offset|^2 < r^2 (inside another's hitbox)
+            # disc component first (c, ..., N (i), N (j) (+ 1)): |ob|^2 and its subtraction on contiguous blocks
+            cm = (3,) + lead + (nv,)
+            self.ob, self.disc = self.hb[:size].reshape(pair), self.hb[size:2 * size].reshape(cm)
+            self.ob_cm = np.moveaxis(self.ob, -1, 0)  # a view of ob, component first
+            self.meets = e(cm, bool)  # disc >= 0: the line of a ray meets a hitbox
             self.ob_vel = self.ob[..., n:, :]  # (..., N, 1, 3) the body velocity (with the flow deck)
-            self.cc3 = self.cc[..., None]
-            hits = (n + 1,) + lead + (3, 2)  # row N: the room's t (times 1, minus 0)
+            self.cc1 = self.cc[None]
+            self.disc0, self.disc1, self.disc2 = self.disc[0], self.disc[1], self.disc[2]
+            hits = (n + 3,) + lead + (3, 2)  # rows N, N + 1, N + 2: the room per world axis (times 1, minus 0)
             ob_id = np.moveaxis(np.arange(size).reshape(pair)[..., :n, :], -2, 0)[..., None]
             ob_id = np.concatenate([np.broadcast_to(ob_id, (n,) + hits[1:]),
-                                    (2 * size + 1 + np.arange(nq * 6)).reshape((1,) + hits[1:])])
-            sq_id = np.concatenate([ob_id[:n] + size, np.full((1,) + hits[1:], 2 * size)])
+                                    (2 * size + 1 + np.arange(nm)).reshape((3,) + hits[1:])])
+            disc_id = np.moveaxis(size + np.arange(size).reshape(cm), 0, -1)  # (..., N, N (+ 1), c) -> its place
+            sq_id = np.moveaxis(disc_id[..., :n, :], -2, 0)[..., None]
+            sq_id = np.concatenate([np.broadcast_to(sq_id, (n,) + hits[1:]), np.full((3,) + hits[1:], 2 * size)])
             self.h_idx = np.concatenate([ob_id.ravel(), sq_id.ravel()])
             self.hg = e(self.h_idx.size)
             self.obg, self.sqg = self.hg[:self.hg.size // 2].reshape(hits), self.hg[self.hg.size // 2:].reshape(hits)
             self.obg_u = self.obg.view(np.uint64)
             self.hsigns = full(np.array([1.0, -1.0]), hits)
-            self.hsigns[-1] = 1.0
-        self.pg = e(self.pos_idx.size)  # the gathered pos: the room's gaps, then the pairs' quad j and quad i
-        self.gaps = self.pg[:self.q.size].reshape(room)
-        if self.r2 is not None:
-            size = int(np.prod(pair))
-            self.pj, self.pi = (self.pg[self.q.size + i * size:self.q.size + (i + 1) * size].reshape(pair)
-                                for i in (0, 1))
+            self.hsigns[n:] = 1.0
+        self.src_pv = f > 0
+        self.pos_idx = np.concatenate([pj_idx, om_idx, room_idx, pi_idx])
+        assert self.pos_idx.size == self.pg.size
+        self.zero = np.array(0.0)
         # --- the readings on the rows and their like
         self.a, self.b, self.ab, self.ab2 = e(rs), np.zeros(rs), e(rs), e(rs)
         self.m_ok, self.g = e(rs, bool), e(rs, bool)
@@ -129,9 +165,7 @@ class _Scratch:
             self.gf, self.mf = self.g[nq * k:].reshape(fl), self.m_ok[nq * k:].reshape(fl)
             q = np.arange(nq).reshape(lead)[..., None, None]
             self.d_idx = np.broadcast_to(q * k + kf, fl).copy()  # the down range, thrice per quad
-            self.om_idx = (3 * q + np.array([1, 0, 2])).astype(np.intp)  # omega (x, y, z) -> (y, x, z)
-            self.om_signs = full(np.array([-1.0, 1.0, 1.0]), fl)  # + (-omega_y, omega_x, .)
-            self.dd, self.om = e(fl), e(fl)
+            self.dd = e(fl)
             self.perm = np.arange(rs)  # the flow's x and y lanes swapped (max(|x|, |y|) on both)
             self.perm[nq * k:] = (nq * k + 3 * np.arange(nq)[:, None] + np.array([1, 0, 2])).ravel()
 
@@ -163,10 +197,11 @@ class _Scratch:
             cols += [q * k + kf, fq, fq + 1, rs + q * k + kf, rs + fq]
         self.cols = np.concatenate(cols, axis=1).reshape(lead + (-1,))
         assert np.all(sensors.ray_limits(s) == s.range_limit)  # no depth: one limit for every ray
-        for x in (self.planes, self.g_lo, self.g_hi, self.signs, self.r_idx, self.pos_idx, self.lim, self.lo,
+        for x in (self.g_lo, self.g_hi, self.signs, self.r_idx, self.pos_idx, self.lim, self.lo,
                   self.hi, self.template, self.cols, *self.tof, self.dropout, self.scale, self.tiny, self.d_min,
-                  self.min_range, self.gain, *((self.r2, self.h_idx, self.hsigns) if self.r2 is not None else ()),
-                  *((self.d_idx, self.om_idx, self.om_signs, self.perm) if f else ())):
+                  self.min_range, self.gain, self.zero,
+                  *((self.r2, self.h_idx, self.hsigns) if self.r2 is not None else ()),
+                  *((self.d_idx, self.perm) if f else ())):
             x.setflags(write=False)
 
 
@@ -190,44 +225,45 @@ def _scratch(cfg: Any, shape: tuple[int, ...]) -> _Scratch:
     return hit[1]
 
 
-def _axis_hits(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray) -> None:
+def _axis_hits(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray) -> None:
     """``sensor_rays._axis_hits_numpy`` (the same bits) into ``p.t`` (..., N, 3, 2): the ranges along the
-    +-body axes. Call with the divide and invalid errors ignored."""
-    if p.vel_row:
-        p.pv_pos[...] = pos
-        p.pv_vel[...] = vel
+    +-body axes; with the flow deck also ``p.om_terms`` = omega (y, x, z) (-1, 1, 1) (the flow's rate terms,
+    ``sensors.flow_pixels2``'s product) and, with the hitbox test, the body velocity in ``p.ob_vel``. Call with
+    the divide and invalid errors ignored."""
+    if p.src_pv:
+        _concatenate((pos, vel, omega), 0, p.pv3)
         p.pv.take(p.pos_idx, None, p.pg, "wrap")
     else:
         pos.take(p.pos_idx, None, p.pg, "wrap")
+    _sub(p.xa, p.xb, out=p.xb)  # high and low planes minus pos; quad j - quad i (, vel - 0)
     gaps = p.gaps
-    _sub(p.planes, gaps, out=gaps)  # high and low planes minus pos
     _clip(gaps, p.g_lo, p.g_hi, out=gaps)  # kept > 0 (high) and < 0 (low)
-    inv = R.take(p.r_idx, None, p.inv, "wrap")
-    _div(p.signs, inv, out=inv)  # 1 / (+-R[a, c])
-    _mul(gaps, inv, out=p.q)
-    _max(p.q0, p.q1, out=p.m)  # the plane ahead (the larger quotient, > 0)
+    R.take(p.r_idx, None, p.rg_r, "wrap")
+    inv = _div(p.signs, p.rg, out=p.inv)  # (-1, 1, 1); 1 / (+-R[a, c])
+    _mul(p.xq, inv, out=p.qx)  # the rates' terms; the room's quotients
+    _max(p.q0, p.q1, out=p.m)  # the plane ahead along each world axis (the larger quotient, > 0)
     t = p.t
+    if p.r2 is not None:
+        # p.o (..., N (i), N (j) (+ 1), 3): quad j - quad i (, vel); body frame of quad i:
+        _matmul(p.o, R, out=p.ob)  # ob[i, j, c] = sum_a o[i, j, a] R[i, a, c]
+        disc = _mul(p.ob_cm, p.ob_cm, out=p.disc)  # (c, ..., N, N (+ 1))
+        c = _add(p.disc0, p.disc1, out=p.cc)  # (np.add.reduce over the 3 components: the same sums)
+        _add(c, p.disc2, out=c)
+        _sub(c, p.r2, out=c)  # |offset|^2 - r^2 (a rotation keeps the length); inf on the diagonal
+        _sub(disc, p.cc1, out=disc)  # >= 0: the line of ray +-c meets the sphere
+        if _count_nonzero(_ge(disc, p.zero, out=p.meets)):  # (= fmax.reduce(disc) >= 0: disc is never NaN)
+            # along +-c the hit is +-ob_c - sqrt(disc); kept where >= 0 (a miss: NaN, behind: < 0; both order
+            # above +inf as unsigned integers)
+            _sqrt(disc, out=disc)
+            p.hb.take(p.h_idx, None, p.hg, "wrap")  # (j, ..., N (i), c, +-): ob, sqrt(disc); the room's 3 axes
+            obg = _mul(p.obg, p.hsigns, out=p.obg)
+            _sub(obg, p.sqg, out=obg)
+            _min_reduce(p.obg_u, axis=0, out=p.tu)  # the nearest of the neighbours and the room's planes (> 0)
+            if _count_nonzero(_lt(c, p.zero, out=p.c_neg)):  # (inside another's hitbox: disc > 0 along every axis)
+                t[np.logical_or.reduce(p.c_neg, axis=-1)] = 0.0
+            return
     _min(p.m0, p.m1, out=t)  # the nearest over the 3 world axes
     _min(t, p.m2, out=t)
-    if p.r2 is None:
-        return
-    o = _sub(p.pj, p.pi, out=p.pj)  # (..., N (i), N (j) (+ 1), 3): quad j - quad i (, vel)
-    ob = _matmul(o, R, out=p.ob)  # body frame of quad i: ob[i, j, c] = sum_a o[i, j, a] R[i, a, c]
-    disc = _mul(ob, ob, out=p.disc)
-    c = _add_reduce(disc, axis=-1, out=p.cc)
-    _sub(c, p.r2, out=c)  # |offset|^2 - r^2 (a rotation keeps the length); inf on the diagonal
-    _sub(disc, p.cc3, out=disc)  # >= 0: the line of ray +-c meets the sphere
-    if _fmax_reduce(disc, axis=None) >= 0.0:
-        # along +-c the hit is +-ob_c - sqrt(disc); kept where >= 0 (a miss: NaN, behind: < 0; both order
-        # above +inf as unsigned integers)
-        _sqrt(disc, out=disc)
-        p.hb.take(p.h_idx, None, p.hg, "wrap")  # (j, ..., N (i), c, +-): ob, sqrt(disc); the room's t
-        obg = _mul(p.obg, p.hsigns, out=p.obg)
-        _sub(obg, p.sqg, out=obg)
-        _min_reduce(p.obg_u, axis=0, out=p.tu)  # the nearest of the neighbours and the room (t: finite, >= 0)
-        if _fmin_reduce(c, axis=None) < 0.0:  # (inside another's hitbox: disc > 0 along every axis)
-            inside = np.logical_or.reduce(c < 0.0, axis=-1)
-            t[inside] = 0.0
 
 
 def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
@@ -235,6 +271,10 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     """:func:`quadswarm_mj.sensors.deck_part` (same arguments, the same bits) for NumPy arrays with the
     multi-ranger and/or flow deck (float64); the depth camera's part by
     :func:`quadswarm_mj.perf.numpy_depth.deck_part`; otherwise the model's function."""
+    last = getattr(_LOCAL, "last", None)
+    if (last is not None and last[0] is cfg and type(pos) is np.ndarray and pos.dtype is _F64
+            and last[1].shape == pos.shape and (draws is None or "range_u" in draws)):  # as last call's
+        return _run(last[1], pos, vel, R, omega, obstacles, draws)
     s = cfg.sensors
     if s.depth is not None:
         if not (s.multiranger or s.flow):  # the depth camera alone
@@ -244,10 +284,46 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     if (s.depth is not None or type(pos) is not np.ndarray or pos.dtype != np.float64 or not s.any
             or (draws is not None and "range_u" not in draws)):
         return sensors.deck_part(cfg, pos, vel, R, omega, obstacles, draws)
-    last = getattr(_LOCAL, "last", None)
     p = last[1] if last is not None and last[0] is cfg and last[1].shape == pos.shape else _scratch(cfg, pos.shape)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+    return _run(p, pos, vel, R, omega, obstacles, draws)
+
+
+_F64 = np.dtype(np.float64)
+
+
+def _run(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray, obstacles: Any,
+         draws: dict[str, Any] | None) -> np.ndarray:
+    """:func:`_deck_part` with the divide, invalid and overflow errors ignored (the caller's state back after)."""
+    if _ERR_STATE is None:  # pragma: no cover
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            return _deck_part(p, pos, vel, R, omega, obstacles, draws)
+    token = _ignore_errors()
+    try:
         return _deck_part(p, pos, vel, R, omega, obstacles, draws)
+    finally:
+        _ERR_STATE.reset(token)
+
+
+try:  # NumPy's floating-point error state (what np.errstate sets), for a cheaper errstate
+    from numpy._core.umath import _extobj_contextvar as _ERR_STATE
+    from numpy._core.umath import _make_extobj
+except ImportError:  # pragma: no cover (other NumPy versions: np.errstate's own state)
+    _ERR_STATE = _make_extobj = None
+_IGNORING: dict[Any, Any] = {}  # the caller's error state -> it with divide, invalid, over ignored
+
+
+def _ignore_errors() -> Any:
+    """``np.errstate(divide="ignore", invalid="ignore", over="ignore").__enter__()`` at a fraction of its
+    cost (the state made once per caller's state): the token for ``_ERR_STATE.reset``."""
+    cur = _ERR_STATE.get()
+    ext = _IGNORING.get(cur)
+    if ext is None:
+        ext = _make_extobj(divide="ignore", invalid="ignore", over="ignore")  # from the current state
+        with _LAST_LOCK:
+            if len(_IGNORING) >= 32:
+                _IGNORING.clear()
+            _IGNORING[cur] = ext
+    return _ERR_STATE.set(ext)
 
 
 _SPLIT: dict[int, tuple[Any, Any, Any]] = {}  # id(cfg) -> (cfg, its decks without the camera, the camera alone)
@@ -281,26 +357,25 @@ def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
     """:func:`deck_part`'s work (with the divide, invalid and overflow errors ignored): ``p.t`` the true
     ranges, then ``sensors._deck_part_numpy`` (the same bits) from them: the deck part in
     :func:`sensors.deck_layout` order (a fresh array)."""
-    _axis_hits(p, pos, vel, R)
+    _axis_hits(p, pos, vel, R, omega)
     if obstacles is not None:  # the rays' world x and y components: +-R[0, c], +-R[1, c] (as axis_hits)
         dx, dy = (np.stack([R[..., a, :], -R[..., a, :]], axis=-1).reshape(p.t6.shape) for a in range(2))
         _min(p.t6, column_hits_xy(pos, dx, dy, *obstacles), out=p.t6)
     if p.t_rays is not None:
         p.ranges[...] = p.t_rays
     rows, m = p.rows, p.m_ok
-    p.buf[...] = p.template  # invalid readings: the limit, flow 0, flags 0
+    _copyto(p.buf, p.template)  # invalid readings: the limit, flow 0, flags 0
     if p.f:  # the flow lanes: the body velocity over the down range, + (-omega_y, omega_x, .)
         if p.vel_row:  # (..., N, 1, 3) the body velocity (x, y used)
             flow = p.flow
-            flow[...] = p.ob_vel
+            _copyto(flow, p.ob_vel)
         else:
             flow = _matmul(vel[..., None, :], R, out=p.flow)
         dd = rows.take(p.d_idx, None, p.dd, "wrap")
         _ge(dd, p.min_range, out=p.gf)  # high enough for the flow
         _max(dd, p.d_min, out=dd)
         _div(flow, dd, out=flow)
-        om = omega.take(p.om_idx, None, p.om, "wrap")
-        _add(flow, _mul(om, p.om_signs, out=om), out=flow)
+        _add(flow, p.om_terms, out=flow)  # + (-omega_y, omega_x, .) (made in the cast)
     ab = _abs(rows, out=p.ab)  # the ranges (>= 0) and the flow's |x|, |y|
     if p.f:
         _max(ab, ab.take(p.perm, None, p.ab2, "wrap"), out=ab)  # max(|x|, |y|) on both flow lanes
@@ -335,6 +410,6 @@ def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
         _clip(a, p.lo, p.hi, out=a)  # the ranges to [0, limit], the flow to +-FLOW_LIMIT_PX
     else:
         _clip(rows, p.lo, p.hi, out=a)
-    _putmask(p.vals, m, a)  # the valid readings (the invalid keep the template's)
-    p.flags[...] = m
+    _copyto(p.vals, a, where=m)  # the valid readings (the invalid keep the template's)
+    _copyto(p.flags, m)
     return p.buf.take(p.cols)
