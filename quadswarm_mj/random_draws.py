@@ -6,7 +6,7 @@ randomization) declares the draws it needs as a *draw spec*: a dict mapping a na
 arrays with one of three samplers:
 
 * :class:`NumpySampler` – a seeded ``numpy.random.Generator`` (CPU envs),
-* :class:`JaxSampler` – a ``jax.random`` key, split per entry (MJX env, under ``jit``),
+* :class:`JaxSampler` – a ``jax.random`` key, one call per distribution (JAX engine, under ``jit``),
 * :class:`MeanSampler` – every draw replaced by its mean (``EnvConfig.without_noise()``).
 
 The model functions themselves only ever see arrays, so they are pure and identical
@@ -80,7 +80,8 @@ class MeanSampler:
 
 
 class JaxSampler:
-    """Draw a spec from a ``jax.random`` key; the key is split once per entry.
+    """Draw a spec from a ``jax.random`` key: one ``jax.random.uniform`` call for all its uniform
+    entries and one ``jax.random.normal`` call for all its normal ones (sliced per entry).
 
     Use inside ``jit``: the Python object only lives at trace time.
     """
@@ -94,16 +95,35 @@ class JaxSampler:
     def draw(self, spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
         import jax
 
-        out = {}
-        keys = jax.random.split(self.key, len(spec) + 1)
-        self.key = keys[0]
-        for k, (name, d) in zip(keys[1:], spec.items()):
-            shape = tuple(batch_shape) + tuple(d.shape)
-            if isinstance(d, Uniform):
-                out[name] = jax.random.uniform(k, shape, self.dtype, d.low, d.high)
-            else:
-                out[name] = d.mean + d.std * jax.random.normal(k, shape, self.dtype)
-        return out
+        self.key, k_u, k_n = jax.random.split(self.key, 3)
+        out: dict[str, Any] = {}
+        for kind, key in ((Uniform, k_u), (Normal, k_n)):
+            items = [(name, d, tuple(batch_shape) + tuple(d.shape)) for name, d in spec.items() if isinstance(d, kind)]
+            if not items:
+                continue
+            sizes = [int(np.prod(shape)) for _, _, shape in items]
+            flat = (jax.random.uniform if kind is Uniform else jax.random.normal)(key, (sum(sizes),), self.dtype)
+            start = 0
+            for (name, d, shape), size in zip(items, sizes):
+                x = flat[start:start + size].reshape(shape)
+                start += size
+                out[name] = d.low + (d.high - d.low) * x if kind is Uniform else d.mean + d.std * x
+        return {name: out[name] for name in spec}
+
+
+def jax_unit_numbers(key: Any, normal_mask: np.ndarray, dtype: Any = None) -> tuple[Any, Any]:
+    """(next key, numbers (len(normal_mask),)) from a ``jax.random`` key: N(0, 1) where ``normal_mask``,
+    U[0, 1) elsewhere, from one ``jax.random.normal`` and one ``jax.random.uniform`` call (use under
+    ``jit``). The JAX engine makes a step's numbers this way at the end of the previous step."""
+    import jax
+    import jax.numpy as jnp
+
+    dtype = dtype or jnp.float32
+    k_next, k_u, k_n = jax.random.split(key, 3)
+    normal_mask = np.asarray(normal_mask, bool)
+    at_normal, at_uniform = np.flatnonzero(normal_mask), np.flatnonzero(~normal_mask)
+    out = jnp.zeros(normal_mask.shape, dtype).at[at_uniform].set(jax.random.uniform(k_u, (at_uniform.size,), dtype))
+    return k_next, out.at[at_normal].set(jax.random.normal(k_n, (at_normal.size,), dtype))
 
 
 # ------------------------------------------------------------------------------- draw budgets

@@ -83,20 +83,25 @@ def test_velocity_stages_numpy_ops_equal_jax_ops_in_float64(model):
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
 
 
-def test_plain_jax_random_draws_beside_the_fused_ones():
-    """``draws="jax"`` (plain ``jax.random``, the default beside perf.fused_draws) runs the step; a bad
-    value is a clear error."""
+def test_jax_random_draws_are_the_default_and_fused_the_opt_in():
+    """``draws="jax"`` (the default: the next step's numbers from ``jax.random``, carried in the state) and
+    ``draws="fused"`` (perf.fused_draws) both run the step, with the same draws' layout; a bad value is a
+    clear error."""
     jax = pytest.importorskip("jax")
     from quadswarm_mj.envs.mjx_env import MjxQuadSwarmEnv
 
     with pytest.raises(ValueError, match="draws must be one of"):
         MjxQuadSwarmEnv(EnvConfig(num_quads=2), draws="numpy")
     cfg = EnvConfig(num_quads=2, downwash=True)
-    env = MjxQuadSwarmEnv(cfg, draws="jax")
-    assert not env._carry_numbers
-    s = jax.jit(env.reset)(jax.random.key(3))
-    assert "step_numbers" not in s.info
-    s2 = jax.jit(env.step)(s, jax.numpy.full((2, 4), cfg.quad.hover_action))
-    assert np.all(np.isfinite(np.asarray(s2.obs))) and int(s2.info["step"]) == 1
+    assert MjxQuadSwarmEnv(cfg).draws == "jax"
     data = jax.random.key_data
-    assert not np.array_equal(np.asarray(data(s2.info["rng"])), np.asarray(data(s.info["rng"])))
+    out = {}
+    for draws in ("jax", "fused"):
+        env = MjxQuadSwarmEnv(cfg, draws=draws)
+        assert env._carry_numbers
+        s = jax.jit(env.reset)(jax.random.key(3))
+        s2 = jax.jit(env.step)(s, jax.numpy.full((2, 4), cfg.quad.hover_action))
+        assert np.all(np.isfinite(np.asarray(s2.obs))) and int(s2.info["step"]) == 1
+        assert not np.array_equal(np.asarray(data(s2.info["rng"])), np.asarray(data(s.info["rng"])))
+        out[draws] = np.asarray(s2.info["step_numbers"])
+    assert out["jax"].shape == out["fused"].shape and not np.array_equal(out["jax"], out["fused"])

@@ -161,3 +161,39 @@ def test_step_numbers_with_tof_positions_are_the_deck_noise_of_the_same_uniforms
     mine = np.asarray(jax.jit(lambda v: tof_numbers(v, dropout))(jnp.asarray(u)))
     assert np.array_equal(np.isnan(mine), lost)
     np.testing.assert_allclose(mine[~lost], want[~lost], rtol=1e-3, atol=1e-3)
+
+
+def test_jax_unit_numbers_are_uniform_and_normal_at_their_positions():
+    """random_draws.jax_unit_numbers (the JAX engine's default step numbers): N(0, 1) at the mask's
+    positions and U[0, 1) elsewhere (KS), deterministic per key, a new key of the same type."""
+    from scipy import stats
+
+    from quadswarm_mj.random_draws import jax_unit_numbers
+
+    mask = np.random.default_rng(0).random(301) < 0.4
+    keys = jax.random.split(jax.random.key(2), 400)
+    k, x = jax.jit(jax.vmap(lambda key: jax_unit_numbers(key, mask)))(keys)
+    assert x.shape == (400, 301) and x.dtype == jnp.float32
+    x = np.asarray(x, np.float64)
+    u = x[:, ~mask].ravel()
+    assert u.min() >= 0.0 and u.max() < 1.0 and stats.kstest(u, "uniform").pvalue > 1e-3
+    assert stats.kstest(x[:, mask].ravel(), "norm").pvalue > 1e-3
+    _, again = jax.jit(lambda key: jax_unit_numbers(key, mask))(keys[0])
+    np.testing.assert_array_equal(np.asarray(again), x[0].astype(np.float32))
+    assert jax.dtypes.issubdtype(k.dtype, jax.dtypes.prng_key)
+    raw = jax_unit_numbers(jax.random.PRNGKey(1), mask)[0]
+    assert raw.dtype == jnp.uint32 and raw.shape == (2,)
+
+
+def test_jax_sampler_shapes_moments_and_spec_order():
+    """random_draws.JaxSampler (one uniform and one normal call): each entry in its shape and law, the
+    spec's order kept."""
+    from quadswarm_mj.random_draws import JaxSampler
+
+    spec = {"b": Normal(1.0, 0.5, (2, 3)), "a": Uniform(-2.0, 3.0, (4,)), "c": Normal(0.0, 2.0)}
+    d = JaxSampler(jax.random.key(0)).draw(spec, (5000,))  # eager: jit's output dict has sorted keys
+    assert list(d) == ["b", "a", "c"]
+    a, b, c = (np.asarray(d[k]) for k in "abc")
+    assert a.shape == (5000, 4) and b.shape == (5000, 2, 3) and c.shape == (5000,)
+    assert a.min() >= -2.0 and a.max() < 3.0 and abs(a.mean() - 0.5) < 0.05
+    assert abs(b.mean() - 1.0) < 0.01 and abs(b.std() - 0.5) < 0.01 and abs(c.std() - 2.0) < 0.1

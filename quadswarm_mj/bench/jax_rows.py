@@ -97,6 +97,8 @@ def jax_rows(rows: set[str], args: Any, seconds: float, repeat: int, steps: int)
                             f"{100 * res['cost']:+.0f} % step time vs the same swarm without obstacles "
                             f"({fmt(res['without'])}); median of {rounds} alternating rounds, range "
                             f"{100 * res['cost_min']:+.0f} to {100 * res['cost_max']:+.0f} %"))
+    if "draws" in rows:
+        out += draws_rows([int(x) for x in args.draws_worlds.split(",")], args.draws_rounds, steps)
     if "jaxsingle" in rows:
         rate = bench_single_jax(8, seconds, repeat)
         peer = peers.get(1)
@@ -139,3 +141,59 @@ def jax_rows(rows: set[str], args: Any, seconds: float, repeat: int, steps: int)
     lines = ["| configuration | samples/s | compile (s) | ratio (same run) |", "|---|---:|---:|---|"]
     lines += [f"| {a} | {fmt(b)} | {c} | {d} |" for a, b, c, d in out]
     return "\n".join(lines)
+
+
+def alternating_draws(worlds: int, sensors: bool, rounds: int, steps: int) -> dict[str, Any] | None:
+    """The JAX engine's jitted rollout (``benchmark_mjx``, paper defaults, ``worlds`` x 8 on one device;
+    ``sensors``: the multi-ranger and flow decks on) with ``draws="fused"`` against ``draws="jax"``
+    (:class:`~quadswarm_mj.envs.mjx_env.MjxQuadSwarmEnv`) in ``rounds`` alternating rounds of fresh
+    processes (fused, then jax). Returns the per-round samples/s of each (wall: ``fused``, ``jax``; CPU
+    time: ``fused_cpu``, ``jax_cpu``) and the per-round ratios fused / jax (``ratios``, ``cpu_ratios``),
+    or None when a round failed (JAX missing)."""
+    from quadswarm_mj.bench.peers import _fresh_process
+
+    cfg = ("EnvConfig(num_quads=8, sensors=SensorConfig(multiranger=True, flow=True))" if sensors
+           else "EnvConfig(num_quads=8)")
+    out: dict[str, list[float]] = {"fused": [], "jax": [], "fused_cpu": [], "jax_cpu": [], "ratios": [],
+                                   "cpu_ratios": []}
+    for r in range(rounds):
+        for draws in ("fused", "jax"):
+            code = ("import json; from quadswarm_mj.devices import tune_jax_cpu, use_cpu_cores; tune_jax_cpu(); "
+                    "use_cpu_cores(1, strict=False); from quadswarm_mj import EnvConfig, SensorConfig; "
+                    "from quadswarm_mj.envs.mjx_env import benchmark_mjx; "
+                    f"print('RESULT', json.dumps(benchmark_mjx({cfg}, {worlds}, {steps}, devices=1, draws='{draws}')))")
+            res = _fresh_process(code, {})
+            if not res:
+                return None
+            out[draws].append(res["samples_per_s"])
+            out[f"{draws}_cpu"].append(res["cpu_samples_per_s"])
+        out["ratios"].append(out["fused"][-1] / out["jax"][-1])
+        out["cpu_ratios"].append(out["fused_cpu"][-1] / out["jax_cpu"][-1])
+        print(f"  draws {worlds} x 8{' + decks' if sensors else ''}, round {r + 1}/{rounds}: fused "
+              f"{fmt(out['fused'][-1])} (CPU {fmt(out['fused_cpu'][-1])}), jax {fmt(out['jax'][-1])} (CPU "
+              f"{fmt(out['jax_cpu'][-1])}), ratio {out['ratios'][-1]:.2f} (CPU {out['cpu_ratios'][-1]:.2f})",
+              flush=True)
+    return out
+
+
+def draws_rows(worlds: list[int], rounds: int, steps: int) -> list[tuple[str, float | None, str, str]]:
+    """Rows of :func:`alternating_draws` at each of ``worlds`` (``steps`` x 512 / worlds control steps per
+    rollout, at least ``steps``), decks off and on: the jax form's median samples/s and the ratios."""
+    import statistics
+
+    out = []
+    for W in worlds:
+        for sensors in (False, True):
+            res = alternating_draws(W, sensors, rounds, max(steps, steps * 512 // W))
+            if res is None:
+                print("  draws rows skipped (JAX not available)", flush=True)
+                return out
+            med = statistics.median
+            out.append((f"JAX engine, {W} x 8, paper defaults{', multiranger + flow' if sensors else ''}, 1 device, "
+                        f"draws='jax' ({rounds} alternating rounds of fresh processes with draws='fused')",
+                        med(res["jax"]), "",
+                        f"fused / jax: median {med(res['ratios']):.2f}x (range {min(res['ratios']):.2f} to "
+                        f"{max(res['ratios']):.2f}), CPU time {med(res['cpu_ratios']):.2f}x (range "
+                        f"{min(res['cpu_ratios']):.2f} to {max(res['cpu_ratios']):.2f}); fused median "
+                        f"{fmt(med(res['fused']))}"))
+    return out

@@ -5,7 +5,7 @@ samples/s = quad-steps per second (one quad advanced one 100 Hz control step = 2
 (``--rows``): ``single`` and ``vector`` (the MuJoCo engine's envs), ``jax`` (``benchmark_mjx``'s jitted
 rollout; ``--ablations`` switches stages on or off), ``jaxsingle`` and ``jaxvector`` (the envs with
 ``engine="jax"``), ``peers`` (crazyflow's ``Sim``), ``obstacles`` (the cost of 12 columns), ``gym``
-(``gym.make("QuadSwarm-v0")`` against Hopper-v5) and ``sensors`` (the deck sensors' cost, both engines).
+(against Hopper-v5), ``sensors`` (the decks' cost) and ``draws`` (``draws="fused"`` vs ``"jax"``).
 Env rows have the bare-MuJoCo ceiling (free bodies, no contacts, ``mj_step`` or ``mujoco.rollout``).
 Each figure is the best of ``--repeat`` runs of ``--seconds``; every ratio is of figures of the same run,
 and ``--alternate R`` measures the peer and floor ratios in R alternating rounds (medians).
@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rows", default="single,vector,jax,jaxsingle,jaxvector,peers,gym",
                    help="comma list of single, vector, jax (mjx is an alias), jaxsingle, jaxvector, peers, obstacles, "
                         "gym (gym.make('QuadSwarm-v0') vs gymnasium's Hopper-v5, first-step time), sensors (the deck "
-                        "sensors' cost, both engines)")
+                        "sensors' cost, both engines), draws (draws='fused' vs 'jax', alternating fresh processes)")
     p.add_argument("--single-n", default="1,8,32,128")
     p.add_argument("--vector-b", default="64,256,1024")
     p.add_argument("--mjx-steps", type=int, default=200)
@@ -106,6 +106,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sensor-worlds", type=int, default=512, help="worlds of the JAX engine's sensor rows ('sensors')")
     p.add_argument("--sensor-rounds", type=int, default=5,
                    help="alternating rounds of the sensor rows ('sensors'; median ratios to no sensors)")
+    p.add_argument("--draws-worlds", default="512,16", help="worlds of the 'draws' rows (1 device; default 512,16)")
+    p.add_argument("--draws-rounds", type=int, default=5, help="alternating rounds of the 'draws' rows (default 5)")
     p.add_argument("--ablations", action="store_true",
                    help="JAX engine at 512 x 8 with stages switched off/on (where the time goes)")
     p.add_argument("--skip-mjx", action="store_true")
@@ -150,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     if "mjx" in rows:
         rows.add("jax")
     if args.skip_mjx:
-        rows -= {"mjx", "jax", "jaxsingle", "jaxvector", "peers", "obstacles", "gym"}
+        rows -= {"mjx", "jax", "jaxsingle", "jaxvector", "peers", "obstacles", "gym", "draws"}
     command = "python scripts/benchmark.py " + " ".join(sys.argv[1:] if argv is None else argv)
     started = datetime.datetime.now().astimezone()
     load0 = load()

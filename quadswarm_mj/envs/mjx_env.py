@@ -7,7 +7,8 @@ compile with ``jax.jit``, renew finished worlds with :class:`AutoResetWrapper` (
 ``step`` is :func:`quadswarm_mj.core.control.control_step` with :class:`~quadswarm_mj.core.ops.JaxOps`
 (always-on stages, budgeted draws: ``tests/test_draw_budget.py``); the reset math is
 :func:`quadswarm_mj.pipeline.initial_state`, shared with the CPU engine. ``physics``: the exact free-body
-step or ``mjx.step`` (MuJoCo contacts). Random numbers: :mod:`quadswarm_mj.perf.fused_draws`; per-world
+step or ``mjx.step`` (MuJoCo contacts). Random numbers: ``jax.random`` (or :mod:`quadswarm_mj.perf.fused_draws`
+with ``draws="fused"``), made one step ahead into the state; per-world
 randomization is redrawn at every ``reset`` into ``info["params"]`` and reaches ``mjx.step`` through
 ``model.replace``. ``State``'s fields: :class:`quadswarm_mj.core.state.State`; design: docs/engines.md.
 Without noise this engine (float32) and the CPU engine (float64) agree to well under 2 mm over 150
@@ -65,10 +66,11 @@ from quadswarm_mj.perf.fused_draws import (  # noqa: F401  re-exported (their ho
     step_key_and_numbers,
     step_words,
     threefry_2x32_unrolled,
+    tof_numbers,
 )
 from quadswarm_mj.perf.jax_substeps import ComponentLoop
 from quadswarm_mj.physics.mjx import MjxPhysics
-from quadswarm_mj.random_draws import DrawSpec, JaxSampler, MeanSampler, Uniform
+from quadswarm_mj.random_draws import DrawSpec, JaxSampler, MeanSampler, Uniform, jax_unit_numbers
 from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
 from quadswarm_mj.rewards import env_terms
 from quadswarm_mj.scenarios import get_scenario
@@ -76,7 +78,7 @@ from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, sce
 from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
 
 PHYSICS = ("freebody", "mjx")
-DRAWS = ("fused", "jax")
+DRAWS = ("jax", "fused")
 
 
 def _obst_lib() -> Any:
@@ -120,10 +122,12 @@ class MjxQuadSwarmEnv:
     contact-free free bodies, exact) or ``"mjx"`` (``mjx.step``, generic: builds and factors the
     dense mass matrix). Both keep ``mjx.Data`` as the state; with "freebody" the derived fields
     (``xpos``...) are not recomputed (``mjx.get_data`` + ``mj_forward`` for rendering). ``draws``:
-    ``"fused"`` (:mod:`quadswarm_mj.perf.fused_draws`) or ``"jax"`` (plain ``jax.random``, one key per entry).
+    ``"jax"`` (the default: a step's numbers from ``jax.random.uniform``/``normal``,
+    :func:`~quadswarm_mj.random_draws.jax_unit_numbers`) or ``"fused"`` (opt-in: one unrolled threefry
+    hash and its own erfinv, :mod:`quadswarm_mj.perf.fused_draws`; docs/engines.md, "What pays").
     """
 
-    def __init__(self, cfg: EnvConfig | None = None, physics: str | None = None, draws: str = "fused"):
+    def __init__(self, cfg: EnvConfig | None = None, physics: str | None = None, draws: str = "jax"):
         cfg = EnvConfig() if cfg is None else cfg
         if not isinstance(cfg, EnvConfig):
             raise ValueError(f"cfg must be an EnvConfig, got {type(cfg).__name__}")
@@ -204,8 +208,8 @@ class MjxQuadSwarmEnv:
         # The next step's random numbers are made at the end of a step (and by reset) and carried in
         # info["step_numbers"]: computed once into the state instead of inside the step, where XLA fuses
         # the normals' erf_inv into every consumer (or needs a loop to materialize them).
-        self._carry_numbers = (draws == "fused" and bool(self._step_spec)
-                               and FusedJaxSampler.fused(jax.random.key(0), _float()))
+        self._carry_numbers = bool(self._step_spec) and (draws == "jax"
+                                                         or FusedJaxSampler.fused(jax.random.key(0), _float()))
         # the deck rays' uniforms are carried as their ToF noise (perf.fused_draws.tof_numbers, made with
         # the numbers' own erf_inv), which build_obs takes as draws["deck/range_z"]: the same readings
         self._tof_mask = FusedJaxSampler.entry_mask(self._step_spec, _DECK_U) if self._carry_numbers else None
@@ -244,8 +248,8 @@ class MjxQuadSwarmEnv:
 
     # ------------------------------------------------------------------ helpers
     def _draw(self, spec: DrawSpec, key: jax.Array, mean_spec: DrawSpec | None = None) -> dict[str, jax.Array]:
-        """Random draws of ``spec`` (one fused threefry call per distribution type) and the means
-        of ``mean_spec``, in one flat dict."""
+        """Random draws of ``spec`` (:class:`~quadswarm_mj.random_draws.JaxSampler`, or with ``draws="fused"``
+        :class:`~quadswarm_mj.perf.fused_draws.FusedJaxSampler`) and the means of ``mean_spec``, in one flat dict."""
         sampler = FusedJaxSampler if self.draws == "fused" else JaxSampler
         out = sampler(key, _float()).draw(spec) if spec else {}
         if mean_spec:
@@ -253,12 +257,18 @@ class MjxQuadSwarmEnv:
         return out
 
     def _next_numbers(self, key: jax.Array) -> dict[str, jax.Array]:
-        """``{"rng": next key, "step_numbers": the next step's unit numbers}`` from ``key`` (one unrolled
-        threefry hash, :func:`step_words`); empty where the numbers are not carried."""
+        """``{"rng": next key, "step_numbers": the next step's unit numbers}`` from ``key`` (``jax.random``, or
+        with ``draws="fused"`` one unrolled threefry hash); empty where the numbers are not carried."""
         if not self._carry_numbers:
             return {}
-        k_next, numbers = step_key_and_numbers(key, FusedJaxSampler.normal_mask(self._step_spec), self._tof_mask,
-                                               self.cfg.sensors.dropout)
+        normal_mask, dropout = FusedJaxSampler.normal_mask(self._step_spec), self.cfg.sensors.dropout
+        if self.draws == "fused":
+            k_next, numbers = step_key_and_numbers(key, normal_mask, self._tof_mask, dropout)
+            return {"rng": k_next, "step_numbers": numbers}
+        k_next, numbers = jax_unit_numbers(key, normal_mask, _float())
+        if self._tof_mask is not None:  # the deck rays' uniforms -> their ToF noise (NaN: lost)
+            at = np.flatnonzero(self._tof_mask)
+            numbers = numbers.at[at].set(tof_numbers(numbers[at], dropout).astype(numbers.dtype))
         return {"rng": k_next, "step_numbers": numbers}
 
     def _read(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
@@ -446,13 +456,14 @@ class MjxQuadSwarmEnv:
 
 
 def benchmark_mjx(cfg: EnvConfig, num_worlds: int, num_steps: int, seed: int = 0,
-                  physics: str | None = None, devices: int | None = None, draws: str = "fused") -> dict[str, float]:
+                  physics: str | None = None, devices: int | None = None, draws: str = "jax") -> dict[str, float]:
     """Time ``num_steps`` control steps of ``num_worlds`` worlds (auto-reset, hover actions).
 
     Worlds are sharded over all JAX devices when their number divides ``num_worlds``. The rollout
     is one jitted ``lax.scan``; ``compile_s`` is the time to trace and compile it (reset and
     rollout), ``samples_per_s`` counts quad-steps (worlds x quads x steps) per second of the
-    compiled rollout (median of 3 runs). Returns also ``steps_per_s`` (world-steps per second),
+    compiled rollout (median of 3 runs), ``cpu_samples_per_s`` the same per second of this process's
+    CPU time (all its threads: steadier on a shared machine). Returns also ``steps_per_s`` (world-steps per second),
     ``num_worlds``, ``num_quads``, ``num_steps``, ``devices``. ``physics``: see
     :class:`MjxQuadSwarmEnv` (None: its default). ``devices``: use at most that many of
     ``jax.devices()`` (None: all; :func:`quadswarm_mj.use_cpu_cores` gives one CPU device per core).
@@ -483,12 +494,14 @@ def benchmark_mjx(cfg: EnvConfig, num_worlds: int, num_steps: int, seed: int = 0
     state = jax.block_until_ready(reset(keys))
     run_c = run.lower(state).compile()
     compile_s = time.perf_counter() - t0
-    times = []
+    times, cpu = [], []
     for _ in range(3):
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
         state = jax.block_until_ready(run_c(state))
         times.append(time.perf_counter() - t1)
+        cpu.append(time.process_time() - c1)
     dt = float(np.median(times))
     return {"samples_per_s": num_worlds * cfg.num_quads * num_steps / dt, "compile_s": compile_s,
+            "cpu_samples_per_s": num_worlds * cfg.num_quads * num_steps / max(float(np.median(cpu)), 1e-9),
             "steps_per_s": num_worlds * num_steps / dt, "num_worlds": num_worlds, "num_quads": cfg.num_quads,
             "num_steps": num_steps, "devices": shard.num_devices}

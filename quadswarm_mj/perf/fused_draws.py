@@ -6,7 +6,8 @@ from the words as ``jax.random.uniform`` / ``jax.random.normal`` make them (the 
 :func:`step_key_and_numbers` makes the next step's numbers in one pass over an unrolled threefry
 (:func:`threefry_2x32_unrolled`, bit-identical to ``jax.extend.random.threefry_2x32``) with its own
 float32 ``erf_inv`` (:func:`erf_inv_f32`) and the results packed two per complex64; the JAX engine
-carries them in ``info["step_numbers"]``. Why each trick pays on XLA:CPU is said where it is made;
+with ``draws="fused"`` (opt-in; the default is ``jax.random``) carries them in ``info["step_numbers"]``.
+Why each trick pays on XLA:CPU is said where it is made;
 ``tests/test_jax_draws.py`` checks the same values (bits, or the distributions) as the plain forms.
 """
 
@@ -237,7 +238,7 @@ class FusedJaxSampler(JaxSampler):
 
     def draw(self, spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
         if not spec or not self.fused(self.key, self.dtype):
-            return self._draw_two_calls(spec, batch_shape)
+            return super().draw(spec, batch_shape)
         from jax.extend.random import threefry_2x32
 
         self.key, k = jax.random.split(self.key)
@@ -299,20 +300,4 @@ class FusedJaxSampler(JaxSampler):
             else:  # jax.random.normal: uniform on [nextafter(-1, 0), 1), then sqrt(2) erfinv
                 out[name] = d.mean + d.std * std_normal[start:start + size].reshape(shape)
             start += size
-        return out
-
-    def _draw_two_calls(self, spec: DrawSpec, batch_shape: tuple[int, ...] = ()) -> dict[str, Any]:
-        self.key, k_u, k_n = jax.random.split(self.key, 3)
-        out: dict[str, Any] = {}
-        for kind, key in ((Uniform, k_u), (Normal, k_n)):
-            items = [(name, d, tuple(batch_shape) + tuple(d.shape)) for name, d in spec.items() if isinstance(d, kind)]
-            if not items:
-                continue
-            sizes = [int(np.prod(shape)) for _, _, shape in items]
-            flat = (jax.random.uniform if kind is Uniform else jax.random.normal)(key, (sum(sizes),), self.dtype)
-            start = 0
-            for (name, d, shape), size in zip(items, sizes):
-                x = flat[start:start + size].reshape(shape)
-                start += size
-                out[name] = d.low + (d.high - d.low) * x if kind is Uniform else d.mean + d.std * x
         return out
