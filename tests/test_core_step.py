@@ -85,8 +85,8 @@ def test_velocity_stages_numpy_ops_equal_jax_ops_in_float64(model):
 
 def test_fused_draws_are_the_default_and_jax_random_the_opt_in():
     """``draws="fused"`` (the default, perf.fused_draws) and ``draws="jax"`` (the next step's numbers from
-    ``jax.random``, carried in the state as the fused form does) both run the step, with the same draws' layout; a bad value is a
-    clear error."""
+    ``jax.random``, carried in the state as the fused form does) both run the step, with the same draws'
+    layout; a bad value is a clear error."""
     jax = pytest.importorskip("jax")
     from quadswarm_mj.envs.mjx_env import MjxQuadSwarmEnv
 
