@@ -324,11 +324,13 @@ class NumpyOps(ModelForms):
                 from quadswarm_mj.random_draws import Uniform
                 from quadswarm_mj.sensors import deck_draw_spec
 
-                self._deck_spec = [(k, isinstance(d, Uniform), *((d.low, d.high) if isinstance(d, Uniform)
-                                    else (d.mean, d.std)), (s.B,) + tuple(d.shape))
-                                   for k, d in deck_draw_spec(s.cfg).items()]
-            return {k: (s.rng.uniform if uni else s.rng.normal)(a, b, size=shape)
-                    for k, uni, a, b, shape in self._deck_spec}
+                spec = deck_draw_spec(s.cfg)
+                assert all((d.low, d.high) == (0.0, 1.0) if isinstance(d, Uniform) else (d.mean, d.std) == (0.0, 1.0)
+                           for d in spec.values())
+                self._deck_spec = [(k, isinstance(d, Uniform), (s.B,) + tuple(d.shape)) for k, d in spec.items()]
+            # random / standard_normal: the bits of uniform(0, 1) / normal(0, 1) without their argument
+            # checks (the spec's bounds are those; tests/test_draw_log.py compares the values' hashes)
+            return {k: (s.rng.random if uni else s.rng.standard_normal)(shape) for k, uni, shape in self._deck_spec}
         if kind == "wall":
             return s._sampler(noise.stochastic_collisions).draw(s._spec_wall, (s._count(w),))
         if kind == "yaw":  # = s._sampler(...).draw(s._spec_floor, (M,))["yaw"]
