@@ -123,7 +123,7 @@ class MjxQuadSwarmEnv:
     dense mass matrix). Both keep ``mjx.Data`` as the state; with "freebody" the derived fields
     (``xpos``...) are not recomputed (``mjx.get_data`` + ``mj_forward`` for rendering). ``draws``:
     ``"fused"`` (the default: one unrolled threefry hash and its own erfinv,
-    :mod:`quadswarm_mj.perf.fused_draws`; 1.31x the samples/s of ``"jax"`` at 512 x 8, docs/engines.md,
+    :mod:`quadswarm_mj.perf.fused_draws`; 1.17-1.31x the samples/s of ``"jax"`` at 512 x 8, docs/engines.md,
     "What pays") or ``"jax"`` (a step's numbers from ``jax.random.uniform``/``normal``,
     :func:`~quadswarm_mj.random_draws.jax_unit_numbers`).
     """
