@@ -83,9 +83,9 @@ def test_velocity_stages_numpy_ops_equal_jax_ops_in_float64(model):
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
 
 
-def test_fused_draws_are_the_default_and_jax_random_the_opt_in():
-    """``draws="fused"`` (the default, perf.fused_draws) and ``draws="jax"`` (the next step's numbers from
-    ``jax.random``, carried in the state as the fused form does) both run the step, with the same draws'
+def test_jax_random_draws_are_the_default_and_fused_the_opt_in():
+    """``draws="jax"`` (the default: the next step's numbers from ``jax.random``, carried in the state) and
+    ``draws="fused"`` (opt-in, perf.fused_draws, carried the same way) both run the step, with the same draws'
     layout; a bad value is a clear error."""
     jax = pytest.importorskip("jax")
     from quadswarm_mj.envs.mjx_env import MjxQuadSwarmEnv
@@ -93,7 +93,7 @@ def test_fused_draws_are_the_default_and_jax_random_the_opt_in():
     with pytest.raises(ValueError, match="draws must be one of"):
         MjxQuadSwarmEnv(EnvConfig(num_quads=2), draws="numpy")
     cfg = EnvConfig(num_quads=2, downwash=True)
-    assert MjxQuadSwarmEnv(cfg).draws == "fused"
+    assert MjxQuadSwarmEnv(cfg).draws == "jax"
     data = jax.random.key_data
     out = {}
     for draws in ("jax", "fused"):

@@ -7,8 +7,8 @@ compile with ``jax.jit``, renew finished worlds with :class:`AutoResetWrapper` (
 ``step`` is :func:`quadswarm_mj.core.control.control_step` with :class:`~quadswarm_mj.core.ops.JaxOps`
 (always-on stages, budgeted draws: ``tests/test_draw_budget.py``); the reset math is
 :func:`quadswarm_mj.pipeline.initial_state`, shared with the CPU engine. ``physics``: the exact free-body
-step or ``mjx.step`` (MuJoCo contacts). Random numbers: :mod:`quadswarm_mj.perf.fused_draws` (or ``jax.random``
-with ``draws="jax"``), made one step ahead into the state; per-world
+step or ``mjx.step`` (MuJoCo contacts). Random numbers: ``jax.random`` (or :mod:`quadswarm_mj.perf.fused_draws`
+with ``draws="fused"``), made one step ahead into the state; per-world
 randomization is redrawn at every ``reset`` into ``info["params"]`` and reaches ``mjx.step`` through
 ``model.replace``. ``State``'s fields: :class:`quadswarm_mj.core.state.State`; design: docs/engines.md.
 Without noise this engine (float32) and the CPU engine (float64) agree to well under 2 mm over 150
@@ -122,13 +122,13 @@ class MjxQuadSwarmEnv:
     contact-free free bodies, exact) or ``"mjx"`` (``mjx.step``, generic: builds and factors the
     dense mass matrix). Both keep ``mjx.Data`` as the state; with "freebody" the derived fields
     (``xpos``...) are not recomputed (``mjx.get_data`` + ``mj_forward`` for rendering). ``draws``:
-    ``"fused"`` (the default: one unrolled threefry hash and its own erfinv,
-    :mod:`quadswarm_mj.perf.fused_draws`; 1.17-1.31x the samples/s of ``"jax"`` at 512 x 8, docs/engines.md,
-    "What pays") or ``"jax"`` (a step's numbers from ``jax.random.uniform``/``normal``,
-    :func:`~quadswarm_mj.random_draws.jax_unit_numbers`).
+    ``"jax"`` (the default: a step's numbers from ``jax.random.uniform``/``normal``,
+    :func:`~quadswarm_mj.random_draws.jax_unit_numbers`) or ``"fused"`` (opt-in: one unrolled threefry
+    hash and its own erfinv, :mod:`quadswarm_mj.perf.fused_draws`; 1.17-1.31x the samples/s at 512 x 8,
+    below the 1.3x a hand-written default needs, docs/engines.md, "What pays").
     """
 
-    def __init__(self, cfg: EnvConfig | None = None, physics: str | None = None, draws: str = "fused"):
+    def __init__(self, cfg: EnvConfig | None = None, physics: str | None = None, draws: str = "jax"):
         cfg = EnvConfig() if cfg is None else cfg
         if not isinstance(cfg, EnvConfig):
             raise ValueError(f"cfg must be an EnvConfig, got {type(cfg).__name__}")
@@ -457,7 +457,7 @@ class MjxQuadSwarmEnv:
 
 
 def benchmark_mjx(cfg: EnvConfig, num_worlds: int, num_steps: int, seed: int = 0,
-                  physics: str | None = None, devices: int | None = None, draws: str = "fused") -> dict[str, float]:
+                  physics: str | None = None, devices: int | None = None, draws: str = "jax") -> dict[str, float]:
     """Time ``num_steps`` control steps of ``num_worlds`` worlds (auto-reset, hover actions).
 
     Worlds are sharded over all JAX devices when their number divides ``num_worlds``. The rollout

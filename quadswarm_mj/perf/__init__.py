@@ -11,7 +11,7 @@ it through their ops (:mod:`quadswarm_mj.core.ops`), never the model.
 * ``numpy_loop``, ``numpy_swarm``, ``numpy_swarm_task``: the sub-step loop and the task half of several quads.
 * ``xla_cpu``: layouts and kernel boundaries for XLA:CPU (``worlds_last``, ``kernel_boundary``, integer
   sort keys); ``depth_xla``: the depth camera's hitbox test; ``jax_deck``: its deck part computed once.
-* ``fused_draws``: the default (``draws="fused"``) a JAX step's numbers from one threefry hash; the ToF
+* ``fused_draws``: opt-in (``draws="fused"``) a JAX step's numbers from one threefry hash; the ToF
   noise (``tof_numbers``) and the float32 erfinv that both draw forms use.
 * ``jax_substeps``: the JAX engine's default sub-step loop on components (``ComponentLoop``).
 * ``packing``: the JAX engine's state and outputs packed into few buffers at the host boundary.
