@@ -337,7 +337,7 @@ def test_deck_scratch_table_is_bounded_and_safe_across_threads():
         t.start()
     for t in threads:
         t.join()
-    assert not errors and len(numpy_deck._LAST) <= 32
+    assert not errors and len(numpy_deck._CACHE.table) <= 32
 
 
 @pytest.mark.parametrize("sensors", [{"multiranger": True, "flow": True}, {"depth": (4, 4)},

@@ -22,13 +22,13 @@ other inputs (JAX, float32, noise as ``range_z``) go to the model. ``core.ops.Nu
 from __future__ import annotations
 
 import dataclasses
-import threading
 from typing import Any
 
 import numpy as np
 
 from quadswarm_mj import sensors
 from quadswarm_mj.perf import numpy_depth
+from quadswarm_mj.perf.scratch_cache import LOCK, ScratchCache
 from quadswarm_mj.sensor_rays import column_hits_xy
 
 _clip = np._core.umath.clip
@@ -205,24 +205,10 @@ class _Scratch:
             x.setflags(write=False)
 
 
-_LAST: dict[tuple[int, tuple[int, ...], int], tuple[Any, _Scratch]] = {}  # (id(cfg), shape, thread) -> (cfg, .)
-_LAST_LOCK = threading.Lock()
-_LOCAL = threading.local()  # .last: this thread's last (cfg, scratch)
-
-
-def _scratch(cfg: Any, shape: tuple[int, ...]) -> _Scratch:
-    """The :class:`_Scratch` of ``cfg`` for positions of ``shape`` in this thread (made once; the last 32
-    kept)."""
-    key = (id(cfg), shape, threading.get_ident())
-    hit = _LAST.get(key)
-    if hit is None or hit[0] is not cfg:
-        hit = (cfg, _Scratch(cfg.sensors, shape, tuple(cfg.room_low), tuple(cfg.room_high), cfg.hitbox))
-        with _LAST_LOCK:  # envs stepped in several threads share the table
-            _LAST[key] = hit
-            while len(_LAST) > 32:
-                _LAST.pop(next(iter(_LAST)))
-    _LOCAL.last = hit
-    return hit[1]
+_CACHE = ScratchCache(lambda cfg, shape: _Scratch(cfg.sensors, shape, tuple(cfg.room_low), tuple(cfg.room_high),
+                                                  cfg.hitbox))
+_scratch = _CACHE.get  # the _Scratch of cfg for positions of shape in this thread
+_LOCAL = _CACHE.local  # .last: this thread's last (cfg, scratch)
 
 
 def _axis_hits(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray) -> None:
@@ -319,7 +305,7 @@ def _ignore_errors() -> Any:
     ext = _IGNORING.get(cur)
     if ext is None:
         ext = _make_extobj(divide="ignore", invalid="ignore", over="ignore")  # from the current state
-        with _LAST_LOCK:
+        with LOCK:
             if len(_IGNORING) >= 32:
                 _IGNORING.clear()
             _IGNORING[cur] = ext
@@ -339,7 +325,7 @@ def _with_depth(cfg: Any, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega
         s = cfg.sensors
         split = (cfg, cfg.replace(sensors=dataclasses.replace(s, depth=None)),
                  cfg.replace(sensors=dataclasses.replace(s, multiranger=False, flow=False)))
-        with _LAST_LOCK:
+        with LOCK:
             _SPLIT[id(cfg)] = split
             while len(_SPLIT) > 32:
                 _SPLIT.pop(next(iter(_SPLIT)))

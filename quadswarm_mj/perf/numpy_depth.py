@@ -16,12 +16,12 @@ Reached through :func:`quadswarm_mj.perf.numpy_deck.deck_part`; docs/sensors.md 
 
 from __future__ import annotations
 
-import threading
 from typing import Any
 
 import numpy as np
 
 from quadswarm_mj import sensor_rays, sensors
+from quadswarm_mj.perf.scratch_cache import ScratchCache
 
 _clip = np._core.umath.clip
 _add, _sub, _mul, _div, _abs, _where = np.add, np.subtract, np.multiply, np.divide, np.abs, np.where
@@ -129,24 +129,10 @@ class _Scratch:
             x.setflags(write=False)
 
 
-_LAST: dict[tuple[int, tuple[int, ...], int], tuple[Any, _Scratch]] = {}  # (id(cfg), shape, thread) -> (cfg, .)
-_LAST_LOCK = threading.Lock()
-_LOCAL = threading.local()  # .last: this thread's last (cfg, scratch)
-
-
-def _scratch(cfg: Any, shape: tuple[int, ...]) -> _Scratch:
-    """The :class:`_Scratch` of ``cfg`` for positions of ``shape`` in this thread (made once; the last 32
-    kept)."""
-    key = (id(cfg), shape, threading.get_ident())
-    hit = _LAST.get(key)
-    if hit is None or hit[0] is not cfg:
-        hit = (cfg, _Scratch(cfg.sensors, shape, tuple(cfg.room_low), tuple(cfg.room_high), cfg.hitbox))
-        with _LAST_LOCK:  # envs stepped in several threads share the table
-            _LAST[key] = hit
-            while len(_LAST) > 32:
-                _LAST.pop(next(iter(_LAST)))
-    _LOCAL.last = hit
-    return hit[1]
+_CACHE = ScratchCache(lambda cfg, shape: _Scratch(cfg.sensors, shape, tuple(cfg.room_low), tuple(cfg.room_high),
+                                                  cfg.hitbox))
+_scratch = _CACHE.get  # the _Scratch of cfg for positions of shape in this thread
+_LOCAL = _CACHE.local  # .last: this thread's last (cfg, scratch)
 
 
 def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
