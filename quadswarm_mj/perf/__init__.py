@@ -4,8 +4,7 @@ it through their ops (:mod:`quadswarm_mj.core.ops`), never the model.
 
 * ``numpy_small``: fewest-NumPy-calls forms of the sub-step functions for small arrays (same bits);
   ``numpy_floor``: the paper's floor model on the grounded quads' rows only; ``numpy_deck``, ``numpy_depth``:
-  the decks' and the depth camera's observation parts on few, cheap calls (same bits), their work arrays
-  per (config, shape, thread) in ``scratch_cache``.
+  the decks' and the depth camera's parts on few calls (same bits; work arrays: ``scratch_cache``).
 * ``one_quad``: one quad in one world on Python floats (wrench, floor, rotation, rewards, metrics,
   observation), bit-identical to the array forms; ``one_quad_step``: on those bodies, the whole sub-step
   loop and the whole task stage of one quad (``NumpyOps.fused_loop``, ``fused_task``).
