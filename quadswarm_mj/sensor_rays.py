@@ -27,9 +27,10 @@ from typing import Any
 
 import numpy as np
 
+from quadswarm_mj import np_calls
 from quadswarm_mj._xp import array_namespace
 
-_clip = np._core.umath.clip  # the clip ufunc (np.clip's Python wrapper costs more on small arrays)
+_clip = np_calls.clip  # the clip ufunc (np.clip's Python wrapper costs more on small arrays)
 
 #: the body-axis rays of :func:`axis_hits`, in order: +x, -x, +y, -y, +z, -z (the multi-ranger's front,
 #: back, left, right, up, then the flow deck's down)

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from quadswarm_mj import np_calls
 from quadswarm_mj._xp import array_namespace
 from quadswarm_mj.random_draws import DrawSpec, Normal, Uniform
 from quadswarm_mj.sensor_config import SensorConfig
@@ -311,7 +312,7 @@ def _numpy_plan(s: SensorConfig, shape: tuple[int, ...]) -> tuple[np.ndarray, np
     return out[0], out[1], out[2], (5 if s.multiranger else 0)
 
 
-_clip = np._core.umath.clip  # the clip ufunc (np.clip's Python wrapper costs more on small arrays)
+_clip = np_calls.clip  # the clip ufunc (np.clip's Python wrapper costs more on small arrays)
 
 
 def _deck_part_numpy(s: SensorConfig, t: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray,
@@ -446,11 +447,21 @@ def deck_bounds(cfg: Any) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(lo, dtype=np.float32), np.asarray(hi, dtype=np.float32)
 
 
-def _numpy_entries(s: SensorConfig, plan: tuple[tuple[str, int, int, int], ...], part: np.ndarray) -> dict[str, Any]:
+def _entry_keys(s: SensorConfig) -> tuple[tuple[tuple[str, tuple, int], ...], bool]:
+    """The info entries' (name, index of the deck part, kind) and whether any is a flags entry."""
+    plan = _split_plan(s)
+    return tuple((name, (Ellipsis, slice(a, b)), kind) for name, a, b, kind in plan), any(k == 1 for *_, k in plan)
+
+
+def _numpy_entries(s: SensorConfig, keys: tuple[tuple[str, tuple, int], ...], flagged: bool,
+                   part: np.ndarray) -> dict[str, Any]:
     """The info entries as views of ``part`` (a fresh float32 deck part, metres) and of one flags array."""
-    flags = part > 0.5
-    return {name: (flags if kind == 1 else part)[..., a:b] if kind != 2 else
-            part[..., a:b].reshape(part.shape[:-1] + s.depth) for name, a, b, kind in plan}
+    flags = part > 0.5 if flagged else None
+    out: dict[str, Any] = {}
+    for name, key, kind in keys:
+        out[name] = part[key] if kind == 0 else flags[key] if kind == 1 else part[key].reshape(
+            part.shape[:-1] + s.depth)
+    return out
 
 
 def numpy_deck_info(cfg: Any, scale: Any = None) -> Any:
@@ -459,11 +470,9 @@ def numpy_deck_info(cfg: Any, scale: Any = None) -> Any:
     s, dim = cfg.sensors, cfg.obs_dim
     if not s.any:
         return lambda obs: {}
-    width, plan = s.obs_dim, _split_plan(s)
+    width, (keys, flagged) = s.obs_dim, _entry_keys(s)
     sc = None if scale is None else np.asarray(scale, dtype=np.float32)[dim - width:]
     cut = (Ellipsis, slice(dim - width, None))
-    keys = tuple((name, (Ellipsis, slice(a, b)), kind) for name, a, b, kind in plan)  # _numpy_entries' views
-    flagged = any(kind == 1 for *_, kind in plan)
 
     def f(obs: Any) -> dict[str, Any]:
         if type(obs) is not np.ndarray or obs.shape[-1] != dim:
@@ -471,12 +480,7 @@ def numpy_deck_info(cfg: Any, scale: Any = None) -> Any:
         part = obs[cut].astype(np.float32)
         if sc is not None:
             part *= sc
-        flags = part > 0.5 if flagged else None
-        out: dict[str, Any] = {}
-        for name, key, kind in keys:
-            out[name] = part[key] if kind == 0 else flags[key] if kind == 1 else part[key].reshape(
-                part.shape[:-1] + s.depth)
-        return out
+        return _numpy_entries(s, keys, flagged, part)
 
     return f
 
@@ -496,7 +500,7 @@ def deck_info(cfg: Any, obs: Any, scale: Any = None) -> dict[str, Any]:
         part = obs[..., start:].astype(np.float32)
         if scale is not None:
             part *= np.asarray(scale, dtype=np.float32)[start:]
-        return _numpy_entries(s, _split_plan(s), part)
+        return _numpy_entries(s, *_entry_keys(s), part)
     xp = array_namespace(obs)
     part = obs[..., start:]
     if scale is not None:

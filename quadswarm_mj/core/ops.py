@@ -325,8 +325,9 @@ class NumpyOps(ModelForms):
                 from quadswarm_mj.sensors import deck_draw_spec
 
                 spec = deck_draw_spec(s.cfg)
-                assert all((d.low, d.high) == (0.0, 1.0) if isinstance(d, Uniform) else (d.mean, d.std) == (0.0, 1.0)
-                           for d in spec.values())
+                if not all((d.low, d.high) == (0.0, 1.0) if isinstance(d, Uniform) else (d.mean, d.std) == (0.0, 1.0)
+                           for d in spec.values()):  # random / standard_normal below draw these only
+                    raise RuntimeError(f"deck draws must be U(0, 1) or N(0, 1): {spec}")
                 self._deck_spec = [(k, isinstance(d, Uniform), (s.B,) + tuple(d.shape)) for k, d in spec.items()]
             # random / standard_normal: the bits of uniform(0, 1) / normal(0, 1) without their argument
             # checks (the spec's bounds are those; tests/test_draw_log.py compares the values' hashes)

@@ -20,17 +20,16 @@ from typing import Any
 
 import numpy as np
 
-from quadswarm_mj import sensor_rays, sensors
+from quadswarm_mj import np_calls, sensor_rays, sensors
 from quadswarm_mj.perf.scratch_cache import ScratchCache
 
-_clip = np._core.umath.clip
+_clip = np_calls.clip
 _add, _sub, _mul, _div, _abs, _where = np.add, np.subtract, np.multiply, np.divide, np.abs, np.where
 _max, _min, _le, _ge, _exp, _sqrt, _matmul = np.maximum, np.minimum, np.less_equal, np.greater_equal, np.exp, \
     np.sqrt, np.matmul
 _and, _and_reduce, _or_reduce, _add_reduce, _min_reduce, _fmin_reduce = np.logical_and, np.logical_and.reduce, \
     np.logical_or.reduce, np.add.reduce, np.minimum.reduce, np.fmin.reduce
-_count_nonzero = np._core._multiarray_umath.count_nonzero
-_copyto = np._core._multiarray_umath.copyto
+_count_nonzero, _copyto = np_calls.count_nonzero, np_calls.copyto
 
 
 def applies(s: Any) -> bool:

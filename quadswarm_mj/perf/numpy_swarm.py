@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from quadswarm_mj import np_calls
 from quadswarm_mj.collisions import off_diagonal
 from quadswarm_mj.constants import FLOOR_TOL
 from quadswarm_mj.perf.numpy_small import (
@@ -364,24 +365,7 @@ def _constants(n: int, floor_z: float, floor_top: float, friction: float, dt: fl
     return k
 
 
-#: ``np.copyto`` without its Python-level wrapper (the same function)
-_copyto = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "copyto", np.copyto)
-
-
-def _clip_ufunc() -> Any:
-    """NumPy's clip ufunc (``numpy._core.umath.clip``; NumPy 1.x: ``numpy.core.umath.clip``), else ``np.clip``
-    (its Python wrapper: the same results, a slower call)."""
-    umath = getattr(getattr(np, "_core", None), "umath", None)
-    if umath is None:  # NumPy 1.x
-        try:
-            from numpy.core import umath
-        except ImportError:  # pragma: no cover
-            return np.clip
-    return getattr(umath, "clip", np.clip)
-
-
-#: NumPy's clip ufunc: min(max(x, lo), hi) elementwise in one call
-_clip = _clip_ufunc()
+_copyto, _clip = np_calls.copyto, np_calls.clip  # without np's Python wrappers (the same functions)
 
 
 def action_to_command(action: np.ndarray) -> np.ndarray:
@@ -410,6 +394,4 @@ def motor_noise_step(eps: np.ndarray, sigma: np.ndarray, theta: float, normal: n
 _C: dict = {"-1": np.full((), -1.0), "1": np.ones(()), "0.5": np.full((), 0.5), "0": np.zeros(())}
 
 
-#: ``np.count_nonzero`` without its Python-level wrapper (the same function)
-_count_nonzero = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "count_nonzero",
-                         np.count_nonzero)
+_count_nonzero = np_calls.count_nonzero  # without np's Python wrapper

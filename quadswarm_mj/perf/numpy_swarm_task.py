@@ -22,22 +22,16 @@ from typing import Any
 import numpy as np
 
 from quadswarm_mj import metrics as metrics_lib
-from quadswarm_mj import rewards
+from quadswarm_mj import np_calls, rewards
 from quadswarm_mj.collisions import off_diagonal
 from quadswarm_mj.observations import _gather_index, _neighbor_bounds, _obs_neighbor_bounds
-from quadswarm_mj.perf import numpy_deck, numpy_swarm
+from quadswarm_mj.perf import numpy_deck
 from quadswarm_mj.pipeline import _no_jump
 
 #: set to False for the model's functions (the same-values tests compare the two)
 ENABLED = True
 
-#: ``np.count_nonzero`` without its Python-level wrapper (the same function)
-_count_nonzero = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "count_nonzero",
-                         np.count_nonzero)
-#: ``np.copyto`` without its Python-level wrapper (the same function)
-_copyto = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "copyto", np.copyto)
-#: NumPy's clip ufunc (NumPy 1.x included)
-_clip = numpy_swarm._clip
+_count_nonzero, _copyto, _clip = np_calls.count_nonzero, np_calls.copyto, np_calls.clip  # no np wrappers
 # rows of the norm block: goal offset, clipped action, omega, velocity, thrust change
 _NORM_TERMS = ("pos", "effort", "spin", "vel", "action_change")
 
@@ -191,11 +185,7 @@ class SwarmTask:
         # the norms (rewards.reward_terms' norm_last costs and task_stage's goal distance)
         np.subtract(goals, pos, out=self.V_goal)
         if "effort" in live:
-            if _clip is not None:  # = min(max(a, -1), 1) (the bounds are not zero: the same bits)
-                _clip(action, self.c.neg_one, self.c.one, self.V_act)
-            else:
-                np.maximum(action, -1.0, out=self.V_act)
-                np.minimum(self.V_act, 1.0, out=self.V_act)
+            _clip(action, self.c.neg_one, self.c.one, self.V_act)  # = min(max(a, -1), 1) (bounds not zero: same bits)
         if "spin" in live:
             _copyto(self.V_omega, k["omega"])
         if "vel" in live:
@@ -311,8 +301,5 @@ class SwarmTask:
             np.subtract(self.pv.take(idx, axis=0), self.pv.take(o.own, axis=0), o.nb)
         if self.cfg.sensors.any:  # the decks' readings of the true state, last
             _copyto(o.deck, numpy_deck.deck_part(self.cfg, pos, vel, R, omega, None, deck_draws))
-        if _clip is not None:  # = min(max(obs, low), high) (the clip ufunc on same-shape bounds: the same bits)
-            obs = _clip(W, self.c.low, self.c.high)  # fresh
-        else:
-            obs = np.minimum(np.maximum(W, self.low), self.high)
+        obs = _clip(W, self.c.low, self.c.high)  # fresh; = min(max(obs, low), high) on same-shape bounds: same bits
         return obs if self.scale is None else obs / self.scale

@@ -26,15 +26,13 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from quadswarm_mj import np_calls
 from quadswarm_mj.arena import build_arena
 from quadswarm_mj.config import EnvConfig
 
 BACKENDS = ("mjdata", "batch")
-#: NumPy's clip ufunc (min(max(x, lo), hi) elementwise, as np.minimum(np.maximum(...)) gives it), None if absent
-_clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", None)
-#: ``np.count_nonzero`` without its Python-level wrapper (the same function)
-_count_nonzero = getattr(getattr(getattr(np, "_core", None), "_multiarray_umath", None), "count_nonzero",
-                         np.count_nonzero)
+#: min(max(x, lo), hi) elementwise in one call, and count_nonzero, without np's Python wrappers
+_clip, _count_nonzero = np_calls.clip, np_calls.count_nonzero
 #: qvel entries up to which MjDataPhysics.step clips all of qvel (small arrays: fewer, cheaper calls)
 _WHOLE_CLIP = 6 * 256
 #: MuJoCo's mjMAXVAL: a qpos, qvel or qacc entry beyond it (or NaN) is what MuJoCo calls unstable
@@ -179,7 +177,7 @@ class MjDataPhysics(_SubstepAdapter):
                     v[i] = -max_omega
             return
         qvel = self.qvel
-        if _clip is not None and qvel.size <= _WHOLE_CLIP:  # all of qvel against same-shape bounds (+-inf for the
+        if qvel.size <= _WHOLE_CLIP:  # all of qvel against same-shape bounds (+-inf for the
             b = self.__dict__.get("_vbounds")  # linear rows: x as it is), which costs a quarter of the call below
             if b is None or b[0] != max_omega:
                 lo = np.broadcast_to(np.array([-np.inf] * 3 + [-max_omega] * 3), qvel.shape).copy()
@@ -187,10 +185,7 @@ class MjDataPhysics(_SubstepAdapter):
             _clip(qvel, b[1], b[2], qvel)
             return
         w = qvel[..., 3:]
-        if _clip is not None:  # the clip ufunc: min(max(w, -m), m) in one call (NaN stays NaN)
-            _clip(w, -max_omega, max_omega, out=w)
-        else:
-            np.minimum(np.maximum(w, -max_omega, out=w), max_omega, out=w)  # = clip
+        _clip(w, -max_omega, max_omega, out=w)  # min(max(w, -m), m) in one call (NaN stays NaN)
 
     def write_params(self, idx: Any, mass: np.ndarray, inertia: np.ndarray) -> None:
         ids = self.arena.body_ids[idx].ravel()
