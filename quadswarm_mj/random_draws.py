@@ -15,6 +15,7 @@ on both backends.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -111,19 +112,37 @@ class JaxSampler:
         return {name: out[name] for name in spec}
 
 
-def jax_unit_numbers(key: Any, normal_mask: np.ndarray, dtype: Any = None) -> tuple[Any, Any]:
+def jax_unit_numbers(key: Any, normal_mask: np.ndarray, dtype: Any = None, own_mask: np.ndarray | None = None,
+                     own: Callable[[Any, int], Any] | None = None) -> tuple[Any, Any]:
     """(next key, numbers (len(normal_mask),)) from a ``jax.random`` key: N(0, 1) where ``normal_mask``,
     U[0, 1) elsewhere, from one ``jax.random.normal`` and one ``jax.random.uniform`` call (use under
-    ``jit``). The JAX engine makes a step's numbers this way at the end of the previous step."""
+    ``jit``); where ``own_mask``, ``own(key, count)`` instead (a key of its own; the JAX engine's deck rays:
+    :func:`quadswarm_mj.sensors.tof_table_numbers`). The JAX engine makes a step's numbers this way at the
+    end of the previous step. Assembled from the masks' runs by slices and one concatenation (XLA:CPU's
+    scatter of the same positions took ~3x the normals' own time)."""
     import jax
     import jax.numpy as jnp
 
     dtype = dtype or jnp.float32
-    k_next, k_u, k_n = jax.random.split(key, 3)
     normal_mask = np.asarray(normal_mask, bool)
-    at_normal, at_uniform = np.flatnonzero(normal_mask), np.flatnonzero(~normal_mask)
-    out = jnp.zeros(normal_mask.shape, dtype).at[at_uniform].set(jax.random.uniform(k_u, (at_uniform.size,), dtype))
-    return k_next, out.at[at_normal].set(jax.random.normal(k_n, (at_normal.size,), dtype))
+    kind = normal_mask.astype(np.int8)  # 0 uniform, 1 normal, 2 own
+    if own_mask is not None and np.any(own_mask):
+        kind[np.asarray(own_mask, bool)] = 2
+        k_next, k_u, k_n, k_own = jax.random.split(key, 4)
+    else:
+        k_next, k_u, k_n = jax.random.split(key, 3)
+    counts = np.bincount(kind, minlength=3)
+    made = [jax.random.uniform(k_u, (int(counts[0]),), dtype), jax.random.normal(k_n, (int(counts[1]),), dtype)]
+    if counts[2]:
+        made.append(jnp.asarray(own(k_own, int(counts[2])), dtype))
+    used = [0, 0, 0]
+    edges = np.flatnonzero(kind[1:] != kind[:-1]) + 1
+    pieces = []
+    for start, stop in zip(np.r_[0, edges], np.r_[edges, kind.size]):
+        k = int(kind[start])
+        pieces.append(made[k][used[k]:used[k] + stop - start])
+        used[k] += stop - start
+    return k_next, jnp.concatenate(pieces) if len(pieces) > 1 else pieces[0]
 
 
 # ------------------------------------------------------------------------------- draw budgets

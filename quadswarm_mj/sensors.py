@@ -141,6 +141,37 @@ def tof_normal(u: Any, dropout: float, erf_inv: Any = None) -> Any:
     return jax.scipy.special.ndtri(w)
 
 
+TOF_LEVEL_BITS = 16  # random bits per ray of the JAX engine's ToF noise (tof_noise_table)
+
+
+@functools.lru_cache(maxsize=8)
+def tof_noise_table(dropout: float) -> np.ndarray:
+    """(2^16,) float32, read-only: :func:`tof_normal` of the uniform levels u = (h + 0.5) / 2^16, h = 0 ..
+    2^16 - 1, NaN where the reading is lost (u < ``dropout``): the ToF noise of a ray from 16 random bits.
+    The JAX engine makes each ray's noise this way (``random_draws.jax_unit_numbers``' ``own`` numbers,
+    :func:`tof_table_numbers`): half the random bits of a float32 uniform and one table read instead of an
+    erfinv per ray. The noise is the normal's 2^16-quantile grid (|z| <= 4.3, the VL53L1x reports whole
+    millimetres), the dropout probability ``dropout`` rounded to a multiple of 2^-16."""
+    levels = 1 << TOF_LEVEL_BITS
+    u = (np.arange(levels) + 0.5) / levels
+    out = np.where(u >= dropout, tof_normal(np.maximum(u, dropout), dropout), np.nan).astype(np.float32)
+    out.setflags(write=False)
+    return out
+
+
+def tof_table_numbers(key: Any, count: int, dropout: float) -> Any:
+    """(count,) float32 JAX array: the ToF noise of ``count`` rays (NaN: lost), :func:`tof_noise_table` of
+    16 bits each of ``jax.random.bits`` (two rays per 32-bit word); what :func:`deck_part` takes as
+    ``draws["range_z"]``. Use under ``jit``."""
+    import jax
+    import jax.numpy as jnp
+
+    words = jax.random.bits(key, ((count + 1) // 2, 1), jnp.uint32)
+    shifts = jnp.asarray([TOF_LEVEL_BITS, 0], jnp.uint32)
+    levels = ((words >> shifts) & ((1 << TOF_LEVEL_BITS) - 1)).reshape(-1)[:count]  # high, low half of each word
+    return jnp.asarray(tof_noise_table(float(dropout)))[levels]
+
+
 @functools.lru_cache(maxsize=32)
 def ray_limits(s: SensorConfig) -> np.ndarray:
     """(K,) reading limit (m) of each ray of :func:`ray_directions`: ``range_limit`` for the multi-ranger
@@ -226,7 +257,7 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     rad/s (body); ``obstacles`` = (centres, valid, radius) of the column map or None; ``draws`` from
     :func:`deck_draw_spec` (None: noise-free), where ``range_u`` may be replaced by ``range_z``: the rays'
     :func:`tof_normal` already made, NaN for a lost reading (the JAX engine's carried numbers,
-    :func:`quadswarm_mj.perf.fused_draws.tof_numbers`; the same readings).
+    :func:`tof_table_numbers`, or with ``draws="fused"`` :func:`quadswarm_mj.perf.fused_draws.tof_numbers`).
 
     Every ToF reading (VL53L1x model, all rays at once; true ranges :func:`deck_ranges`) is valid where
     the true range ``t`` is within its limit and not dropped (u >= dropout); a valid reading is

@@ -185,6 +185,45 @@ def test_jax_unit_numbers_are_uniform_and_normal_at_their_positions():
     assert raw.dtype == jnp.uint32 and raw.shape == (2,)
 
 
+def test_jax_unit_numbers_own_positions_and_the_tof_table():
+    """With ``own_mask`` the positions' numbers come from ``own`` (the JAX engine: the deck rays' ToF noise,
+    sensors.tof_table_numbers); the rest stay uniform / normal at their positions (KS). The table is the
+    model's tof_normal at the 2^16 levels (NaN: lost), and its numbers have the dropout rate and a
+    standard normal noise."""
+    from scipy import stats
+
+    from quadswarm_mj.random_draws import jax_unit_numbers
+    from quadswarm_mj.sensors import tof_noise_table, tof_normal, tof_table_numbers
+
+    dropout = 0.05
+    table = tof_noise_table(dropout)
+    levels = (np.arange(65536) + 0.5) / 65536
+    kept = levels >= dropout
+    assert table.dtype == np.float32 and not table.flags.writeable
+    np.testing.assert_array_equal(np.isnan(table), ~kept)
+    np.testing.assert_array_equal(table[kept], tof_normal(levels[kept], dropout).astype(np.float32))
+    assert np.all(np.diff(table[kept]) >= 0.0)
+
+    rng = np.random.default_rng(1)
+    normal, own = rng.random(300) < 0.3, np.zeros(300, bool)
+    own[100:227] = True  # a run in the middle, as the deck's entry in the step spec
+    normal &= ~own
+    keys = jax.random.split(jax.random.key(4), 500)
+    _, x = jax.jit(jax.vmap(lambda k: jax_unit_numbers(k, normal, None, own,
+                                                       lambda kk, n: tof_table_numbers(kk, n, dropout))))(keys)
+    x = np.asarray(x, np.float64)
+    uni = ~normal & ~own
+    assert np.all(np.isfinite(x[:, ~own])) and stats.kstest(x[:, uni].ravel(), "uniform").pvalue > 1e-3
+    assert stats.kstest(x[:, normal].ravel(), "norm").pvalue > 1e-3
+    z = x[:, own].ravel()
+    lost = np.isnan(z)
+    assert abs(lost.mean() - dropout) < 4.0 * np.sqrt(dropout * (1 - dropout) / z.size)
+    assert np.all(np.isin(z[~lost].astype(np.float32), table[kept]))
+    assert stats.kstest(z[~lost], "norm").pvalue > 1e-3
+    odd = np.asarray(jax.jit(lambda k: tof_table_numbers(k, 7, dropout))(keys[0]))
+    assert odd.shape == (7,) and odd.dtype == np.float32
+
+
 def test_jax_sampler_shapes_moments_and_spec_order():
     """random_draws.JaxSampler (one uniform and one normal call): each entry in its shape and law, the
     spec's order kept."""

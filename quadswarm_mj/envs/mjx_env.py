@@ -75,6 +75,7 @@ from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
 from quadswarm_mj.rewards import env_terms
 from quadswarm_mj.scenarios import get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
+from quadswarm_mj.sensors import tof_table_numbers
 from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
 
 PHYSICS = ("freebody", "mjx")
@@ -211,8 +212,8 @@ class MjxQuadSwarmEnv:
         # the normals' erf_inv into every consumer (or needs a loop to materialize them).
         self._carry_numbers = bool(self._step_spec) and (draws == "jax"
                                                          or FusedJaxSampler.fused(jax.random.key(0), _float()))
-        # the deck rays' uniforms are carried as their ToF noise (perf.fused_draws.tof_numbers, made with
-        # the numbers' own erf_inv), which build_obs takes as draws["deck/range_z"]: the same readings
+        # the deck rays' uniforms are carried as their ToF noise (NaN: lost), which build_obs takes as
+        # draws["deck/range_z"]: sensors.tof_table_numbers (jax), perf.fused_draws.tof_numbers (fused)
         self._tof_mask = FusedJaxSampler.entry_mask(self._step_spec, _DECK_U) if self._carry_numbers else None
         if self._tof_mask is not None and not self._tof_mask.any():
             self._tof_mask = None
@@ -266,10 +267,9 @@ class MjxQuadSwarmEnv:
         if self.draws == "fused":
             k_next, numbers = step_key_and_numbers(key, normal_mask, self._tof_mask, dropout)
             return {"rng": k_next, "step_numbers": numbers}
-        k_next, numbers = jax_unit_numbers(key, normal_mask, _float())
-        if self._tof_mask is not None:  # the deck rays' uniforms -> their ToF noise (NaN: lost)
-            at = np.flatnonzero(self._tof_mask)
-            numbers = numbers.at[at].set(tof_numbers(numbers[at], dropout).astype(numbers.dtype))
+        # the deck rays' ToF noise (NaN: lost) from 16 random bits each (sensors.tof_noise_table)
+        k_next, numbers = jax_unit_numbers(key, normal_mask, _float(), self._tof_mask,
+                                           lambda k, count: tof_table_numbers(k, count, dropout))
         return {"rng": k_next, "step_numbers": numbers}
 
     def _read(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
