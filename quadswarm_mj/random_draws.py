@@ -113,28 +113,35 @@ class JaxSampler:
 
 
 def jax_unit_numbers(key: Any, normal_mask: np.ndarray, dtype: Any = None, own_mask: np.ndarray | None = None,
-                     own: Callable[[Any, int], Any] | None = None) -> tuple[Any, Any]:
+                     own: Callable[[Any], Any] | None = None, own_words: int = 0) -> tuple[Any, Any]:
     """(next key, numbers (len(normal_mask),)) from a ``jax.random`` key: N(0, 1) where ``normal_mask``,
-    U[0, 1) elsewhere, from one ``jax.random.normal`` and one ``jax.random.uniform`` call (use under
-    ``jit``); where ``own_mask``, ``own(key, count)`` instead (a key of its own; the JAX engine's deck rays:
-    :func:`quadswarm_mj.sensors.tof_table_numbers`). The JAX engine makes a step's numbers this way at the
-    end of the previous step. Assembled from the masks' runs by slices and one concatenation (XLA:CPU's
-    scatter of the same positions took ~3x the normals' own time)."""
+    U[0, 1) elsewhere, from one ``jax.random.normal`` and one ``jax.random.bits`` call (use under ``jit``);
+    where ``own_mask``, ``own(words)`` of ``own_words`` more uint32 words of that call (the JAX engine's
+    deck rays: :func:`quadswarm_mj.sensors.tof_from_words`). The uniforms are ``jax.random.uniform``'s
+    (the float in [1, 2) of the word's high bits, minus 1). The JAX engine makes a step's numbers this way
+    at the end of the previous step. Assembled from the masks' runs by slices and one concatenation
+    (XLA:CPU's scatter of the same positions took ~3x the normals' own time)."""
     import jax
     import jax.numpy as jnp
 
-    dtype = dtype or jnp.float32
+    dtype = jnp.dtype(dtype or jnp.float32)
     normal_mask = np.asarray(normal_mask, bool)
     kind = normal_mask.astype(np.int8)  # 0 uniform, 1 normal, 2 own
-    if own_mask is not None and np.any(own_mask):
+    if own_mask is not None:
         kind[np.asarray(own_mask, bool)] = 2
-        k_next, k_u, k_n, k_own = jax.random.split(key, 4)
-    else:
-        k_next, k_u, k_n = jax.random.split(key, 3)
     counts = np.bincount(kind, minlength=3)
-    made = [jax.random.uniform(k_u, (int(counts[0]),), dtype), jax.random.normal(k_n, (int(counts[1]),), dtype)]
+    k_next, k_u, k_n = jax.random.split(key, 3)
+    made = [None, jax.random.normal(k_n, (int(counts[1]),), dtype), None]
+    if dtype == jnp.float32:
+        words = jax.random.bits(k_u, (int(counts[0]) + (own_words if counts[2] else 0),), jnp.uint32)
+        unit = (words[:counts[0]] >> 9) | jnp.uint32(0x3F800000)  # jax.random.uniform's float32 bits
+        made[0] = jax.lax.bitcast_convert_type(unit, jnp.float32) - 1.0
+        own_in = words[counts[0]:]
+    else:
+        made[0] = jax.random.uniform(k_u, (int(counts[0]),), dtype)
+        own_in = jax.random.bits(jax.random.fold_in(k_u, 1), (own_words,), jnp.uint32)
     if counts[2]:
-        made.append(jnp.asarray(own(k_own, int(counts[2])), dtype))
+        made[2] = jnp.asarray(own(own_in), dtype)
     used = [0, 0, 0]
     edges = np.flatnonzero(kind[1:] != kind[:-1]) + 1
     pieces = []

@@ -159,17 +159,23 @@ def tof_noise_table(dropout: float) -> np.ndarray:
     return out
 
 
-def tof_table_numbers(key: Any, count: int, dropout: float) -> Any:
+def tof_from_words(words: Any, count: int, dropout: float) -> Any:
     """(count,) float32 JAX array: the ToF noise of ``count`` rays (NaN: lost), :func:`tof_noise_table` of
-    16 bits each of ``jax.random.bits`` (two rays per 32-bit word); what :func:`deck_part` takes as
-    ``draws["range_z"]``. Use under ``jit``."""
+    16 bits each of the uint32 ``words`` ((count + 1) // 2: the high then the low half of each); what
+    :func:`deck_part` takes as ``draws["range_z"]``."""
+    import jax.numpy as jnp
+
+    shifts = jnp.asarray([TOF_LEVEL_BITS, 0], jnp.uint32)
+    levels = ((words[:, None] >> shifts) & ((1 << TOF_LEVEL_BITS) - 1)).reshape(-1)[:count]
+    return jnp.asarray(tof_noise_table(float(dropout)))[levels]
+
+
+def tof_table_numbers(key: Any, count: int, dropout: float) -> Any:
+    """:func:`tof_from_words` of ``jax.random.bits`` of ``key``. Use under ``jit``."""
     import jax
     import jax.numpy as jnp
 
-    words = jax.random.bits(key, ((count + 1) // 2, 1), jnp.uint32)
-    shifts = jnp.asarray([TOF_LEVEL_BITS, 0], jnp.uint32)
-    levels = ((words >> shifts) & ((1 << TOF_LEVEL_BITS) - 1)).reshape(-1)[:count]  # high, low half of each word
-    return jnp.asarray(tof_noise_table(float(dropout)))[levels]
+    return tof_from_words(jax.random.bits(key, ((count + 1) // 2,), jnp.uint32), count, dropout)
 
 
 @functools.lru_cache(maxsize=32)

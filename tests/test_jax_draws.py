@@ -193,7 +193,7 @@ def test_jax_unit_numbers_own_positions_and_the_tof_table():
     from scipy import stats
 
     from quadswarm_mj.random_draws import jax_unit_numbers
-    from quadswarm_mj.sensors import tof_noise_table, tof_normal, tof_table_numbers
+    from quadswarm_mj.sensors import tof_from_words, tof_noise_table, tof_normal, tof_table_numbers
 
     dropout = 0.05
     table = tof_noise_table(dropout)
@@ -210,7 +210,7 @@ def test_jax_unit_numbers_own_positions_and_the_tof_table():
     normal &= ~own
     keys = jax.random.split(jax.random.key(4), 500)
     _, x = jax.jit(jax.vmap(lambda k: jax_unit_numbers(k, normal, None, own,
-                                                       lambda kk, n: tof_table_numbers(kk, n, dropout))))(keys)
+                                                       lambda w: tof_from_words(w, 127, dropout), 64)))(keys)
     x = np.asarray(x, np.float64)
     uni = ~normal & ~own
     assert np.all(np.isfinite(x[:, ~own])) and stats.kstest(x[:, uni].ravel(), "uniform").pvalue > 1e-3

@@ -75,7 +75,7 @@ from quadswarm_mj.randomization import nominal_draws, randomization_draw_spec
 from quadswarm_mj.rewards import env_terms
 from quadswarm_mj.scenarios import get_scenario
 from quadswarm_mj.scenarios.obstacle_scenarios import scenario_num_uniforms, scenario_spawn_uniforms
-from quadswarm_mj.sensors import tof_table_numbers
+from quadswarm_mj.sensors import tof_from_words
 from quadswarm_mj.spatial import quat_to_rotmat, rotmat_to_quat
 
 PHYSICS = ("freebody", "mjx")
@@ -213,7 +213,7 @@ class MjxQuadSwarmEnv:
         self._carry_numbers = bool(self._step_spec) and (draws == "jax"
                                                          or FusedJaxSampler.fused(jax.random.key(0), _float()))
         # the deck rays' uniforms are carried as their ToF noise (NaN: lost), which build_obs takes as
-        # draws["deck/range_z"]: sensors.tof_table_numbers (jax), perf.fused_draws.tof_numbers (fused)
+        # draws["deck/range_z"]: sensors.tof_from_words (jax), perf.fused_draws.tof_numbers (fused)
         self._tof_mask = FusedJaxSampler.entry_mask(self._step_spec, _DECK_U) if self._carry_numbers else None
         if self._tof_mask is not None and not self._tof_mask.any():
             self._tof_mask = None
@@ -268,8 +268,9 @@ class MjxQuadSwarmEnv:
             k_next, numbers = step_key_and_numbers(key, normal_mask, self._tof_mask, dropout)
             return {"rng": k_next, "step_numbers": numbers}
         # the deck rays' ToF noise (NaN: lost) from 16 random bits each (sensors.tof_noise_table)
+        rays = 0 if self._tof_mask is None else int(self._tof_mask.sum())
         k_next, numbers = jax_unit_numbers(key, normal_mask, _float(), self._tof_mask,
-                                           lambda k, count: tof_table_numbers(k, count, dropout))
+                                           lambda words: tof_from_words(words, rays, dropout), (rays + 1) // 2)
         return {"rng": k_next, "step_numbers": numbers}
 
     def _read(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
