@@ -125,8 +125,8 @@ class MjxQuadSwarmEnv:
     (``xpos``...) are not recomputed (``mjx.get_data`` + ``mj_forward`` for rendering). ``draws``:
     ``"jax"`` (the default: a step's numbers from ``jax.random.uniform``/``normal``,
     :func:`~quadswarm_mj.random_draws.jax_unit_numbers`) or ``"fused"`` (opt-in: one unrolled threefry
-    hash and its own erfinv, :mod:`quadswarm_mj.perf.fused_draws`; 1.17-1.31x the samples/s at 512 x 8,
-    below the 1.3x a hand-written default needs, docs/engines.md, "What pays").
+    hash and its own erfinv, :mod:`quadswarm_mj.perf.fused_draws`; 1.04x the samples/s at 512 x 8, 1.4-1.7x
+    at 16 x 8: below the 1.3x a hand-written default needs on the standard run, docs/engines.md, "What pays").
     """
 
     def __init__(self, cfg: EnvConfig | None = None, physics: str | None = None, draws: str = "jax"):
