@@ -149,8 +149,8 @@ def tof_noise_table(dropout: float) -> np.ndarray:
     """(2^16,) float32, read-only: :func:`tof_normal` of the uniform levels u = (h + 0.5) / 2^16, h = 0 ..
     2^16 - 1, NaN where the reading is lost (u < ``dropout``): the ToF noise of a ray from 16 random bits.
     The JAX engine makes each ray's noise this way (``random_draws.jax_unit_numbers``' ``own`` numbers,
-    :func:`tof_table_numbers`): half the random bits of a float32 uniform and one table read instead of an
-    erfinv per ray. The noise is the normal's 2^16-quantile grid (|z| <= 4.3, the VL53L1x reports whole
+    :func:`tof_from_words`): half the random bits of a float32 uniform and one table read instead of an
+    erfinv per ray. The noise is the normal's 2^16-quantile grid (|z| <= 4.6, the VL53L1x reports whole
     millimetres), the dropout probability ``dropout`` rounded to a multiple of 2^-16."""
     levels = 1 << TOF_LEVEL_BITS
     u = (np.arange(levels) + 0.5) / levels
@@ -168,14 +168,6 @@ def tof_from_words(words: Any, count: int, dropout: float) -> Any:
     shifts = jnp.asarray([TOF_LEVEL_BITS, 0], jnp.uint32)
     levels = ((words[:, None] >> shifts) & ((1 << TOF_LEVEL_BITS) - 1)).reshape(-1)[:count]
     return jnp.asarray(tof_noise_table(float(dropout)))[levels]
-
-
-def tof_table_numbers(key: Any, count: int, dropout: float) -> Any:
-    """:func:`tof_from_words` of ``jax.random.bits`` of ``key``. Use under ``jit``."""
-    import jax
-    import jax.numpy as jnp
-
-    return tof_from_words(jax.random.bits(key, ((count + 1) // 2,), jnp.uint32), count, dropout)
 
 
 @functools.lru_cache(maxsize=32)
@@ -263,7 +255,7 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
     rad/s (body); ``obstacles`` = (centres, valid, radius) of the column map or None; ``draws`` from
     :func:`deck_draw_spec` (None: noise-free), where ``range_u`` may be replaced by ``range_z``: the rays'
     :func:`tof_normal` already made, NaN for a lost reading (the JAX engine's carried numbers,
-    :func:`tof_table_numbers`, or with ``draws="fused"`` :func:`quadswarm_mj.perf.fused_draws.tof_numbers`).
+    :func:`tof_from_words`, or with ``draws="fused"`` :func:`quadswarm_mj.perf.fused_draws.tof_numbers`).
 
     Every ToF reading (VL53L1x model, all rays at once; true ranges :func:`deck_ranges`) is valid where
     the true range ``t`` is within its limit and not dropped (u >= dropout); a valid reading is

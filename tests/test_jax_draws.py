@@ -187,13 +187,13 @@ def test_jax_unit_numbers_are_uniform_and_normal_at_their_positions():
 
 def test_jax_unit_numbers_own_positions_and_the_tof_table():
     """With ``own_mask`` the positions' numbers come from ``own`` (the JAX engine: the deck rays' ToF noise,
-    sensors.tof_table_numbers); the rest stay uniform / normal at their positions (KS). The table is the
+    sensors.tof_from_words); the rest stay uniform / normal at their positions (KS). The table is the
     model's tof_normal at the 2^16 levels (NaN: lost), and its numbers have the dropout rate and a
     standard normal noise."""
     from scipy import stats
 
     from quadswarm_mj.random_draws import jax_unit_numbers
-    from quadswarm_mj.sensors import tof_from_words, tof_noise_table, tof_normal, tof_table_numbers
+    from quadswarm_mj.sensors import tof_from_words, tof_noise_table, tof_normal
 
     dropout = 0.05
     table = tof_noise_table(dropout)
@@ -220,7 +220,8 @@ def test_jax_unit_numbers_own_positions_and_the_tof_table():
     assert abs(lost.mean() - dropout) < 4.0 * np.sqrt(dropout * (1 - dropout) / z.size)
     assert np.all(np.isin(z[~lost].astype(np.float32), table[kept]))
     assert stats.kstest(z[~lost], "norm").pvalue > 1e-3
-    odd = np.asarray(jax.jit(lambda k: tof_table_numbers(k, 7, dropout))(keys[0]))
+    odd = np.asarray(jax.jit(lambda w: tof_from_words(w, 7, dropout))(jnp.arange(4, dtype=jnp.uint32)))
+    np.testing.assert_array_equal(odd, table[[0, 0, 0, 1, 0, 2, 0]])  # high then low half of each word
     assert odd.shape == (7,) and odd.dtype == np.float32
 
 
