@@ -142,6 +142,8 @@ def jax_unit_numbers(key: Any, normal_mask: np.ndarray, dtype: Any = None, own_m
         own_in = jax.random.bits(jax.random.fold_in(k_u, 1), (own_words,), jnp.uint32)
     if counts[2]:
         made[2] = jnp.asarray(own(own_in), dtype)
+    if kind.size == 0:
+        return k_next, jnp.zeros(0, dtype)
     used = [0, 0, 0]
     edges = np.flatnonzero(kind[1:] != kind[:-1]) + 1
     pieces = []

@@ -123,7 +123,7 @@ class MjxQuadSwarmEnv:
     contact-free free bodies, exact) or ``"mjx"`` (``mjx.step``, generic: builds and factors the
     dense mass matrix). Both keep ``mjx.Data`` as the state; with "freebody" the derived fields
     (``xpos``...) are not recomputed (``mjx.get_data`` + ``mj_forward`` for rendering). ``draws``:
-    ``"jax"`` (the default: a step's numbers from ``jax.random.uniform``/``normal``,
+    ``"jax"`` (the default: a step's numbers from ``jax.random.bits``/``normal``,
     :func:`~quadswarm_mj.random_draws.jax_unit_numbers`) or ``"fused"`` (opt-in: one unrolled threefry
     hash and its own erfinv, :mod:`quadswarm_mj.perf.fused_draws`; 1.04x the samples/s at 512 x 8, 1.4-1.7x
     at 16 x 8: below the 1.3x a hand-written default needs on the standard run, docs/engines.md, "What pays").
