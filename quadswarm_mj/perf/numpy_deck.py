@@ -9,14 +9,15 @@ body -> world) are gathered (one ``concatenate`` and one ``take``; R one ``take`
 config, shape and thread) laid out so that one call serves several of the model's operations (one
 subtraction makes the room's gaps and the pairs' offsets, one product the room's quotients and the flow's
 rate terms) and reductions are calls on contiguous blocks (a ray's nearest of the neighbours and the
-room's 3 world axes: one minimum on the distances' bits as unsigned integers, where a miss (NaN) or a hit
+room's 3 world axes: one minimum on the distances' bits as unsigned integers, where a miss (-inf) or a hit
 behind (< 0) orders above +inf); "any" tests are a comparison and ``count_nonzero``. The readings: one
 row of the ranges, then the flow lanes (x, y, unused), so the noise, the clip and the masked copy are one
 call each (per-lane constants make the ToF-noise chain give the flow's noise scale on its lanes). The
 body-frame products stay BLAS products as the model's (they round with FMA); with the flow deck the body
-velocity is row N of the neighbours' product (offset vel - 0). The error state is set from a cached one
-(``np.errstate`` costs several calls). The depth camera's part: :mod:`quadswarm_mj.perf.numpy_depth`;
-other inputs (JAX, float32, noise as ``range_z``) go to the model. ``core.ops.NumpyOps`` passes it on.
+velocity is row N of the neighbours' product (offset vel - 0). No floating-point error arises on finite
+input, so no ``np.errstate`` is set (it costs ~3 us inside a step; tested under ``all="raise"``). The depth
+camera's part: :mod:`quadswarm_mj.perf.numpy_depth`; other inputs (JAX, float32, noise as ``range_z``) go to
+the model. ``core.ops.NumpyOps`` passes it on.
 """
 
 from __future__ import annotations
@@ -130,7 +131,7 @@ class _Scratch:
             cm = (3,) + lead + (nv,)
             self.ob, self.disc = self.hb[:size].reshape(pair), self.hb[size:2 * size].reshape(cm)
             self.ob_cm = np.moveaxis(self.ob, -1, 0)  # a view of ob, component first
-            self.meets = e(cm, bool)  # disc >= 0: the line of a ray meets a hitbox
+            self.misses = e(cm, bool)  # disc < 0: the line of a ray misses a hitbox
             self.ob_vel = self.ob[..., n:, :]  # (..., N, 1, 3) the body velocity (with the flow deck)
             self.cc1 = self.cc[None]
             self.disc0, self.disc1, self.disc2 = self.disc[0], self.disc[1], self.disc[2]
@@ -150,7 +151,8 @@ class _Scratch:
         self.src_pv = f > 0
         self.pos_idx = np.concatenate([pj_idx, om_idx, room_idx, pi_idx])
         assert self.pos_idx.size == self.pg.size
-        self.zero = np.array(0.0)
+        self.zero, self.inf = np.array(0.0), np.array(np.inf)
+        self.tiny_r = np.full(nr, 1e-300)  # added to the gathered R (no 1 / 0)
         # --- the readings on the rows and their like
         self.a, self.b, self.ab, self.ab2 = e(rs), np.zeros(rs), e(rs), e(rs)
         self.m_ok, self.g = e(rs, bool), e(rs, bool)
@@ -198,7 +200,7 @@ class _Scratch:
         assert np.all(sensors.ray_limits(s) == s.range_limit)  # no depth: one limit for every ray
         for x in (self.g_lo, self.g_hi, self.signs, self.r_idx, self.pos_idx, self.lim, self.lo,
                   self.hi, self.template, self.cols, *self.tof, self.dropout, self.scale, self.tiny, self.d_min,
-                  self.min_range, self.gain, self.zero,
+                  self.min_range, self.gain, self.zero, self.inf, self.tiny_r,
                   *((self.r2, self.h_idx, self.hsigns) if self.r2 is not None else ()),
                   *((self.d_idx, self.perm) if f else ())):
             x.setflags(write=False)
@@ -213,38 +215,43 @@ _LOCAL = _CACHE.local  # .last: this thread's last (cfg, scratch)
 def _axis_hits(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray) -> None:
     """``sensor_rays._axis_hits_numpy`` (the same bits) into ``p.t`` (..., N, 3, 2): the ranges along the
     +-body axes; with the flow deck also ``p.om_terms`` = omega (y, x, z) (-1, 1, 1) (the flow's rate terms,
-    ``sensors.flow_pixels2``'s product) and, with the hitbox test, the body velocity in ``p.ob_vel``. Call with
-    the divide and invalid errors ignored."""
+    ``sensors.flow_pixels2``'s product) and, with the hitbox test, the body velocity in ``p.ob_vel``. No
+    floating-point error is raised on finite input (no ``np.errstate`` needed): an exact zero of R is made
+    1e-300 (its quotients ~1e300 instead of +-inf: never the nearest, a unit ray has a component >= 0.57),
+    a line that misses a hitbox gets sqrt(+inf) instead of sqrt(< 0) (its hit -inf instead of NaN: both
+    order above +inf as unsigned integers). Outputs are ufuncs' positional ``out`` (cheaper than the keyword)."""
     if p.src_pv:
         _concatenate((pos, vel, omega), 0, p.pv3)
         p.pv.take(p.pos_idx, None, p.pg, "wrap")
     else:
         pos.take(p.pos_idx, None, p.pg, "wrap")
-    _sub(p.xa, p.xb, out=p.xb)  # high and low planes minus pos; quad j - quad i (, vel - 0)
+    _sub(p.xa, p.xb, p.xb)  # high and low planes minus pos; quad j - quad i (, vel - 0)
     gaps = p.gaps
-    _clip(gaps, p.g_lo, p.g_hi, out=gaps)  # kept > 0 (high) and < 0 (low)
-    R.take(p.r_idx, None, p.rg_r, "wrap")
-    inv = _div(p.signs, p.rg, out=p.inv)  # (-1, 1, 1); 1 / (+-R[a, c])
-    _mul(p.xq, inv, out=p.qx)  # the rates' terms; the room's quotients
+    _clip(gaps, p.g_lo, p.g_hi, gaps)  # kept > 0 (high) and < 0 (low)
+    rg_r = R.take(p.r_idx, None, p.rg_r, "wrap")
+    _add(rg_r, p.tiny_r, rg_r)  # R + 1e-300: the same bits for |R| > 1e-284; an exact zero made 1e-300
+    inv = _div(p.signs, p.rg, p.inv)  # (-1, 1, 1); 1 / (+-R[a, c])
+    _mul(p.xq, inv, p.qx)  # the rates' terms; the room's quotients
     _max(p.q0, p.q1, out=p.m)  # the plane ahead along each world axis (the larger quotient, > 0)
     t = p.t
     if p.r2 is not None:
         # p.o (..., N (i), N (j) (+ 1), 3): quad j - quad i (, vel); body frame of quad i:
-        _matmul(p.o, R, out=p.ob)  # ob[i, j, c] = sum_a o[i, j, a] R[i, a, c]
-        disc = _mul(p.ob_cm, p.ob_cm, out=p.disc)  # (c, ..., N, N (+ 1))
-        c = _add(p.disc0, p.disc1, out=p.cc)  # (np.add.reduce over the 3 components: the same sums)
-        _add(c, p.disc2, out=c)
-        _sub(c, p.r2, out=c)  # |offset|^2 - r^2 (a rotation keeps the length); inf on the diagonal
-        _sub(disc, p.cc1, out=disc)  # >= 0: the line of ray +-c meets the sphere
-        if _count_nonzero(_ge(disc, p.zero, out=p.meets)):  # (= fmax.reduce(disc) >= 0: disc is never NaN)
-            # along +-c the hit is +-ob_c - sqrt(disc); kept where >= 0 (a miss: NaN, behind: < 0; both order
+        _matmul(p.o, R, p.ob)  # ob[i, j, c] = sum_a o[i, j, a] R[i, a, c]
+        disc = _mul(p.ob_cm, p.ob_cm, p.disc)  # (c, ..., N, N (+ 1))
+        c = _add(p.disc0, p.disc1, p.cc)  # (np.add.reduce over the 3 components: the same sums)
+        _add(c, p.disc2, c)
+        _sub(c, p.r2, c)  # |offset|^2 - r^2 (a rotation keeps the length); inf on the diagonal
+        _sub(disc, p.cc1, disc)  # >= 0: the line of ray +-c meets the sphere (never NaN)
+        if _count_nonzero(_lt(disc, p.zero, p.misses)) < p.misses.size:  # a line meets a hitbox
+            # along +-c the hit is +-ob_c - sqrt(disc); kept where >= 0 (a miss: -inf, behind: < 0; both order
             # above +inf as unsigned integers)
-            _sqrt(disc, out=disc)
+            _copyto(disc, p.inf, where=p.misses)
+            _sqrt(disc, disc)
             p.hb.take(p.h_idx, None, p.hg, "wrap")  # (j, ..., N (i), c, +-): ob, sqrt(disc); the room's 3 axes
-            obg = _mul(p.obg, p.hsigns, out=p.obg)
-            _sub(obg, p.sqg, out=obg)
-            _min_reduce(p.obg_u, axis=0, out=p.tu)  # the nearest of the neighbours and the room's planes (> 0)
-            if _count_nonzero(_lt(c, p.zero, out=p.c_neg)):  # (inside another's hitbox: disc > 0 along every axis)
+            obg = _mul(p.obg, p.hsigns, p.obg)
+            _sub(obg, p.sqg, obg)
+            _min_reduce(p.obg_u, 0, None, p.tu)  # the nearest of the neighbours and the room's planes (> 0)
+            if _count_nonzero(_lt(c, p.zero, p.c_neg)):  # (inside another's hitbox: disc > 0 along every axis)
                 t[np.logical_or.reduce(p.c_neg, axis=-1)] = 0.0
             return
     _min(p.m0, p.m1, out=t)  # the nearest over the 3 world axes
@@ -252,14 +259,18 @@ def _axis_hits(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
 
 
 def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any = None,
-              draws: dict[str, Any] | None = None) -> Any:
+              draws: dict[str, Any] | None = None, out: np.ndarray | None = None) -> Any:
     """:func:`quadswarm_mj.sensors.deck_part` (same arguments, the same bits) for NumPy arrays with the
     multi-ranger and/or flow deck (float64); the depth camera's part by
-    :func:`quadswarm_mj.perf.numpy_depth.deck_part`; otherwise the model's function."""
+    :func:`quadswarm_mj.perf.numpy_depth.deck_part`; otherwise the model's function. ``out``: an array
+    of the part's shape to write it into (returned), else a fresh array."""
     last = getattr(_LOCAL, "last", None)
     if (last is not None and last[0] is cfg and type(pos) is np.ndarray and pos.dtype is _F64
             and last[1].shape == pos.shape and (draws is None or "range_u" in draws)):  # as last call's
-        return _run(last[1], pos, vel, R, omega, obstacles, draws)
+        return _deck_part(last[1], pos, vel, R, omega, obstacles, draws, out)
+    if out is not None:
+        out[...] = deck_part(cfg, pos, vel, R, omega, obstacles, draws)
+        return out
     s = cfg.sensors
     if s.depth is not None:
         if not (s.multiranger or s.flow):  # the depth camera alone
@@ -270,18 +281,10 @@ def deck_part(cfg: Any, pos: Any, vel: Any, R: Any, omega: Any, obstacles: Any =
             or (draws is not None and "range_u" not in draws)):
         return sensors.deck_part(cfg, pos, vel, R, omega, obstacles, draws)
     p = last[1] if last is not None and last[0] is cfg and last[1].shape == pos.shape else _scratch(cfg, pos.shape)
-    return _run(p, pos, vel, R, omega, obstacles, draws)
+    return _deck_part(p, pos, vel, R, omega, obstacles, draws)
 
 
 _F64 = np.dtype(np.float64)
-
-
-def _run(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray, obstacles: Any,
-         draws: dict[str, Any] | None) -> np.ndarray:
-    """:func:`_deck_part` with the divide, invalid and overflow errors ignored (the caller's state back after;
-    ``np.errstate``, NumPy's public form: its private context variable would save ~1 us per call)."""
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        return _deck_part(p, pos, vel, R, omega, obstacles, draws)
 
 
 _SPLIT: dict[int, tuple[Any, Any, Any]] = {}  # id(cfg) -> (cfg, its decks without the camera, the camera alone)
@@ -311,14 +314,15 @@ def _with_depth(cfg: Any, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega
 
 
 def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, omega: np.ndarray, obstacles: Any,
-               draws: dict[str, Any] | None) -> np.ndarray:
-    """:func:`deck_part`'s work (with the divide, invalid and overflow errors ignored): ``p.t`` the true
-    ranges, then ``sensors._deck_part_numpy`` (the same bits) from them: the deck part in
-    :func:`sensors.deck_layout` order (a fresh array)."""
+               draws: dict[str, Any] | None, out: np.ndarray | None = None) -> np.ndarray:
+    """:func:`deck_part`'s work: ``p.t`` the true ranges, then ``sensors._deck_part_numpy`` (the same bits)
+    from them: the deck part in :func:`sensors.deck_layout` order (into ``out``, else a fresh array). No
+    floating-point error on finite input (see :func:`_axis_hits`; the columns' cast ignores its own)."""
     _axis_hits(p, pos, vel, R, omega)
     if obstacles is not None:  # the rays' world x and y components: +-R[0, c], +-R[1, c] (as axis_hits)
         dx, dy = (np.stack([R[..., a, :], -R[..., a, :]], axis=-1).reshape(p.t6.shape) for a in range(2))
-        _min(p.t6, column_hits_xy(pos, dx, dy, *obstacles), out=p.t6)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # (0 x -inf: a vertical ray)
+            _min(p.t6, column_hits_xy(pos, dx, dy, *obstacles), out=p.t6)
     if p.t_rays is not None:
         p.ranges[...] = p.t_rays
     rows, m = p.rows, p.m_ok
@@ -328,46 +332,46 @@ def _deck_part(p: _Scratch, pos: np.ndarray, vel: np.ndarray, R: np.ndarray, ome
             flow = p.flow
             _copyto(flow, p.ob_vel)
         else:
-            flow = _matmul(vel[..., None, :], R, out=p.flow)
+            flow = _matmul(vel[..., None, :], R, p.flow)
         dd = rows.take(p.d_idx, None, p.dd, "wrap")
-        _ge(dd, p.min_range, out=p.gf)  # high enough for the flow
+        _ge(dd, p.min_range, p.gf)  # high enough for the flow
         _max(dd, p.d_min, out=dd)
-        _div(flow, dd, out=flow)
-        _add(flow, p.om_terms, out=flow)  # + (-omega_y, omega_x, .) (made in the cast)
-    ab = _abs(rows, out=p.ab)  # the ranges (>= 0) and the flow's |x|, |y|
+        _div(flow, dd, flow)
+        _add(flow, p.om_terms, flow)  # + (-omega_y, omega_x, .) (made in the cast)
+    ab = _abs(rows, p.ab)  # the ranges (>= 0) and the flow's |x|, |y|
     if p.f:
         _max(ab, ab.take(p.perm, None, p.ab2, "wrap"), out=ab)  # max(|x|, |y|) on both flow lanes
-    _le(ab, p.lim, out=m)  # valid: range <= limit, flow rate <= its maximum
+    _le(ab, p.lim, m)  # valid: range <= limit, flow rate <= its maximum
     if draws is not None:
         u = draws["range_u"]
-        _ge(u, p.dropout, out=p.gk)  # not dropped
-        _and(m, p.g, out=m)
+        _ge(u, p.dropout, p.gk)  # not dropped
+        _and(m, p.g, m)
     elif p.f:
-        _and(p.mf, p.gf, out=p.mf)
+        _and(p.mf, p.gf, p.mf)
     if p.f:
         if p.dark:  # too dark: the flow never valid
             p.mf[...] = False
-        _mul(p.flow, p.gain, out=p.flow)
+        _mul(p.flow, p.gain, p.flow)
     a = p.a
     if draws is not None:  # VL53L1x: t + tof_std(t) tof_normal(u); the flow: + FLOW_STD_PX flow_noise
         lo, hi, a_point, k, one, std = p.tof
-        _clip(rows, lo, hi, out=a)  # tof_std(t) (the sign of a zero range is lost next)
-        _sub(a, a_point, out=a)
-        _mul(a, k, out=a)
-        _exp(a, out=a)
-        _add(a, one, out=a)
-        _mul(a, std, out=a)
-        w = _sub(u, p.dropout, out=p.uw)  # tof_normal(u, dropout)
-        _mul(w, p.scale, out=w)
+        _clip(rows, lo, hi, a)  # tof_std(t) (the sign of a zero range is lost next)
+        _sub(a, a_point, a)
+        _mul(a, k, a)
+        _exp(a, a)
+        _add(a, one, a)
+        _mul(a, std, a)
+        w = _sub(u, p.dropout, p.uw)  # tof_normal(u, dropout)
+        _mul(w, p.scale, w)
         _max(w, p.tiny, out=w)
-        p.ndtri(w, out=p.bk)
+        p.ndtri(w, p.bk)
         if p.f:
             p.bf2[...] = draws["flow_noise"]
-        _mul(a, p.b, out=a)
-        _add(a, rows, out=a)
-        _clip(a, p.lo, p.hi, out=a)  # the ranges to [0, limit], the flow to +-FLOW_LIMIT_PX
+        _mul(a, p.b, a)
+        _add(a, rows, a)
+        _clip(a, p.lo, p.hi, a)  # the ranges to [0, limit], the flow to +-FLOW_LIMIT_PX
     else:
-        _clip(rows, p.lo, p.hi, out=a)
+        _clip(rows, p.lo, p.hi, a)
     _copyto(p.vals, a, where=m)  # the valid readings (the invalid keep the template's)
     _copyto(p.flags, m)
-    return p.buf.take(p.cols)
+    return p.buf.take(p.cols) if out is None else p.buf.take(p.cols, None, out, "wrap")

@@ -300,6 +300,6 @@ class SwarmTask:
                 idx = idx + o.first
             np.subtract(self.pv.take(idx, axis=0), self.pv.take(o.own, axis=0), o.nb)
         if self.cfg.sensors.any:  # the decks' readings of the true state, last
-            _copyto(o.deck, numpy_deck.deck_part(self.cfg, pos, vel, R, omega, None, deck_draws))
+            numpy_deck.deck_part(self.cfg, pos, vel, R, omega, None, deck_draws, o.deck)
         obs = _clip(W, self.c.low, self.c.high)  # fresh; = min(max(obs, low), high) on same-shape bounds: same bits
         return obs if self.scale is None else obs / self.scale
