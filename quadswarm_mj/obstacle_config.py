@@ -21,7 +21,10 @@ class ObstacleConfig:
     every reset. ``density_random`` / ``size_random`` draw density and size per reset uniformly
     from ``density_values`` / ``size_values``. ``max_columns`` (None: the most any reset can
     place) fixes the number of column slots per world (static shapes). ``collision_reward`` is
-    the penalty per new obstacle contact (not scaled by dt; SPEC_obstacles A.4).
+    the penalty per new obstacle contact (not scaled by dt; SPEC_obstacles A.4). ``proximity_reward``
+    (default 0: off, as the original) adds the shaping term ``obstacle_proximity``: per control step
+    ``-control_dt * proximity_reward * max(1 - d / proximity_falloff, 0)`` with ``d`` the distance (m)
+    from the quad's centre to the nearest column surface in xy (negative inside a column).
     ``observe_features`` (default True) appends the 9 privileged column-distance features
     (SPEC_obstacles A.2, from the true column map) to every observation; False keeps the columns in
     the world (physics, collisions, the deck sensors' rays) but leaves these 9 features out of the
@@ -39,6 +42,8 @@ class ObstacleConfig:
     max_columns: int | None = None
     collision_reward: float = 5.0
     observe_features: bool = True
+    proximity_reward: float = 0.0
+    proximity_falloff: float = 0.5  # m
 
     def __post_init__(self) -> None:
         _check_range("obstacles.density", self.density, 0.0, 1.0)
@@ -75,6 +80,8 @@ class ObstacleConfig:
             if not isinstance(getattr(self, n), bool):
                 raise ValueError(f"obstacles.{n} must be a bool, got {getattr(self, n)!r}")
         _check_range("obstacles.collision_reward", self.collision_reward, 0.0, MAX_REWARD_SCALE)
+        _check_range("obstacles.proximity_reward", self.proximity_reward, 0.0, MAX_REWARD_SCALE)
+        _check_range("obstacles.proximity_falloff", self.proximity_falloff, 0.0, 10.0, lo_open=True)
         need = self.columns_needed
         if self.max_columns is not None:
             m = self.max_columns

@@ -361,6 +361,25 @@ def obstacle_penalty(new_contact: Any, scale: float, anneal: Any = 1.0) -> Any:
     return xp.where(new_contact, -scale * anneal, 0.0)
 
 
+def column_clearance(pos: Any, centres: Any, valid: Any, radius: Any) -> Any:
+    """(..., N) distance (m) in xy from each quad's centre ``pos`` (..., N, 3) to the nearest valid column
+    surface (negative inside a column; ``NO_OBSTACLE_DIST - radius`` without any column): the centre one
+    of :func:`obstacle_features`' 9 features."""
+    xp = array_namespace(pos, centres)
+    dx = pos[..., :, None, 0] - centres[..., None, :, 0]
+    dy = pos[..., :, None, 1] - centres[..., None, :, 1]
+    d2 = xp.min(xp.where(valid[..., None, :], dx * dx + dy * dy, xp.inf), axis=-1)
+    d = xp.sqrt(d2)
+    return xp.where(xp.isinf(d), NO_OBSTACLE_DIST, d) - xp.asarray(radius, dtype=pos.dtype)[..., None]
+
+
+def obstacle_proximity(clearance: Any, scale: float, falloff: float, control_dt: float) -> Any:
+    """Reward term ``obstacle_proximity`` (..., N) of the clearances (m, :func:`column_clearance`):
+    ``-control_dt * scale * max(1 - clearance / falloff, 0)`` (a shaping term; the original has none)."""
+    xp = array_namespace(clearance)
+    return -(control_dt * scale) * xp.maximum(1.0 - clearance / falloff, 0.0)
+
+
 def metrics_init(like: Any, batch_shape: tuple[int, ...], n: int) -> dict[str, Any]:
     """Zeroed obstacle accumulators (per quad): all new contacts, those after the grace period,
     and the latched goal-reached flag."""

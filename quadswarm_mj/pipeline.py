@@ -190,7 +190,7 @@ def task_stage(cfg: Any, scenario: Any, sstate: Any, t: Any, kin: dict[str, Any]
     action the effort term sees (:func:`effort_action`); ``f_norm``/``prev_f_norm`` normalized rotor
     thrusts (..., N, 4) of this and the last step; ``on_floor`` (..., N) bool; ``anneal`` the
     collision-penalty factor; ``scenario_u`` the scenario's uniforms. With ``omap`` (columns):
-    obstacle-aware scenario step, the ``obstacle_collision`` term and the obstacle metrics
+    obstacle-aware scenario step, the ``obstacle_collision`` (and ``obstacle_proximity``) term and the obstacle metrics
     (``obst_metrics`` updated with the scenario's approach distance ``obst_threshold``, m; None:
     computed from the new scenario state). ``ops``: the engine's forms of ``reward_terms`` and
     ``metrics_update`` (:class:`quadswarm_mj.core.ops.ModelForms`; None: the model's own).
@@ -218,6 +218,12 @@ def task_stage(cfg: Any, scenario: Any, sstate: Any, t: Any, kin: dict[str, Any]
         from quadswarm_mj.obstacles import obstacle_penalty
 
         terms["obstacle_collision"] = obstacle_penalty(kin["obst_new"], cfg.obstacles.collision_reward, anneal)
+        if cfg.obstacles.proximity_reward > 0:
+            from quadswarm_mj.obstacles import column_clearance, obstacle_proximity
+
+            o = cfg.obstacles
+            terms["obstacle_proximity"] = obstacle_proximity(column_clearance(kin["pos"], *omap), o.proximity_reward,
+                                                             o.proximity_falloff, cfg.control_dt)
     t_q = t[..., None]  # per-quad broadcast of the worlds' time
     metrics_acc = (metrics_lib.update if ops is None else ops.metrics_update)(
         metrics_acc, t_q, dist_goal, kin["new_contact"], kin["hit_floor"], kin["hit_wall"], kin["hit_ceiling"], jump,

@@ -1,0 +1,66 @@
+"""The optional shaping term ``obstacle_proximity`` (``ObstacleConfig.proximity_reward``, off by default):
+the formula against the column clearance on both engines, present only when switched on, counted in the
+reward, and its config checks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from quadswarm_mj import EnvConfig, ObstacleConfig, QuadSwarmEnv
+from quadswarm_mj import obstacles as ob
+from quadswarm_mj.rewards import env_terms
+
+COLS = np.array([[0.0, 0.0], [2.0, -1.0], [-3.0, 2.5]])
+
+
+def _cfg(scale: float, n: int = 3, **kw) -> EnvConfig:
+    return EnvConfig(num_quads=n, scenario="o_random", episode_seconds=0.5,
+                     obstacles=ObstacleConfig(proximity_reward=scale, proximity_falloff=0.8, **kw))
+
+
+def test_clearance_is_the_centre_feature():
+    rng = np.random.default_rng(0)
+    pos = rng.uniform(-3.5, 3.5, (4, 5, 3))
+    m = ob.map_from_centres(ObstacleConfig(size=0.6), COLS)
+    want = ob.obstacle_features(pos, m.centres, m.valid, m.radius)[..., 4]
+    np.testing.assert_allclose(ob.column_clearance(pos, m.centres, m.valid, m.radius), want, rtol=0, atol=1e-12)
+    empty = ob.map_from_centres(ObstacleConfig(size=0.6), np.zeros((0, 2)))
+    np.testing.assert_array_equal(ob.column_clearance(pos, empty.centres, empty.valid, empty.radius),
+                                  ob.NO_OBSTACLE_DIST - 0.3)
+
+
+def test_term_formula_and_off_by_default():
+    c = np.array([-0.1, 0.0, 0.4, 0.8, 3.0])
+    np.testing.assert_allclose(ob.obstacle_proximity(c, 5.0, 0.8, 0.01),
+                               -0.01 * 5.0 * np.array([1.125, 1.0, 0.5, 0.0, 0.0]), rtol=1e-12)
+    assert "obstacle_proximity" not in env_terms(_cfg(0.0))
+    assert env_terms(_cfg(2.0))[-2:] == ("obstacle_collision", "obstacle_proximity")
+
+
+@pytest.mark.parametrize("engine", ["mujoco", "jax"])
+def test_env_reports_the_term_of_its_positions(engine):
+    cfg = _cfg(4.0)
+    env = QuadSwarmEnv(cfg, engine=engine)
+    start = np.array([[0.5, 0.0, 1.5], [2.0, -0.4, 1.5], [1.0, 2.0, 1.5]])  # near, near, far from a column
+    _, info = env.reset(seed=3, options={"obstacles": COLS, "state": {"pos": start, "motors": "hover"}})
+    m = ob.map_from_centres(cfg.obstacles, COLS)
+    seen = 0.0
+    for _ in range(20):
+        _, reward, _, _, info = env.step(np.zeros((cfg.num_quads, 4)))
+        term = np.asarray(info["reward_terms"]["obstacle_proximity"], dtype=np.float64)
+        clear = ob.column_clearance(np.asarray(info["state"]["pos"], np.float64), m.centres, m.valid, m.radius)
+        want = ob.obstacle_proximity(clear, 4.0, 0.8, cfg.control_dt)
+        np.testing.assert_allclose(term, want, rtol=1e-5, atol=1e-7)
+        total = sum(np.asarray(v, np.float64) for v in info["reward_terms"].values())
+        np.testing.assert_allclose(np.asarray(info["rewards"], np.float64), total, rtol=1e-5, atol=1e-6)
+        seen += float(-term.sum())
+    assert seen > 0  # the first two quads start within the falloff
+
+
+@pytest.mark.parametrize("kw, word", [({"proximity_reward": -1.0}, "proximity_reward"),
+                                      ({"proximity_falloff": 0.0}, "proximity_falloff"),
+                                      ({"proximity_falloff": float("nan")}, "proximity_falloff")])
+def test_bad_values_are_refused(kw, word):
+    with pytest.raises(ValueError, match=word):
+        ObstacleConfig(**kw)
