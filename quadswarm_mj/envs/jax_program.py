@@ -107,7 +107,10 @@ class Program:
         self.cfg, self.batch = cfg, batch
         #: XLA compile options of the one-world programs (default: quadswarm_mj.perf.xla_options)
         self.compiler_options = one_world_options() if compiler_options is None else dict(compiler_options)
-        self.env = MjxQuadSwarmEnv(cfg)
+        # one world: the fused random numbers (perf.fused_draws): 2.2-2.5x the steps/s of jax.random's many small
+        # kernels per step (QuadSwarmEnv(engine='jax'), 8 quads, tune_jax_cpu); B worlds: jax.random (the
+        # fused form 1.07-1.25x at 512 worlds per worker, below issue 33's 1.3x; docs/engines.md)
+        self.env = MjxQuadSwarmEnv(cfg, draws="fused" if batch is None else "jax")
         check_mjx_batch(self.env.physics, batch or 1)  # a clear error where jax >= 0.10 would hang (devices.py)
         self.auto = AutoResetWrapper(self.env)
         self.lead = () if batch is None else (batch,)
