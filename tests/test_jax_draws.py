@@ -244,8 +244,8 @@ def test_host_programs_pick_their_draws_by_batch():
     (2.2-2.5x its steps/s against jax.random's small kernels, docs/engines.md); batched programs (the JAX
     vector env's workers) use jax.random."""
     from quadswarm_mj import EnvConfig
-    from quadswarm_mj.envs.jax_program import JaxProgram
+    from quadswarm_mj.envs.jax_program import Program
 
     cfg = EnvConfig(num_quads=2)
-    assert JaxProgram(cfg, None).env.draws == "fused"
-    assert JaxProgram(cfg, 4).env.draws == "jax"
+    assert Program(cfg, None).env.draws == "fused"
+    assert Program(cfg, 4).env.draws == "jax"
