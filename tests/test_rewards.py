@@ -5,7 +5,15 @@ import numpy as np
 import pytest
 
 from quadswarm_mj import EnvConfig, QuadSwarmEnv
-from quadswarm_mj.rewards import CONTROL_DT_TERMS, EVENT_TERMS, STATE_TERMS, TERMS, reward_terms, term_dt
+from quadswarm_mj.rewards import (
+    CONTROL_DT_TERMS,
+    EVENT_TERMS,
+    OBSTACLE_TERMS,
+    STATE_TERMS,
+    TERMS,
+    reward_terms,
+    term_dt,
+)
 
 
 def _terms(cfg, pos, goals, new_contact=None, action=None, hit_floor=None):
@@ -22,9 +30,12 @@ def _terms(cfg, pos, goals, new_contact=None, action=None, hit_floor=None):
 
 
 def test_every_term_has_one_time_scaling():
-    assert sorted(set(STATE_TERMS) | set(CONTROL_DT_TERMS) | (set(EVENT_TERMS) & set(TERMS))) == sorted(TERMS)
+    groups = (set(STATE_TERMS), set(CONTROL_DT_TERMS), set(EVENT_TERMS))
+    every = set(TERMS) | set(OBSTACLE_TERMS)
+    assert set().union(*groups) == every and sum(len(g) for g in groups) == len(every)  # one scaling each
     cfg = EnvConfig()
     assert term_dt(cfg, "pos") == 0.005 and term_dt(cfg, "proximity") == 0.01 and term_dt(cfg, "quad_collision") == 1.0
+    assert term_dt(cfg, "obstacle_proximity") == 0.01 and term_dt(cfg, "obstacle_collision") == 1.0
     with pytest.raises(ValueError, match="unknown reward term 'nope'"):
         term_dt(cfg, "nope")
 
