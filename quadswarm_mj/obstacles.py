@@ -27,6 +27,7 @@ if TYPE_CHECKING:  # annotations only: quadswarm_mj.config imports the scenarios
 #: spacing (m) of the 3 x 3 grid of sample points of the distance features (A.2)
 SDF_RESOLUTION = 0.1
 NUM_FEATURES = 9
+CENTRE_FEATURE = 4  # the quad's own point among the 9 (x-major 3 x 3 grid)
 #: distance (m) used when a world has no column (the original's placeholder; the radius is subtracted)
 NO_OBSTACLE_DIST = 100.0
 #: normal of a quad exactly on a column axis: divided by this instead of 0 (A.3 step 1)
@@ -361,20 +362,9 @@ def obstacle_penalty(new_contact: Any, scale: float, anneal: Any = 1.0) -> Any:
     return xp.where(new_contact, -scale * anneal, 0.0)
 
 
-def column_clearance(pos: Any, centres: Any, valid: Any, radius: Any) -> Any:
-    """(..., N) distance (m) in xy from each quad's centre ``pos`` (..., N, 3) to the nearest valid column
-    surface (negative inside a column; ``NO_OBSTACLE_DIST - radius`` without any column): the centre one
-    of :func:`obstacle_features`' 9 features."""
-    xp = array_namespace(pos, centres)
-    dx = pos[..., :, None, 0] - centres[..., None, :, 0]
-    dy = pos[..., :, None, 1] - centres[..., None, :, 1]
-    d2 = xp.min(xp.where(valid[..., None, :], dx * dx + dy * dy, xp.inf), axis=-1)
-    d = xp.sqrt(d2)
-    return xp.where(xp.isinf(d), NO_OBSTACLE_DIST, d) - xp.asarray(radius, dtype=pos.dtype)[..., None]
-
-
 def obstacle_proximity(clearance: Any, scale: float, falloff: float, control_dt: float) -> Any:
-    """Reward term ``obstacle_proximity`` (..., N) of the clearances (m, :func:`column_clearance`):
+    """Reward term ``obstacle_proximity`` (..., N) of the clearances (m): the xy distances from the quads'
+    centres to the nearest column surface, the centre feature ``obstacle_features(...)[..., CENTRE_FEATURE]``:
     ``-control_dt * scale * max(1 - clearance / falloff, 0)`` (a shaping term; the original has none)."""
     xp = array_namespace(clearance)
     return -(control_dt * scale) * xp.maximum(1.0 - clearance / falloff, 0.0)

@@ -190,8 +190,8 @@ def task_stage(cfg: Any, scenario: Any, sstate: Any, t: Any, kin: dict[str, Any]
     action the effort term sees (:func:`effort_action`); ``f_norm``/``prev_f_norm`` normalized rotor
     thrusts (..., N, 4) of this and the last step; ``on_floor`` (..., N) bool; ``anneal`` the
     collision-penalty factor; ``scenario_u`` the scenario's uniforms. With ``omap`` (columns):
-    obstacle-aware scenario step, the ``obstacle_collision`` (and ``obstacle_proximity``) term and the obstacle metrics
-    (``obst_metrics`` updated with the scenario's approach distance ``obst_threshold``, m; None:
+    obstacle-aware scenario step, the ``obstacle_collision`` (and ``obstacle_proximity``) term and the obstacle
+    metrics (``obst_metrics`` updated with the scenario's approach distance ``obst_threshold``, m; None:
     computed from the new scenario state). ``ops``: the engine's forms of ``reward_terms`` and
     ``metrics_update`` (:class:`quadswarm_mj.core.ops.ModelForms`; None: the model's own).
 
@@ -219,10 +219,12 @@ def task_stage(cfg: Any, scenario: Any, sstate: Any, t: Any, kin: dict[str, Any]
 
         terms["obstacle_collision"] = obstacle_penalty(kin["obst_new"], cfg.obstacles.collision_reward, anneal)
         if cfg.obstacles.proximity_reward > 0:
-            from quadswarm_mj.obstacles import column_clearance, obstacle_proximity
+            from quadswarm_mj.obstacles import CENTRE_FEATURE, obstacle_features, obstacle_proximity
 
-            o = cfg.obstacles
-            terms["obstacle_proximity"] = obstacle_proximity(column_clearance(kin["pos"], *omap), o.proximity_reward,
+            o, feats = cfg.obstacles, kin.get("obst_feats")  # the engine's features of these positions, if made
+            if feats is None:
+                feats = obstacle_features(kin["pos"], *omap)
+            terms["obstacle_proximity"] = obstacle_proximity(feats[..., CENTRE_FEATURE], o.proximity_reward,
                                                              o.proximity_falloff, cfg.control_dt)
     t_q = t[..., None]  # per-quad broadcast of the worlds' time
     metrics_acc = (metrics_lib.update if ops is None else ops.metrics_update)(

@@ -20,14 +20,11 @@ def _cfg(scale: float, n: int = 3, **kw) -> EnvConfig:
 
 
 def test_clearance_is_the_centre_feature():
-    rng = np.random.default_rng(0)
-    pos = rng.uniform(-3.5, 3.5, (4, 5, 3))
+    """The term's clearance: the centre one of the 9 features, the xy distance to the nearest column surface."""
     m = ob.map_from_centres(ObstacleConfig(size=0.6), COLS)
-    want = ob.obstacle_features(pos, m.centres, m.valid, m.radius)[..., 4]
-    np.testing.assert_allclose(ob.column_clearance(pos, m.centres, m.valid, m.radius), want, rtol=0, atol=1e-12)
-    empty = ob.map_from_centres(ObstacleConfig(size=0.6), np.zeros((0, 2)))
-    np.testing.assert_array_equal(ob.column_clearance(pos, empty.centres, empty.valid, empty.radius),
-                                  ob.NO_OBSTACLE_DIST - 0.3)
+    pos = np.array([[0.5, 0.0, 1.0], [2.0, -0.4, 2.0], [-3.0, 2.5, 1.0], [0.0, 0.1, 1.0]])
+    clear = ob.obstacle_features(pos, m.centres, m.valid, m.radius)[..., ob.CENTRE_FEATURE]
+    np.testing.assert_allclose(clear, [0.2, 0.3, -0.3, -0.2], atol=1e-12)
 
 
 def test_term_formula_and_off_by_default():
@@ -49,7 +46,8 @@ def test_env_reports_the_term_of_its_positions(engine):
     for _ in range(20):
         _, reward, _, _, info = env.step(np.zeros((cfg.num_quads, 4)))
         term = np.asarray(info["reward_terms"]["obstacle_proximity"], dtype=np.float64)
-        clear = ob.column_clearance(np.asarray(info["state"]["pos"], np.float64), m.centres, m.valid, m.radius)
+        pos = np.asarray(info["state"]["pos"], np.float64)
+        clear = ob.obstacle_features(pos, m.centres, m.valid, m.radius)[..., ob.CENTRE_FEATURE]
         want = ob.obstacle_proximity(clear, 4.0, 0.8, cfg.control_dt)
         np.testing.assert_allclose(term, want, rtol=1e-5, atol=1e-7)
         total = sum(np.asarray(v, np.float64) for v in info["reward_terms"].values())
