@@ -222,9 +222,10 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
         low = xp.maximum(xp.asarray(low), xp.asarray(nb_lo, dtype=pos.dtype))
         high = xp.minimum(xp.asarray(high), xp.asarray(nb_hi, dtype=pos.dtype))
     if obstacles is not None and cfg.obstacles.observe_features:
-        from quadswarm_mj.obstacles import obstacle_features
+        from quadswarm_mj.obstacles import observed_features, obstacle_features
 
-        parts.append(obstacle_feats if obstacle_feats is not None else obstacle_features(pos, *obstacles))
+        feats = obstacle_feats if obstacle_feats is not None else obstacle_features(pos, *obstacles)
+        parts.append(observed_features(feats, cfg.obstacles.feature_form))
     if cfg.sensors.any:
         if deck_fn is None:
             from quadswarm_mj.sensors import deck_part as deck_fn

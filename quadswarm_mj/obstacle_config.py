@@ -10,6 +10,7 @@ from quadswarm_mj.config_checks import MAX_REWARD_SCALE, _check_range, _is_real
 
 OBSTACLE_DENSITY_VALUES = (0.05, 0.10, 0.15, 0.20)  # SPEC_obstacles A.6: np.arange(0.05, 0.2, 0.05) incl. 0.2
 OBSTACLE_SIZE_VALUES = (0.3, 0.4, 0.5)  # SPEC_obstacles A.6: np.arange(0.3, 0.6, 0.1), 0.6 excluded
+FEATURE_FORMS = ("grid", "slopes")
 
 
 @dataclass(frozen=True)
@@ -29,6 +30,9 @@ class ObstacleConfig:
     (SPEC_obstacles A.2, from the true column map) to every observation; False keeps the columns in
     the world (physics, collisions, the deck sensors' rays) but leaves these 9 features out of the
     observation, so a policy must sense the columns, e.g. with ``SensorConfig(multiranger=True)``.
+    ``feature_form`` is how the 9 features are observed: ``"grid"`` (default, the original's 3 x 3
+    distances) or ``"slopes"`` (the centre distance and the 8 others' differences from it per
+    0.1 m: the same information, decorrelated; :func:`quadswarm_mj.obstacles.observed_features`).
     """
 
     density: float = 0.2
@@ -44,6 +48,7 @@ class ObstacleConfig:
     observe_features: bool = True
     proximity_reward: float = 0.0
     proximity_falloff: float = 0.5  # m
+    feature_form: str = "grid"
 
     def __post_init__(self) -> None:
         _check_range("obstacles.density", self.density, 0.0, 1.0)
@@ -82,6 +87,8 @@ class ObstacleConfig:
         _check_range("obstacles.collision_reward", self.collision_reward, 0.0, MAX_REWARD_SCALE)
         _check_range("obstacles.proximity_reward", self.proximity_reward, 0.0, MAX_REWARD_SCALE)
         _check_range("obstacles.proximity_falloff", self.proximity_falloff, 0.0, 10.0, lo_open=True)
+        if self.feature_form not in FEATURE_FORMS:
+            raise ValueError(f"obstacles.feature_form must be one of {FEATURE_FORMS}, got {self.feature_form!r}")
         need = self.columns_needed
         if self.max_columns is not None:
             m = self.max_columns

@@ -197,11 +197,30 @@ def obstacle_features(pos: Any, centres: Any, valid: Any, radius: Any) -> Any:
     return features_from_grid(obstacle_grid(pos, centres, valid), radius)
 
 
+def observed_features(features: Any, form: str) -> Any:
+    """The features as observed (``ObstacleConfig.feature_form``): ``"grid"`` returns them unchanged;
+    ``"slopes"`` keeps the centre distance (m, index 4) and replaces each other point's distance by its
+    difference from the centre divided by the 0.1 m grid step (dimensionless, within +-sqrt(2): the
+    distance to the nearest column is 1-Lipschitz). An invertible linear map: the same information,
+    but the direction to the column no longer hides in ~1 % differences of nine nearly equal inputs."""
+    if form == "grid":
+        return features
+    xp = array_namespace(features)
+    centre = features[..., CENTRE_FEATURE:CENTRE_FEATURE + 1]
+    slopes = (features - centre) / SDF_RESOLUTION
+    return xp.concatenate([slopes[..., :CENTRE_FEATURE], centre, slopes[..., CENTRE_FEATURE + 1:]], axis=-1)
+
+
 def feature_bounds(cfg: EnvConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Finite (low, high) float32 bounds (9,) of the features: +- max(room diagonal + 1 m, 100 m), so
-    no reachable value (nor the no-column placeholder) is ever clipped."""
+    """Finite (low, high) float32 bounds (9,) of the observed features: +- max(room diagonal + 1 m,
+    100 m) for a distance, so no reachable value (nor the no-column placeholder) is ever clipped, and
+    +-1.5 for a slope (``feature_form="slopes"``, whose slopes lie within +-sqrt(2))."""
     b = max(math.sqrt(sum(x * x for x in cfg.room_size)) + 1.0, NO_OBSTACLE_DIST)
-    return np.full(NUM_FEATURES, -b, dtype=np.float32), np.full(NUM_FEATURES, b, dtype=np.float32)
+    hi = np.full(NUM_FEATURES, b, dtype=np.float32)
+    if cfg.obstacles is not None and cfg.obstacles.feature_form == "slopes":
+        hi[:] = 1.5
+        hi[CENTRE_FEATURE] = b
+    return -hi, hi
 
 
 # ------------------------------------------------------------------------------ detection
