@@ -208,14 +208,17 @@ def test_finetune_presets_start_from_the_shipped_warm_start():
     """The recipes of the shipped swarm policies: their warm start resolves to the shipped file (SHA-256
     checked) and its observation layout is the first part of the run's (obstacle features appended)."""
     from quadswarm_mj.cli.train import PRESETS, resolve_policy_path
+    from quadswarm_mj.training.ppo import PPOConfig
 
-    for name in ("swarm8_finetune", "swarm8_obstacles_finetune"):
+    for name in ("swarm8_finetune", "swarm8_obstacles_finetune", "swarm8_rl", "swarm8_obstacles_rl"):
         pr = PRESETS[name]
         path = resolve_policy_path(pr["init_from"])
         start = load_policy(path)
         cfg = EnvConfig(num_quads=8, scenario=pr["scenarios"][0], **pr["env"])
         assert Path(path).is_file() and start.obs_dim == 54
         assert cfg.obs_dim == 54 + (9 if cfg.obstacles is not None else 0)
+        PPOConfig(**pr["ppo"])
+    assert EnvConfig(**PRESETS["swarm8_obstacles_rl"]["env"]).obstacles.feature_form == "slopes"
     assert resolve_policy_path("runs/x.npz") == "runs/x.npz"
     with pytest.raises(ValueError, match="unknown pretrained policy"):
         resolve_policy_path("pretrained:nope")

@@ -59,12 +59,18 @@ PRESETS: dict[str, dict[str, Any]] = {
                   "rewards": {"pos": 2.0}, "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": 0,
                   "init_from": "pretrained:swarm8_v1",
                   "ppo": {"num_worlds": 128, "unroll_length": 32, "learning_rate": 1e-4}},
-    # among columns by PPO alone: the same warm start, the 9 column features added at zero input weight
+    # among columns by PPO alone (TRAINING.md): from pretrained:swarm8_rl, the 9 column features added at zero input
+    # weight and observed as slopes; density and size randomized, column-proximity shaping, a 3.3 s horizon
     "swarm8_obstacles_rl": {"scenarios": ["mix"], "num_quads": 8,
-                            "env": {**OBSTACLE_ENV, "num_neighbors": 6, "obs_self": "base"}, "rewards": {"pos": 2.0},
-                            "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": 0,
-                            "init_from": "pretrained:swarm8_v1",
-                            "ppo": {"num_worlds": 128, "unroll_length": 32, "learning_rate": 1e-4}},
+                            "env": {**OBSTACLE_ENV, "num_neighbors": 6, "obs_self": "base",
+                                    "obstacles": {**OBSTACLE_ENV["obstacles"], "density_random": True,
+                                                  "size_random": True, "size_values": [0.3, 0.4, 0.5, 0.6],
+                                                  "collision_reward": 8.5, "proximity_reward": 6.0,
+                                                  "feature_form": "slopes"}},
+                            "rewards": {"pos": 2.0}, "engine": "jax", "replay_prob": 0.5, "anneal_agent_steps": 0,
+                            "init_from": "pretrained:swarm8_rl",
+                            "ppo": {"num_worlds": 128, "unroll_length": 32, "learning_rate": 1e-4,
+                                    "discounting": 0.997, "warm_start_std": 0.12, "entropy_cost": 0.0}},
     # deployable variant: deep sets 16-wide, 1,012 actor parameters
     "swarm8_deployable": {"scenarios": ["mix", "run_away"], "weights": [9, 1], "num_quads": 8, "env": {},
                           "rewards": {}, "engine": "jax", "replay_prob": 0.75, "anneal_agent_steps": SWARM_ANNEAL,
