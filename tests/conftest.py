@@ -1,7 +1,16 @@
 import os
+import platform
 import sys
 
-import pytest
+# OpenBLAS picks its kernels by CPU (FMA or not, another summation order), which changes the last bits of
+# the model's small matrix products between machines; the bit-exact tests (the seeded records, the fast
+# forms' same-bits tests) pin the generic x86-64 kernel so that they hold on every x86-64 CPU. Set before
+# NumPy loads OpenBLAS; subprocesses inherit it.
+if platform.machine().lower() in ("x86_64", "amd64"):
+    assert "numpy" not in sys.modules, "tests/conftest.py must run before NumPy is imported"
+    os.environ.setdefault("OPENBLAS_CORETYPE", "Prescott")
+
+import pytest  # noqa: E402
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
