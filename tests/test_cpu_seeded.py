@@ -3,7 +3,8 @@
 ``tests/reference_data/cpu_seeded_before_pipeline.npz`` holds obs, rewards and state of a few
 seeded runs made with the code before ``quadswarm_mj.pipeline`` existed; the CPU engine must
 reproduce them bit for bit. Regenerate (only after an intended change of the CPU model, e.g. the
-reward's time scaling) with ``PYTHONPATH=$PWD python tests/test_cpu_seeded.py --regenerate``.
+reward's time scaling) with ``OPENBLAS_CORETYPE=Prescott PYTHONPATH=$PWD python tests/test_cpu_seeded.py --regenerate``
+(the kernel tests/conftest.py pins).
 """
 
 from __future__ import annotations

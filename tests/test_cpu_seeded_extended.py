@@ -6,8 +6,9 @@ ends) with auto-resets inside the run.
 episode metrics of these runs; the CPU engine must reproduce them bit for bit. The runs are built so
 that the event models act (quads hit each other, the floor, the walls, the ceiling and columns): the
 test checks that in the record too, so it cannot silently become trivial. Regenerate (only after an
-intended change of the CPU model) with ``PYTHONPATH=$PWD python tests/test_cpu_seeded_extended.py
---regenerate`` (the older record, ``cpu_seeded_before_pipeline.npz``, is ``tests/test_cpu_seeded.py``'s).
+intended change of the CPU model) with
+``OPENBLAS_CORETYPE=Prescott PYTHONPATH=$PWD python tests/test_cpu_seeded_extended.py --regenerate``
+(the older record, ``cpu_seeded_before_pipeline.npz``, is ``tests/test_cpu_seeded.py``'s).
 """
 
 from __future__ import annotations
