@@ -6,9 +6,17 @@ import sys
 # the model's small matrix products between machines; the bit-exact tests (the seeded records, the fast
 # forms' same-bits tests) pin the generic x86-64 kernel so that they hold on every x86-64 CPU. Set before
 # NumPy loads OpenBLAS; subprocesses inherit it.
-if platform.machine().lower() in ("x86_64", "amd64"):
-    assert "numpy" not in sys.modules, "tests/conftest.py must run before NumPy is imported"
-    os.environ.setdefault("OPENBLAS_CORETYPE", "Prescott")
+if platform.machine().lower() in ("x86_64", "amd64") and "OPENBLAS_CORETYPE" not in os.environ:
+    os.environ["OPENBLAS_CORETYPE"] = "Prescott"
+    # a pytest plugin (e.g. jaxtyping's) may have loaded NumPy, and with it OpenBLAS, already: start pytest again
+    if "numpy" in sys.modules and os.path.basename(sys.argv[0]) in ("pytest", "py.test", "__main__.py"):
+        import gc
+
+        for manager in [o for o in gc.get_objects() if type(o).__name__ == "CaptureManager"]:
+            manager.stop_global_capturing()  # give the new process the terminal, not pytest's capture file
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.execv(sys.executable, [sys.executable, "-m", "pytest", *sys.argv[1:]])
 
 import pytest  # noqa: E402
 
