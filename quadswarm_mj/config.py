@@ -210,6 +210,10 @@ class RandomizationConfig:
                 raise ValueError(f"randomization.{n} must be > 0, got {getattr(self, n)!r}")
 
 
+#: the largest ``rewards.vel_limit`` (m/s): the velocity observation's bound
+MAX_VEL_LIMIT = 20.0
+
+
 @dataclass(frozen=True)
 class RewardScales:
     """Reward-term scales (SPEC §8, paper baseline), time-scaled as the original: the state terms
@@ -232,6 +236,7 @@ class RewardScales:
     wall_hit: float = 0.0
     ceiling_hit: float = 0.0
     proximity_falloff_arms: float = 4.0  # falloff = this * arm
+    vel_limit: float = 0.0  # m/s: the vel cost is the speed above it, max(||v|| - vel_limit, 0) (0: ||v||)
     anneal_steps: int = 0  # control steps over which collision terms ramp from 0 (0: no annealing)
 
     TERMS = ("pos", "effort", "spin", "crash", "orient", "vel", "action_change", "yaw", "rot",
@@ -241,6 +246,7 @@ class RewardScales:
         for n in self.TERMS:
             _check_range(f"rewards.{n}", getattr(self, n), 0.0, MAX_REWARD_SCALE)
         _check_range("rewards.proximity_falloff_arms", self.proximity_falloff_arms, 0.0, lo_open=True)
+        _check_range("rewards.vel_limit", self.vel_limit, 0.0, MAX_VEL_LIMIT)
         object.__setattr__(self, "anneal_steps", _as_int("rewards.anneal_steps", self.anneal_steps, 0))
 
     @classmethod

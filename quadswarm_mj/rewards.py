@@ -81,7 +81,8 @@ def reward_terms(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: 
         "spin": lambda: norm_last(omega),
         "crash": lambda: on_floor.astype(dtype),
         "orient": lambda: xp.where(on_floor, 1.0, -R[..., 2, 2]),
-        "vel": lambda: norm_last(vel),
+        "vel": lambda: (norm_last(vel) if s.vel_limit == 0 else  # the speed above the limit (m/s)
+                        xp.maximum(norm_last(vel) - s.vel_limit, 0.0)),
         "action_change": lambda: norm_last(f_norm - prev_f_norm),
         "yaw": lambda: -R[..., 0, 0],
         "rot": lambda: -(R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0,

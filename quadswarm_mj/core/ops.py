@@ -115,7 +115,7 @@ class NumpyOps(ModelForms):
         self._obs_floor = cfg.obs_self == "floor"
         self._cfg = cfg
         self._reward_plan = one_quad.reward_plan(rewards._term_factors(cfg.rewards, cfg.sim_dt, cfg.control_dt),
-                                                 rewards.ANNEALED)
+                                                 rewards.ANNEALED, cfg.rewards.vel_limit)
         self._deck_noise = cfg.sensors.any and cfg.sensors.noise
         self._deck_spec = None  # the deck draws' (name, uniform?, a, b, shape), made on first use
         self._sensor_std_full: tuple | None = None  # (the engine's sensor std, it broadcast to the draw's shape)
@@ -185,7 +185,8 @@ class NumpyOps(ModelForms):
         """:func:`quadswarm_mj.rewards.reward_terms` (one quad: ``perf.one_quad.reward_terms``, same bits)."""
         if self._one and one_quad.ENABLED and action.dtype == np.float64:
             plan = self._reward_plan if cfg is self._cfg else one_quad.reward_plan(
-                rewards._term_factors(cfg.rewards, cfg.sim_dt, cfg.control_dt), rewards.ANNEALED)
+                rewards._term_factors(cfg.rewards, cfg.sim_dt, cfg.control_dt), rewards.ANNEALED,
+                cfg.rewards.vel_limit)
             return one_quad.reward_terms(plan, pos, vel, R, omega, goals, action, f_norm, prev_f_norm, on_floor,
                                          hit_floor, hit_wall, hit_ceiling, new_contact, anneal, goal_dist)
         return rewards.reward_terms(cfg, pos, vel, R, omega, goals, action, f_norm, prev_f_norm, on_floor, hit_floor,

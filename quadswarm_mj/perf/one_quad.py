@@ -189,17 +189,17 @@ def _norm(v: list[float]) -> float:
     return math.sqrt(s)
 
 
-def reward_plan(factors: tuple, annealed: tuple[str, ...]) -> tuple:
+def reward_plan(factors: tuple, annealed: tuple[str, ...], vel_limit: float = 0.0) -> tuple:
     """The per-config constants of :func:`reward_terms` (made once per engine): from ``factors``
-    (``rewards._term_factors``) and ``annealed`` (``rewards.ANNEALED``) the set of costs needed, the
-    computed terms (key, -dt, base scale, annealed), the terms that are exactly -0.0, and the keys in order
-    with their rows."""
+    (``rewards._term_factors``), ``annealed`` (``rewards.ANNEALED``) and ``vel_limit`` (m/s,
+    ``RewardScales.vel_limit``) the set of costs needed, the computed terms (key, -dt, base scale,
+    annealed), the terms that are exactly -0.0, the keys in order with their rows, and the limit."""
     need = frozenset(k for k, _, base in factors if base is not None)
     live = tuple((k, neg_dt, base, k in annealed) for k, neg_dt, base in factors if base is not None)
     zero_keys = tuple(k for k, _, base in factors if base is None)
     row = {k: i for i, (k, _, _, _) in enumerate(live)}  # each key's row of the output; -0.0 terms: the last
     index = tuple((k, row.get(k, len(live))) for k, _, _ in factors)
-    return (need, live, zero_keys, index, bool(need & {"orient", "yaw", "rot"}))
+    return (need, live, zero_keys, index, bool(need & {"orient", "yaw", "rot"}), float(vel_limit))
 
 
 def reward_values(plan: tuple, p: list[float], v: list[float], r: list[float], w: list[float], g: list[float],
@@ -209,7 +209,7 @@ def reward_values(plan: tuple, p: list[float], v: list[float], r: list[float], w
     each), the 9 entries of R ``r``, the action ``act``, thrusts ``f``/``pf`` (4 each), the flags and the
     count of new quad contacts. Returns the values of the plan's computed terms in order (then -0.0 if
     some term is exactly -0.0)."""
-    need, live, zero_keys, index, rot = plan
+    need, live, zero_keys, index, rot, vel_limit = plan
     c: dict[str, float] = {"crash": 1.0 if on else 0.0, "proximity": 0.0}
     if "pos" in need:
         c["pos"] = goal_dist if goal_dist is not None else _norm([g[0] - p[0], g[1] - p[1], g[2] - p[2]])
@@ -218,7 +218,7 @@ def reward_values(plan: tuple, p: list[float], v: list[float], r: list[float], w
     if "spin" in need:
         c["spin"] = _norm(w)
     if "vel" in need:
-        c["vel"] = _norm(v)
+        c["vel"] = _norm(v) if vel_limit == 0 else _max(_norm(v) - vel_limit, 0.0)
     if "action_change" in need:
         c["action_change"] = _norm([a - b for a, b in zip(f, pf)])
     if rot:

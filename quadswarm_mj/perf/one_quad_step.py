@@ -106,7 +106,8 @@ class OneQuadTask:
                  zero_terms: tuple[str, ...], sensor_keys: tuple[str, ...] | None = None,
                  sensor_std: np.ndarray | None = None) -> None:
         self.cfg = cfg
-        self.plan = reward_plan(rewards._term_factors(cfg.rewards, cfg.sim_dt, cfg.control_dt), rewards.ANNEALED)
+        self.plan = reward_plan(rewards._term_factors(cfg.rewards, cfg.sim_dt, cfg.control_dt), rewards.ANNEALED,
+                                 cfg.rewards.vel_limit)
         rows = dict(self.plan[3])
         self.sum_rows = [rows[k] for k in rewards.TERMS if k not in zero_terms]  # rewards.total_reward's order
         self.zero_terms = zero_terms
