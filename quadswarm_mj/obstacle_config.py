@@ -26,6 +26,9 @@ class ObstacleConfig:
     (default 0: off, as the original) adds the shaping term ``obstacle_proximity``: per control step
     ``-control_dt * proximity_reward * max(1 - d / proximity_falloff, 0)`` with ``d`` the distance (m)
     from the quad's centre to the nearest column surface in xy (negative inside a column).
+    ``approach_reward`` (default 0: off) adds the shaping term ``obstacle_approach``: per control step
+    ``-control_dt * approach_reward * max(-v . grad d, 0) * max(1 - d / proximity_falloff, 0)``, the speed
+    (m/s) towards the nearest column within the falloff (motion around a column costs nothing).
     ``observe_features`` (default True) appends the 9 privileged column-distance features
     (SPEC_obstacles A.2, from the true column map) to every observation; False keeps the columns in
     the world (physics, collisions, the deck sensors' rays) but leaves these 9 features out of the
@@ -48,6 +51,7 @@ class ObstacleConfig:
     observe_features: bool = True
     proximity_reward: float = 0.0
     proximity_falloff: float = 0.5  # m
+    approach_reward: float = 0.0
     feature_form: str = "grid"
 
     def __post_init__(self) -> None:
@@ -87,6 +91,7 @@ class ObstacleConfig:
         _check_range("obstacles.collision_reward", self.collision_reward, 0.0, MAX_REWARD_SCALE)
         _check_range("obstacles.proximity_reward", self.proximity_reward, 0.0, MAX_REWARD_SCALE)
         _check_range("obstacles.proximity_falloff", self.proximity_falloff, 0.0, 10.0, lo_open=True)
+        _check_range("obstacles.approach_reward", self.approach_reward, 0.0, MAX_REWARD_SCALE)
         if self.feature_form not in FEATURE_FORMS:
             raise ValueError(f"obstacles.feature_form must be one of {FEATURE_FORMS}, got {self.feature_form!r}")
         need = self.columns_needed

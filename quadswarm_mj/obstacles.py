@@ -389,6 +389,20 @@ def obstacle_proximity(clearance: Any, scale: float, falloff: float, control_dt:
     return -(control_dt * scale) * xp.maximum(1.0 - clearance / falloff, 0.0)
 
 
+def obstacle_approach(features: Any, vel: Any, scale: float, falloff: float, control_dt: float) -> Any:
+    """Reward term ``obstacle_approach`` (..., N) from the 9 features (..., N, 9) (m) and the velocities
+    (..., N, 3) (m/s): ``-control_dt * scale * max(-v_xy . grad d, 0) * max(1 - d / falloff, 0)``, d the
+    centre feature and grad d its central differences over the 3 x 3 grid (the unit vector away from
+    the nearest column, up to the grid's resolution): the speed towards the nearest column within the
+    falloff; sliding around a column costs nothing (a shaping term; the original has none)."""
+    xp = array_namespace(features, vel)
+    gx = (features[..., 7] - features[..., 1]) / (2.0 * SDF_RESOLUTION)  # x-major: index 3 i + j
+    gy = (features[..., 5] - features[..., 3]) / (2.0 * SDF_RESOLUTION)
+    closing = xp.maximum(-(vel[..., 0] * gx + vel[..., 1] * gy), 0.0)
+    near = xp.maximum(1.0 - features[..., CENTRE_FEATURE] / falloff, 0.0)
+    return -(control_dt * scale) * closing * near
+
+
 def metrics_init(like: Any, batch_shape: tuple[int, ...], n: int) -> dict[str, Any]:
     """Zeroed obstacle accumulators (per quad): all new contacts, those after the grace period,
     and the latched goal-reached flag."""

@@ -218,14 +218,19 @@ def task_stage(cfg: Any, scenario: Any, sstate: Any, t: Any, kin: dict[str, Any]
         from quadswarm_mj.obstacles import obstacle_penalty
 
         terms["obstacle_collision"] = obstacle_penalty(kin["obst_new"], cfg.obstacles.collision_reward, anneal)
-        if cfg.obstacles.proximity_reward > 0:
-            from quadswarm_mj.obstacles import CENTRE_FEATURE, obstacle_features, obstacle_proximity
+        o = cfg.obstacles
+        if o.proximity_reward > 0 or o.approach_reward > 0:
+            from quadswarm_mj.obstacles import CENTRE_FEATURE, obstacle_approach, obstacle_features, obstacle_proximity
 
-            o, feats = cfg.obstacles, kin.get("obst_feats")  # the engine's features of these positions, if made
+            feats = kin.get("obst_feats")  # the engine's features of these positions, if made
             if feats is None:
                 feats = obstacle_features(kin["pos"], *omap)
-            terms["obstacle_proximity"] = obstacle_proximity(feats[..., CENTRE_FEATURE], o.proximity_reward,
-                                                             o.proximity_falloff, cfg.control_dt)
+            if o.proximity_reward > 0:
+                terms["obstacle_proximity"] = obstacle_proximity(feats[..., CENTRE_FEATURE], o.proximity_reward,
+                                                                 o.proximity_falloff, cfg.control_dt)
+            if o.approach_reward > 0:
+                terms["obstacle_approach"] = obstacle_approach(feats, kin["vel"], o.approach_reward,
+                                                               o.proximity_falloff, cfg.control_dt)
     t_q = t[..., None]  # per-quad broadcast of the worlds' time
     metrics_acc = (metrics_lib.update if ops is None else ops.metrics_update)(
         metrics_acc, t_q, dist_goal, kin["new_contact"], kin["hit_floor"], kin["hit_wall"], kin["hit_ceiling"], jump,

@@ -27,21 +27,23 @@ TERMS = RewardScales.TERMS
 ANNEALED = ("quad_collision", "proximity")
 #: Terms scaled by the simulation step, by the control step, and not time-scaled (counts of events).
 STATE_TERMS = ("pos", "effort", "spin", "crash", "orient", "vel", "action_change", "yaw", "rot")
-CONTROL_DT_TERMS = ("proximity", "obstacle_proximity")
+CONTROL_DT_TERMS = ("proximity", "obstacle_proximity", "obstacle_approach")
 EVENT_TERMS = ("quad_collision", "obstacle_collision", "floor_hit", "wall_hit", "ceiling_hit")
-#: Terms present only with obstacles on (``cfg.obstacles``; ``obstacle_proximity`` only with its scale > 0):
-#: summed after ``TERMS`` by :func:`total_reward`.
-OBSTACLE_TERMS = ("obstacle_collision", "obstacle_proximity")
+#: Terms present only with obstacles on (``cfg.obstacles``; ``obstacle_proximity`` and ``obstacle_approach``
+#: only with their scale > 0): summed after ``TERMS`` by :func:`total_reward`.
+OBSTACLE_TERMS = ("obstacle_collision", "obstacle_proximity", "obstacle_approach")
 
 
 def env_terms(cfg: EnvConfig) -> tuple[str, ...]:
     """The reward terms of an env with ``cfg`` (keys of ``info["reward_terms"]``, MJX
     ``metrics["reward/<term>"]``): ``TERMS``, plus ``obstacle_collision`` with obstacles on (and
-    ``obstacle_proximity`` with ``cfg.obstacles.proximity_reward > 0``)."""
+    ``obstacle_proximity``/``obstacle_approach`` with ``cfg.obstacles.proximity_reward``/``approach_reward`` > 0)."""
     o = cfg.obstacles
     if o is None:
         return TERMS
-    return TERMS + OBSTACLE_TERMS[:2 if o.proximity_reward > 0 else 1]
+    on = {"obstacle_collision": True, "obstacle_proximity": o.proximity_reward > 0,
+          "obstacle_approach": o.approach_reward > 0}
+    return TERMS + tuple(k for k in OBSTACLE_TERMS if on[k])
 
 
 def term_dt(cfg: EnvConfig, term: str) -> float:
