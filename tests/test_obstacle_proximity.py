@@ -35,25 +35,36 @@ def test_term_formula_and_off_by_default():
     assert env_terms(_cfg(2.0))[-2:] == ("obstacle_collision", "obstacle_proximity")
 
 
+def _expected(term: str, cfg: EnvConfig, feats: np.ndarray, vel: np.ndarray) -> np.ndarray:
+    o = cfg.obstacles
+    if term == "obstacle_proximity":
+        return ob.obstacle_proximity(feats[..., ob.CENTRE_FEATURE], o.proximity_reward, o.proximity_falloff,
+                                     cfg.control_dt)
+    return ob.obstacle_approach(feats, vel, o.approach_reward, o.proximity_falloff, cfg.control_dt)
+
+
+@pytest.mark.parametrize("term", ["obstacle_proximity", "obstacle_approach"])
 @pytest.mark.parametrize("engine", ["mujoco", "jax"])
-def test_env_reports_the_term_of_its_positions(engine):
-    cfg = _cfg(4.0)
+def test_env_reports_the_term_of_its_state(engine, term):
+    """Both shaping terms (``obstacle_approach``: tests/test_obstacle_approach.py) as the env reports them,
+    against their formulas on the state it reports, and summed into the reward."""
+    cfg = _cfg(4.0) if term == "obstacle_proximity" else _cfg(0.0, approach_reward=4.0)
     env = QuadSwarmEnv(cfg, engine=engine)
     start = np.array([[0.5, 0.0, 1.5], [2.0, -0.4, 1.5], [1.0, 2.0, 1.5]])  # near, near, far from a column
-    _, info = env.reset(seed=3, options={"obstacles": COLS, "state": {"pos": start, "motors": "hover"}})
+    vel = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, -1.0, 0.0]])  # the first two towards a column
+    _, info = env.reset(seed=3, options={"obstacles": COLS, "state": {"pos": start, "vel": vel, "motors": "hover"}})
     m = ob.map_from_centres(cfg.obstacles, COLS)
     seen = 0.0
-    for _ in range(20):
+    for _ in range(10):
         _, reward, _, _, info = env.step(np.zeros((cfg.num_quads, 4)))
-        term = np.asarray(info["reward_terms"]["obstacle_proximity"], dtype=np.float64)
-        pos = np.asarray(info["state"]["pos"], np.float64)
-        clear = ob.obstacle_features(pos, m.centres, m.valid, m.radius)[..., ob.CENTRE_FEATURE]
-        want = ob.obstacle_proximity(clear, 4.0, 0.8, cfg.control_dt)
-        np.testing.assert_allclose(term, want, rtol=1e-5, atol=1e-7)
-        total = sum(np.asarray(v, np.float64) for v in info["reward_terms"].values())
+        got = np.asarray(info["reward_terms"][term], dtype=np.float64)
+        pos, v = (np.asarray(info["state"][k], np.float64) for k in ("pos", "vel"))
+        want = _expected(term, cfg, ob.obstacle_features(pos, m.centres, m.valid, m.radius), v)
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6)
+        total = sum(np.asarray(x, np.float64) for x in info["reward_terms"].values())
         np.testing.assert_allclose(np.asarray(info["rewards"], np.float64), total, rtol=1e-5, atol=1e-6)
-        seen += float(-term.sum())
-    assert seen > 0  # the first two quads start within the falloff
+        seen += float(-got.sum())
+    assert seen > 0  # the first two quads start within the falloff, moving towards a column
 
 
 @pytest.mark.parametrize("kw, word", [({"proximity_reward": -1.0}, "proximity_reward"),
