@@ -29,6 +29,9 @@ class ObstacleConfig:
     ``approach_reward`` (default 0: off) adds the shaping term ``obstacle_approach``: per control step
     ``-control_dt * approach_reward * max(-v . grad d, 0) * max(1 - d / proximity_falloff, 0)``, the speed
     (m/s) towards the nearest column within the falloff (motion around a column costs nothing).
+    ``pos_around_columns`` (default False: the straight distance, as the original) makes the reward's
+    ``pos`` cost the path length around the nearest column when it blocks the way to the goal
+    (:func:`quadswarm_mj.obstacles.around_distance`); the metrics keep the straight distance.
     ``observe_features`` (default True) appends the 9 privileged column-distance features
     (SPEC_obstacles A.2, from the true column map) to every observation; False keeps the columns in
     the world (physics, collisions, the deck sensors' rays) but leaves these 9 features out of the
@@ -52,6 +55,7 @@ class ObstacleConfig:
     proximity_reward: float = 0.0
     proximity_falloff: float = 0.5  # m
     approach_reward: float = 0.0
+    pos_around_columns: bool = False
     feature_form: str = "grid"
 
     def __post_init__(self) -> None:
@@ -85,7 +89,7 @@ class ObstacleConfig:
             if not d < self.cell:
                 raise ValueError(f"obstacles.size_values[{i}] must be smaller than obstacles.cell = {self.cell}, "
                                  f"got {d!r}")
-        for n in ("density_random", "size_random", "observe_features"):
+        for n in ("density_random", "size_random", "observe_features", "pos_around_columns"):
             if not isinstance(getattr(self, n), bool):
                 raise ValueError(f"obstacles.{n} must be a bool, got {getattr(self, n)!r}")
         _check_range("obstacles.collision_reward", self.collision_reward, 0.0, MAX_REWARD_SCALE)

@@ -20,6 +20,7 @@ import numpy as np
 from quadswarm_mj._xp import array_namespace, safe_normalize
 from quadswarm_mj.obstacle_config import ObstacleConfig
 from quadswarm_mj.random_draws import DrawSpec, Normal, Uniform
+from quadswarm_mj.spatial import norm_last
 
 if TYPE_CHECKING:  # annotations only: quadswarm_mj.config imports the scenarios, which import this module
     from quadswarm_mj.config import EnvConfig
@@ -401,6 +402,39 @@ def obstacle_approach(features: Any, vel: Any, scale: float, falloff: float, con
     closing = xp.maximum(-(vel[..., 0] * gx + vel[..., 1] * gy), 0.0)
     near = xp.maximum(1.0 - features[..., CENTRE_FEATURE] / falloff, 0.0)
     return -(control_dt * scale) * closing * near
+
+
+#: clearance (m) added to a column's radius for the path around it (:func:`around_distance`)
+AROUND_MARGIN = 0.1
+
+
+def around_distance(pos: Any, goals: Any, centres: Any, valid: Any, radius: Any, margin: float = AROUND_MARGIN) -> Any:
+    """(..., N) length (m) of the path from ``pos`` to ``goals`` (..., N, 3) around the column nearest to
+    ``pos``: in xy the straight segment, or, when it passes within ``radius + margin`` of that column's
+    axis, the two tangents to that circle and the arc between them; z adds in quadrature (the columns
+    span floor to ceiling). Continuous: equal to the straight distance where the segment just touches
+    the circle. A position inside the circle counts as on it. ``centres`` (..., M, 2), ``valid`` (..., M),
+    ``radius`` (...,) as :func:`obstacle_features`; without a valid column the straight distance."""
+    xp = array_namespace(pos, centres)
+    p, g = pos[..., :2], goals[..., :2]
+    d_all = norm_last(p[..., None, :] - centres[..., None, :, :])  # (..., N, M)
+    d_all = xp.where(valid[..., None, :], d_all, xp.inf)
+    j = xp.argmin(d_all, axis=-1)  # (..., N) the nearest column
+    c = xp.take_along_axis(centres, j[..., None] * xp.ones((1, 2), dtype=j.dtype), axis=-2)  # (..., N, 2)
+    any_col = xp.isfinite(xp.min(d_all, axis=-1))
+    r = (radius[..., None] + margin) * xp.ones_like(p[..., 0])  # (..., N)
+    a, b = p - c, g - c
+    da = xp.maximum(norm_last(a), r)
+    db = xp.maximum(norm_last(b), r)
+    ab = b - a
+    t = xp.clip(-xp.sum(a * ab, axis=-1) / xp.maximum(xp.sum(ab * ab, axis=-1), 1e-12), 0.0, 1.0)
+    blocked = any_col & (norm_last(a + t[..., None] * ab) < r)
+    phi = xp.arctan2(xp.abs(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]), xp.sum(a * b, axis=-1))
+    arc = xp.maximum(phi - xp.arccos(xp.minimum(r / da, 1.0)) - xp.arccos(xp.minimum(r / db, 1.0)), 0.0)
+    around = xp.sqrt(xp.maximum(da * da - r * r, 0.0)) + xp.sqrt(xp.maximum(db * db - r * r, 0.0)) + r * arc
+    l_xy = xp.where(blocked, around, norm_last(g - p))
+    dz = goals[..., 2] - pos[..., 2]
+    return xp.sqrt(l_xy * l_xy + dz * dz)
 
 
 def metrics_init(like: Any, batch_shape: tuple[int, ...], n: int) -> dict[str, Any]:

@@ -210,10 +210,15 @@ def task_stage(cfg: Any, scenario: Any, sstate: Any, t: Any, kin: dict[str, Any]
     else:
         jump = metrics_lib.goal_jump(prev_goals, goals, goal_vel, cfg.control_dt)
     dist_goal = norm_last(goals - kin["pos"])
+    reward_dist = dist_goal  # the pos cost's distance: straight, or around the nearest column (ObstacleConfig)
+    if omap is not None and cfg.obstacles.pos_around_columns:
+        from quadswarm_mj.obstacles import around_distance
+
+        reward_dist = around_distance(kin["pos"], goals, *omap)
     reward_fn = reward_terms if ops is None else ops.reward_terms
     terms = reward_fn(cfg, kin["pos"], kin["vel"], kin["R"], kin["omega"], goals, effort, f_norm, prev_f_norm, on_floor,
                       kin["hit_floor"], kin["hit_wall"], kin["hit_ceiling"], kin["new_contact"], kin["dist"], anneal,
-                      goal_dist=dist_goal)
+                      goal_dist=reward_dist)
     if omap is not None:
         from quadswarm_mj.obstacles import obstacle_penalty
 
