@@ -219,6 +219,7 @@ def test_finetune_presets_start_from_the_shipped_warm_start():
         assert cfg.obs_dim == 54 + (9 if cfg.obstacles is not None else 0)
         PPOConfig(**pr["ppo"])
     assert EnvConfig(**PRESETS["swarm8_obstacles_rl"]["env"]).obstacles.feature_form == "slopes"
+    assert PRESETS["swarm8_obstacles_rl"]["scenarios"] == ["o_random"]  # the evaluated scenario only (TRAINING.md)
     assert resolve_policy_path("runs/x.npz") == "runs/x.npz"
     with pytest.raises(ValueError, match="unknown pretrained policy"):
         resolve_policy_path("pretrained:nope")

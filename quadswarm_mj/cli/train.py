@@ -60,8 +60,9 @@ PRESETS: dict[str, dict[str, Any]] = {
                   "init_from": "pretrained:swarm8_v1",
                   "ppo": {"num_worlds": 128, "unroll_length": 32, "learning_rate": 1e-4}},
     # among columns by PPO alone (TRAINING.md): from pretrained:swarm8_rl, the 9 column features added at zero input
-    # weight and observed as slopes; density and size randomized, column-proximity shaping, a 3.3 s horizon
-    "swarm8_obstacles_rl": {"scenarios": ["mix"], "num_quads": 8,
+    # weight and observed as slopes; o_random only; density and size randomized, column-proximity shaping, a 3.3 s
+    # horizon
+    "swarm8_obstacles_rl": {"scenarios": ["o_random"], "num_quads": 8,
                             "env": {**OBSTACLE_ENV, "num_neighbors": 6, "obs_self": "base",
                                     "obstacles": {**OBSTACLE_ENV["obstacles"], "density_random": True,
                                                   "size_random": True, "size_values": [0.3, 0.4, 0.5, 0.6],
