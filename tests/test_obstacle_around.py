@@ -69,14 +69,20 @@ def test_env_pos_term_uses_the_path_around(engine):
     cfg = EnvConfig(num_quads=2, scenario="o_random", episode_seconds=0.5,
                     obstacles=ObstacleConfig(pos_around_columns=True))
     env = QuadSwarmEnv(cfg, engine=engine)
-    start = np.array([[-1.0, 0.0, 1.5], [-1.0, 2.0, 1.5]])  # the first behind the column at the origin
-    _, info = env.reset(seed=1, options={"obstacles": COLS, "state": {"pos": start, "motors": "hover"}})
+    start = np.array([[-1.0, 0.0, 1.5], [-1.0, 2.0, 1.5]])
+    goals = np.array([[1.0, 0.0, 1.5], [1.0, 2.0, 1.5]])  # the first behind the column at the origin, the second not
+    _, info = env.reset(seed=1, options={"obstacles": COLS,
+                                         "state": {"pos": start, "goals": goals, "motors": "hover"}})
     m = ob.map_from_centres(cfg.obstacles, COLS)
     for _ in range(5):
         _, _, _, _, info = env.step(np.zeros((2, 4)))
         pos, goals = np.asarray(info["state"]["pos"], np.float64), np.asarray(info["goals"], np.float64)
-        want = -cfg.sim_dt * cfg.rewards.pos * ob.around_distance(pos, goals, m.centres, m.valid, m.radius)
-        np.testing.assert_allclose(np.asarray(info["reward_terms"]["pos"], np.float64), want, rtol=1e-5, atol=1e-7)
+        around = ob.around_distance(pos, goals, m.centres, m.valid, m.radius)
+        got = np.asarray(info["reward_terms"]["pos"], np.float64)
+        np.testing.assert_allclose(got, -cfg.sim_dt * cfg.rewards.pos * around, rtol=1e-5, atol=1e-7)
+        straight = np.linalg.norm(goals - pos, axis=-1)
+        assert around[0] > straight[0] + 0.1 and abs(around[1] - straight[1]) < 1e-9  # detour for the first only
+    np.testing.assert_allclose(goals, [[1.0, 0.0, 1.5], [1.0, 2.0, 1.5]], atol=1e-6)  # o_random kept them
 
 
 def test_config_must_be_a_bool():
