@@ -123,6 +123,32 @@ def test_warm_start_std_sets_a_constant_std_and_keeps_the_means(tmp_path):
         PPOConfig(warm_start_std=0.0)
 
 
+def test_min_action_std_floors_the_std_and_the_warm_start_lands_on_it(tmp_path):
+    """--min-action-std: the tanh-normal std is softplus(output) + the floor, so no output takes it below;
+    a warm start's --warm-start-std is met exactly above the floor; a floor at or above it is refused."""
+    import jax.numpy as jnp
+
+    from quadswarm_mj.training.learner import _dense_layers
+
+    src = PPOTrainer([EnvConfig(num_quads=1)], PPOConfig(**TINY), seed=1)
+    src.save(tmp_path / "src.npz")
+    warm = PPOTrainer([EnvConfig(num_quads=1)], PPOConfig(**TINY, warm_start_std=0.12, min_action_std=0.1), seed=2,
+                      init_from=str(tmp_path / "src.npz"))
+    dist = warm.networks.parametric_action_distribution
+    scale = dist.create_dist(jnp.concatenate([jnp.zeros((3, 4)), jnp.full((3, 4), -50.0)], axis=-1)).scale
+    np.testing.assert_allclose(np.asarray(scale), 0.1, rtol=1e-6)
+    layers = _dense_layers(warm.state.params.policy)
+    out = np.zeros((1, 8), np.float32) @ layers[-1][0] + layers[-1][1]
+    np.testing.assert_allclose(np.asarray(dist.create_dist(jnp.asarray(out)).scale), 0.12, rtol=1e-5)
+    fresh = PPOTrainer([EnvConfig(num_quads=1)], PPOConfig(**TINY, init_std=0.5, min_action_std=0.2), seed=3)
+    b = _dense_layers(fresh.state.params.policy)[-1][1]
+    np.testing.assert_allclose(np.logaddexp(0.0, b[4:]) + 0.2, 0.5, rtol=1e-5)
+    with pytest.raises(ValueError, match="warm_start_std must be above ppo.min_action_std"):
+        PPOConfig(warm_start_std=0.1, min_action_std=0.1)
+    with pytest.raises(ValueError, match="min_action_std must be a number"):
+        PPOConfig(min_action_std=0.0)
+
+
 def test_ppo_config_validation():
     with pytest.raises(ValueError, match="num_worlds"):
         PPOConfig(num_worlds=0)

@@ -186,6 +186,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--entropy-cost", type=float)
     g.add_argument("--warm-start-std", type=float,
                    help="with --init-from: the policy's action std (pre-tanh) set to this in every state")
+    g.add_argument("--min-action-std", type=float,
+                   help="floor of the policy's action std (pre-tanh; default 0.001): exploration cannot fall below it")
     g.add_argument("--lr-schedule", choices=("constant", "linear"), help="linear (default): decay to 10 %% at the end")
     g.add_argument("--discounting", type=float)
     g.add_argument("--gae-lambda", type=float)
@@ -267,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     ppo_kw = dict(preset["ppo"])
     for k in ("num_worlds", "unroll_length", "num_minibatches", "num_epochs", "learning_rate", "entropy_cost",
               "discounting", "gae_lambda", "clipping_epsilon", "reward_scaling", "activation", "lr_schedule", "arch",
-              "arch_width", "warm_start_std"):
+              "arch_width", "warm_start_std", "min_action_std"):
         if getattr(args, k) is not None:
             ppo_kw[k] = getattr(args, k)
     if args.arch == "mlp":

@@ -122,16 +122,17 @@ def load_train_state(path: str | Path, template: TrainState) -> tuple[TrainState
 
 
 def load_init(path: str, params: Any, normalizer: Any, arch: dict[str, Any] | None, layout: dict[str, int],
-              obs_dim: int, action_std: float | None = None) -> tuple[Any, Any]:
+              obs_dim: int, action_std: float | None = None, min_std: float = 0.001) -> tuple[Any, Any]:
     """Start from a policy checkpoint (transfer, e.g. single -> swarm): layers are copied; a
     larger observation (more neighbours) gets zero input weights for the new components, so
     the starting policy ignores them; the new components' normalizer is mean 0, std 1. Encoder runs
     (``arch`` not None) start from an encoder file of the same architecture and ``layout``. Returns
     (params, normalizer) on the templates ``params``/``normalizer``. ``action_std`` (pre-tanh) replaces the
-    file's state-dependent std by this constant (:func:`~quadswarm_mj.training.learner.constant_action_std`)."""
+    file's state-dependent std by this constant (:func:`~quadswarm_mj.training.learner.constant_action_std`)
+    above the run's std floor ``min_std``."""
     params, normalizer = _load_init(path, params, normalizer, arch, layout, obs_dim)
     if action_std is not None:
-        params = params.replace(policy=constant_action_std(params.policy, action_std, arch))
+        params = params.replace(policy=constant_action_std(params.policy, action_std, arch, min_std))
     return params, normalizer
 
 

@@ -94,13 +94,13 @@ def make_mlp_network(obs_size: int, layer_sizes: Sequence[int], activation: Call
 
 def make_mlp_ppo_networks(obs_size: int, action_size: int, preprocess_observations_fn: Callable[..., jax.Array],
                           policy_hidden_layer_sizes: Sequence[int], value_hidden_layer_sizes: Sequence[int],
-                          activation: Callable[[jax.Array], jax.Array]) -> Any:
+                          activation: Callable[[jax.Array], jax.Array], min_std: float = 0.001) -> Any:
     """Brax ``PPONetworks`` as ``brax...ppo.networks.make_ppo_networks`` makes them for a tanh-normal
-    policy (same parameters for the same key), on :class:`MLP` layers."""
+    policy (same parameters for the same key), on :class:`MLP` layers; ``min_std``: the std's floor."""
     from brax.training.agents.ppo import networks as ppo_networks
     from brax.training.distribution import NormalTanhDistribution
 
-    dist = NormalTanhDistribution(event_size=action_size)
+    dist = NormalTanhDistribution(event_size=action_size, min_std=min_std)
     policy = make_mlp_network(obs_size, list(policy_hidden_layer_sizes) + [dist.param_size], activation,
                               preprocess_observations_fn)
     value = make_mlp_network(obs_size, list(value_hidden_layer_sizes) + [1], activation, preprocess_observations_fn,

@@ -130,7 +130,7 @@ class JaxPPOTrainer:
     def _load_init(self, path: str, params: Any, normalizer: Any) -> tuple[Any, Any]:
         """Warm start from a policy file (MLP: zero weights for new neighbour inputs; encoders: same arch)."""
         return load_init(path, params, normalizer, self.arch, self.layout, self.obs_dim,
-                         action_std=self.ppo.warm_start_std)
+                         action_std=self.ppo.warm_start_std, min_std=self.ppo.min_action_std)
 
     # ------------------------------------------------------------------ rollout state
     def init_worlds(self, key: jax.Array) -> tuple[dict[str, Any], ...]:

@@ -114,11 +114,11 @@ def make_networks(ppo: PPOConfig, layout: dict[str, int]) -> tuple[Any, dict[str
 
         # Brax's make_ppo_networks (same parameters) on Dense layers with a faster weight gradient
         nets = make_mlp_ppo_networks(layout_obs_dim(layout), 4, normalize, ppo.policy_hidden, ppo.value_hidden,
-                                     ACTIVATIONS[ppo.activation])
+                                     ACTIVATIONS[ppo.activation], min_std=ppo.min_action_std)
         return nets, None
     arch = encoder_arch(ppo.arch, ppo.arch_width, ppo.activation)
     nets = enc_networks.make_ppo_networks(arch, layout, normalize, value_hidden_layer_sizes=ppo.value_hidden,
-                                          activation=ppo.activation)
+                                          activation=ppo.activation, min_std=ppo.min_action_std)
     return nets, arch
 
 
@@ -131,26 +131,26 @@ def init_params(networks: Any, ppo: PPOConfig, arch: dict[str, Any] | None, key:
         layers = _dense_layers(policy)
         k_last, b_last = layers[-1]
         b_last = b_last.copy()
-        b_last[4:] = np.log(np.expm1(max(ppo.init_std - 0.001, 1e-4)))  # softplus^-1: Brax's std parameters
+        b_last[4:] = enc_networks.std_bias(ppo.init_std, ppo.min_action_std)  # Brax's std parameters
         policy = _to_tree(layers[:-1] + [(k_last, b_last)])
     else:
-        policy = enc_networks.set_action_std(policy, ppo.init_std)
+        policy = enc_networks.set_action_std(policy, ppo.init_std, min_std=ppo.min_action_std)
     return ppo_losses.PPONetworkParams(policy=policy, value=value)
 
 
-def constant_action_std(policy: Any, std: float, arch: dict[str, Any] | None) -> Any:
+def constant_action_std(policy: Any, std: float, arch: dict[str, Any] | None, min_std: float = 0.001) -> Any:
     """Policy parameters whose tanh-normal std is ``std`` (pre-tanh) in every state: the action layer's
-    std outputs get zero input weights and the bias softplus^-1(std - 0.001); the means are untouched."""
+    std outputs get zero input weights and the bias softplus^-1(std - min_std); the means are untouched."""
     if arch is not None:
         flat = enc_networks.flatten_params(policy)
         k = np.array(flat["action/kernel"], np.float32)
         k[..., 4:] = 0.0
         flat["action/kernel"] = k
-        return enc_networks.set_action_std(enc_networks.unflatten_params(flat), std)
+        return enc_networks.set_action_std(enc_networks.unflatten_params(flat), std, min_std=min_std)
     layers = _dense_layers(policy)
     k_last, b_last = (np.array(a, np.float32) for a in layers[-1])
     k_last[:, 4:] = 0.0
-    b_last[4:] = np.log(np.expm1(max(std - 0.001, 1e-4)))
+    b_last[4:] = enc_networks.std_bias(std, min_std)
     return _to_tree(layers[:-1] + [(k_last, b_last)])
 
 

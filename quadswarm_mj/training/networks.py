@@ -175,9 +175,10 @@ def make_policy_network(arch: dict[str, Any], layout: dict[str, Any],
 
 def make_ppo_networks(arch: dict[str, Any], layout: dict[str, Any],
                       preprocess_observations_fn: Callable[..., jax.Array] | None = None,
-                      value_hidden_layer_sizes: Sequence[int] = (256, 256), activation: str = "tanh") -> Any:
-    """Brax ``PPONetworks`` with an encoder policy (tanh-normal, 4 actions) and an MLP value network
-    (Brax's, on :mod:`quadswarm_mj.training.dense` layers: the same parameters)."""
+                      value_hidden_layer_sizes: Sequence[int] = (256, 256), activation: str = "tanh",
+                      min_std: float = 0.001) -> Any:
+    """Brax ``PPONetworks`` with an encoder policy (tanh-normal, 4 actions, std floor ``min_std``) and an MLP
+    value network (Brax's, on :mod:`quadswarm_mj.training.dense` layers: the same parameters)."""
     from brax.training import types as brax_types
     from brax.training.agents.ppo import networks as ppo_networks
     from brax.training.distribution import NormalTanhDistribution
@@ -187,15 +188,21 @@ def make_ppo_networks(arch: dict[str, Any], layout: dict[str, Any],
     pre = preprocess_observations_fn or brax_types.identity_observation_preprocessor
     value = make_mlp_network(layout_obs_dim(layout), list(value_hidden_layer_sizes) + [1],
                              ACTIVATION_FNS[activation], pre, squeeze=True)
+    dist = NormalTanhDistribution(event_size=4, min_std=min_std)
     return ppo_networks.PPONetworks(policy_network=make_policy_network(arch, layout, pre), value_network=value,
-                                    parametric_action_distribution=NormalTanhDistribution(event_size=4))
+                                    parametric_action_distribution=dist)
 
 
-def set_action_std(params: Any, init_std: float, action_dim: int = 4) -> Any:
+def std_bias(std: float, min_std: float = 0.001) -> float:
+    """The pre-softplus output that gives Brax's tanh-normal std ``std`` (softplus(b) + ``min_std``)."""
+    return float(np.log(np.expm1(max(std - min_std, 1e-4))))
+
+
+def set_action_std(params: Any, init_std: float, action_dim: int = 4, min_std: float = 0.001) -> Any:
     """Params with the action layer's std biases set so Brax's tanh-normal std starts at ``init_std``
-    (softplus^-1(init_std - 0.001), as ``ppo.py`` does for its MLP); the means are untouched."""
+    (softplus^-1(init_std - min_std), as ``ppo.py`` does for its MLP); the means are untouched."""
     flat = flatten_params(params)
     b = np.array(flat["action/bias"], np.float32)
-    b[action_dim:] = np.log(np.expm1(max(init_std - 0.001, 1e-4)))
+    b[action_dim:] = std_bias(init_std, min_std)
     flat["action/bias"] = b
     return unflatten_params(flat)

@@ -91,7 +91,7 @@ class PPOTrainer:
     def _load_init(self, path: str, params: Any, normalizer: Any) -> tuple[Any, Any]:
         """Warm start from a policy file (:func:`~quadswarm_mj.training.checkpoints.load_init`)."""
         return load_init(path, params, normalizer, self.arch, self.layout, self.obs_dim,
-                         action_std=self.ppo.warm_start_std)
+                         action_std=self.ppo.warm_start_std, min_std=self.ppo.min_action_std)
 
     def train_meta(self, extra_meta: dict[str, Any] | None = None) -> dict[str, Any]:
         return {"engine": "mujoco", "scenarios": [c.scenario for c in self.cfgs], "env_steps": int(self.env_steps),

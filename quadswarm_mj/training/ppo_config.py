@@ -48,6 +48,9 @@ class PPOConfig:
     #: warm starts (--init-from): the action std set to this in every state (the std outputs' input weights
     #: zeroed); None keeps the file's state-dependent std
     warm_start_std: float | None = None
+    #: floor of the pre-tanh std (Brax's ``min_std``): std = softplus(output) + this, so the policy cannot
+    #: stop exploring below it (Brax's default 0.001)
+    min_action_std: float = 0.001
     desync_episodes: bool = True  # truncate each world's first episode after a random number of steps
     arch: str = "mlp"  # policy network: "mlp" (policy_hidden) or a quadswarm_mj.policies.ARCH_PRESETS name
     arch_width: int | None = None  # encoders: every hidden width of the preset set to this (heads: 2x); None: as is
@@ -66,6 +69,13 @@ class PPOConfig:
         if ws is not None and not (isinstance(ws, (int, float)) and not isinstance(ws, bool) and math.isfinite(ws)
                                    and 0.001 < ws <= 10):
             raise ValueError(f"ppo.warm_start_std must be None or a number in (0.001, 10], got {ws!r}")
+        ms = self.min_action_std
+        if not (isinstance(ms, (int, float)) and not isinstance(ms, bool) and 0.0001 <= ms <= 1):
+            raise ValueError(f"ppo.min_action_std must be a number in [0.0001, 1], got {ms!r}")
+        for n in ("init_std", "warm_start_std"):
+            v = getattr(self, n)
+            if v is not None and v <= ms:
+                raise ValueError(f"ppo.{n} must be above ppo.min_action_std ({ms}), got {v!r}")
         if not (0 <= self.entropy_cost < 1):
             raise ValueError(f"ppo.entropy_cost must be in [0, 1), got {self.entropy_cost!r}")
         if self.discounting > 1 or self.gae_lambda > 1:
