@@ -149,6 +149,42 @@ def test_min_action_std_floors_the_std_and_the_warm_start_lands_on_it(tmp_path):
         PPOConfig(min_action_std=0.0)
 
 
+def test_correlated_exploration_noise_is_standard_normal_and_trains_on_the_jax_engine():
+    """noise_correlation: AR(1) draws stay N(0, 1) with lag-1 correlation rho; the policy step takes the
+    pre-tanh action mean + std * eps with its log-prob; a JAX-engine run trains; the CPU trainer refuses it."""
+    import jax
+    import jax.numpy as jnp
+
+    from quadswarm_mj.training.jax_ppo import JaxPPOTrainer
+    from quadswarm_mj.training.learner import correlated_noise, make_noise_policy_step
+
+    rho, eps, keys = 0.9, [jax.random.normal(jax.random.key(0), (4000, 4))], jax.random.split(jax.random.key(1), 60)
+    for k in keys:
+        eps.append(correlated_noise(eps[-1], k, rho))
+    e = np.asarray(jnp.stack(eps))  # (61, 4000, 4)
+    assert abs(e.mean()) < 0.02 and abs(e.std() - 1.0) < 0.02
+    lag1 = np.mean(e[1:] * e[:-1]) / np.mean(e * e)
+    assert abs(lag1 - rho) < 0.01
+    ppo = PPOConfig(**TINY, noise_correlation=rho)
+    tr = JaxPPOTrainer([EnvConfig(num_quads=2, episode_seconds=0.3)], ppo, seed=0)
+    obs = jnp.asarray(np.random.default_rng(0).normal(0, 1, (5, tr.obs_dim)), jnp.float32)
+    z = jnp.asarray(np.random.default_rng(1).normal(0, 1, (5, 4)), jnp.float32)
+    act, extras = make_noise_policy_step(tr.networks)(tr.state.normalizer, tr.state.params.policy, obs, z)
+    dist = tr.networks.parametric_action_distribution
+    logits = tr.networks.policy_network.apply(tr.state.normalizer, tr.state.params.policy, obs)
+    normal = dist.create_dist(logits)
+    np.testing.assert_allclose(np.asarray(extras["raw_action"]), np.asarray(normal.loc + normal.scale * z), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(act), np.tanh(np.asarray(extras["raw_action"])), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(extras["log_prob"]), np.asarray(dist.log_prob(logits, extras["raw_action"])),
+                               rtol=1e-6)
+    rows = tr.train(total_steps=TINY["num_worlds"] * 2 * TINY["unroll_length"] * 2, progress=False)
+    assert len(rows) == 2 and all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(tr.state.params))
+    with pytest.raises(ValueError, match="needs the JAX engine"):
+        PPOTrainer([EnvConfig(num_quads=1)], ppo)
+    with pytest.raises(ValueError, match="noise_correlation must be a number in"):
+        PPOConfig(noise_correlation=1.0)
+
+
 def test_ppo_config_validation():
     with pytest.raises(ValueError, match="num_worlds"):
         PPOConfig(num_worlds=0)

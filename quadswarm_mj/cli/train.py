@@ -188,6 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --init-from: the policy's action std (pre-tanh) set to this in every state")
     g.add_argument("--min-action-std", type=float,
                    help="floor of the policy's action std (pre-tanh; default 0.001): exploration cannot fall below it")
+    g.add_argument("--noise-correlation", type=float,
+                   help="JAX engine: AR(1) correlation of each agent's action noise per step, in [0, 1) (default 0)")
     g.add_argument("--lr-schedule", choices=("constant", "linear"), help="linear (default): decay to 10 %% at the end")
     g.add_argument("--discounting", type=float)
     g.add_argument("--gae-lambda", type=float)
@@ -269,7 +271,8 @@ def main(argv: list[str] | None = None) -> int:
     ppo_kw = dict(preset["ppo"])
     for k in ("num_worlds", "unroll_length", "num_minibatches", "num_epochs", "learning_rate", "entropy_cost",
               "discounting", "gae_lambda", "clipping_epsilon", "reward_scaling", "activation", "lr_schedule", "arch",
-              "arch_width", "warm_start_std", "min_action_std"):
+              "arch_width", "warm_start_std", "min_action_std",
+              "noise_correlation"):
         if getattr(args, k) is not None:
             ppo_kw[k] = getattr(args, k)
     if args.arch == "mlp":

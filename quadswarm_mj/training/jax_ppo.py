@@ -35,8 +35,10 @@ from quadswarm_mj.training.checkpoints import (
 from quadswarm_mj.training.distributed import broadcast_from_main, gather_worlds, global_array
 from quadswarm_mj.training.learner import (
     TrainState,
+    correlated_noise,
     init_params,
     make_networks,
+    make_noise_policy_step,
     make_optimizer,
     make_policy_step,
     make_update_fn,
@@ -114,6 +116,7 @@ class JaxPPOTrainer:
             params, normalizer = self._load_init(init_from, params, normalizer)
         self.state = TrainState(params=params, opt_state=self.optimizer.init(params), normalizer=normalizer)
         self._policy_step = make_policy_step(self.networks)
+        self._noise_policy_step = make_noise_policy_step(self.networks)
         self.num_processes, self.is_main = jax.process_count(), jax.process_index() == 0
         self.num_devices = self._data_parallel_devices(devices)
         self._update = make_update_fn(self.networks, self.optimizer, ppo,
@@ -150,6 +153,9 @@ class JaxPPOTrainer:
                   "ep_ret": jnp.zeros((w,), jnp.float32)}
             if self.replay is not None:
                 wd["replay"] = init_replay(st, self.replay)
+            if self.ppo.noise_correlation > 0:  # each agent's exploration noise (noise_correlation)
+                key, kn = jax.random.split(key)
+                wd["noise"] = jax.random.normal(kn, (w, self.N, 4), jnp.float32)
             out.append(wd)
         if self.num_processes > 1:  # every process computed all worlds: it places its own devices' slices
             ws, rep = self._world_sharding()
@@ -224,7 +230,8 @@ class JaxPPOTrainer:
         nd = self.num_devices
         worlds = [w // nd for w in self.worlds]  # per device
         axis = AXIS if nd > 1 else None
-        policy_step, update = self._policy_step, self._update
+        policy_step, noise_step, update = self._policy_step, self._noise_policy_step, self._update
+        rho = float(self.ppo.noise_correlation)
 
         def local(key: jax.Array) -> jax.Array:  # a device's own stream (rollout noise, resets, shuffles)
             return key if axis is None else jax.random.fold_in(key, jax.lax.axis_index(axis))
@@ -271,13 +278,20 @@ class JaxPPOTrainer:
             wds, key = carry
             key, k_act, *k_w = jax.random.split(key, 2 + len(wds))
             obs = jnp.concatenate([wd["env"].obs.reshape(-1, D) for wd in wds]).astype(jnp.float32)
-            act, extras = policy_step(ts.normalizer, ts.params.policy, obs, k_act)
+            if rho > 0:  # AR(1) noise per agent: N(0, 1) at every step, correlated over ~1 / (1 - rho) steps
+                prev = jnp.concatenate([wd["noise"].reshape(-1, 4) for wd in wds])
+                eps = correlated_noise(prev, k_act, rho)
+                act, extras = noise_step(ts.normalizer, ts.params.policy, obs, eps)
+            else:
+                act, extras = policy_step(ts.normalizer, ts.params.policy, obs, k_act)
             new_wds, rews, truncs, sums = [], [], [], []
             i = 0
             for k, wd in enumerate(wds):
                 a = act[i:i + worlds[k] * N].reshape(worlds[k], N, 4)
-                i += worlds[k] * N
                 nw, r, tr, sm = world_step(k, wd, a, k_w[k])
+                if rho > 0:
+                    nw["noise"] = eps[i:i + worlds[k] * N].reshape(worlds[k], N, 4)
+                i += worlds[k] * N
                 new_wds.append(nw)
                 rews.append(r)
                 truncs.append(tr)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -184,6 +185,28 @@ def make_policy_step(networks: Any) -> Callable:
 
     def step(normalizer: Any, policy_params: Any, obs: jax.Array, key: jax.Array) -> tuple[jax.Array, dict]:
         return make_policy((normalizer, policy_params))(obs, key)
+
+    return step
+
+
+def correlated_noise(prev: jax.Array, key: jax.Array, rho: float) -> jax.Array:
+    """The next step's standard normal exploration noise of each agent, an AR(1) process:
+    ``rho * prev + sqrt(1 - rho^2) * n`` with fresh n ~ N(0, 1) (stationary N(0, 1); lag-k correlation rho^k)."""
+    return rho * prev + math.sqrt(1.0 - rho * rho) * jax.random.normal(key, prev.shape, prev.dtype)
+
+
+def make_noise_policy_step(networks: Any) -> Callable:
+    """(normalizer, policy params, obs (A, D), eps (A, 4)) -> (actions (A, 4) in [-1, 1], extras): the
+    tanh-normal policy's pre-tanh action ``mean + std * eps`` for the given standard normal draws ``eps``
+    (``PPOConfig.noise_correlation``), with the extras of Brax's sampled step (``log_prob``, ``raw_action``, ``distribution_params``)."""
+    dist = networks.parametric_action_distribution
+
+    def step(normalizer: Any, policy_params: Any, obs: jax.Array, eps: jax.Array) -> tuple[jax.Array, dict]:
+        logits = networks.policy_network.apply(normalizer, policy_params, obs)
+        normal = dist.create_dist(logits)
+        raw = normal.loc + normal.scale * eps
+        return dist.postprocess(raw), {"log_prob": dist.log_prob(logits, raw), "raw_action": raw,
+                                       "distribution_params": logits}
 
     return step
 

@@ -58,6 +58,8 @@ class PPOTrainer:
     """PPO on ``AgentBatch`` (the CPU engine). Use :meth:`train` (budget in agent-steps and/or seconds)."""
 
     def __init__(self, cfgs: list[EnvConfig], ppo: PPOConfig, seed: int = 0, init_from: str | None = None):
+        if ppo.noise_correlation:
+            raise ValueError("ppo.noise_correlation (correlated exploration) needs the JAX engine (engine='jax')")
         self.cfgs, self.ppo, self.seed = cfgs, ppo, seed
         nscn = len(cfgs)
         base, extra = divmod(ppo.num_worlds, nscn)

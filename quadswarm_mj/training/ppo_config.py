@@ -51,6 +51,10 @@ class PPOConfig:
     #: floor of the pre-tanh std (Brax's ``min_std``): std = softplus(output) + this, so the policy cannot
     #: stop exploring below it (Brax's default 0.001)
     min_action_std: float = 0.001
+    #: temporally correlated exploration (JAX engine): each agent's standard normal action noise follows
+    #: eps_t = rho eps_{t-1} + sqrt(1 - rho^2) n_t (still N(0, 1) per step; 0: independent, Brax's sampling),
+    #: so a deviation lasts ~1 / (1 - rho) control steps and its effect on later rewards reaches its advantage
+    noise_correlation: float = 0.0
     desync_episodes: bool = True  # truncate each world's first episode after a random number of steps
     arch: str = "mlp"  # policy network: "mlp" (policy_hidden) or a quadswarm_mj.policies.ARCH_PRESETS name
     arch_width: int | None = None  # encoders: every hidden width of the preset set to this (heads: 2x); None: as is
@@ -76,6 +80,9 @@ class PPOConfig:
             v = getattr(self, n)
             if v is not None and v <= ms:
                 raise ValueError(f"ppo.{n} must be above ppo.min_action_std ({ms}), got {v!r}")
+        nc = self.noise_correlation
+        if not (isinstance(nc, (int, float)) and not isinstance(nc, bool) and 0 <= nc < 1):
+            raise ValueError(f"ppo.noise_correlation must be a number in [0, 1), got {nc!r}")
         if not (0 <= self.entropy_cost < 1):
             raise ValueError(f"ppo.entropy_cost must be in [0, 1), got {self.entropy_cost!r}")
         if self.discounting > 1 or self.gae_lambda > 1:
