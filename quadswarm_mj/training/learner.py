@@ -198,7 +198,8 @@ def correlated_noise(prev: jax.Array, key: jax.Array, rho: float) -> jax.Array:
 def make_noise_policy_step(networks: Any) -> Callable:
     """(normalizer, policy params, obs (A, D), eps (A, 4)) -> (actions (A, 4) in [-1, 1], extras): the
     tanh-normal policy's pre-tanh action ``mean + std * eps`` for the given standard normal draws ``eps``
-    (``PPOConfig.noise_correlation``), with the extras of Brax's sampled step (``log_prob``, ``raw_action``, ``distribution_params``)."""
+    (``PPOConfig.noise_correlation``), with the extras of Brax's sampled step (``log_prob``, ``raw_action``,
+    ``distribution_params``)."""
     dist = networks.parametric_action_distribution
 
     def step(normalizer: Any, policy_params: Any, obs: jax.Array, eps: jax.Array) -> tuple[jax.Array, dict]:
