@@ -49,7 +49,8 @@ class PPOConfig:
     #: zeroed); None keeps the file's state-dependent std
     warm_start_std: float | None = None
     #: floor of the pre-tanh std (Brax's ``min_std``): std = softplus(output) + this, so the policy cannot
-    #: stop exploring below it (Brax's default 0.001)
+    #: stop exploring below it (Brax's default 0.001). A warm start without ``warm_start_std`` keeps the file's
+    #: std outputs, so its std rises by (this - 0.001): pair a floor with ``warm_start_std``
     min_action_std: float = 0.001
     #: temporally correlated exploration (JAX engine): each agent's standard normal action noise follows
     #: eps_t = rho eps_{t-1} + sqrt(1 - rho^2) n_t (still N(0, 1) per step; 0: independent, Brax's sampling),
