@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from quadswarm_mj.config import EnvConfig
 from quadswarm_mj.policies import (
     LN_EPS,
     NEIGHBOR_DIM,
@@ -278,6 +279,11 @@ def _layout(policy: MLPPolicy | EncoderPolicy) -> dict[str, int]:
     return dict(lay)
 
 
+def _control_hz(policy: MLPPolicy | EncoderPolicy) -> int:
+    """The control rate (Hz) the policy was trained at: its file's ``env``, else the EnvConfig default."""
+    return int(policy.env_kwargs.get("control_hz", EnvConfig.control_hz))
+
+
 def generate_c(policy: MLPPolicy | EncoderPolicy, name: str = "qs_policy") -> tuple[str, str]:
     """The C source and header text of a policy (see the module docstring)."""
     if not isinstance(policy, (MLPPolicy, EncoderPolicy)):
@@ -300,7 +306,8 @@ def generate_c(policy: MLPPolicy | EncoderPolicy, name: str = "qs_policy") -> tu
         f"#define QS_POLICY_NUM_NEIGHBORS {lay['num_neighbors']}",
         f"#define QS_POLICY_NEIGHBOR_DIM {lay['neighbor_dim']}",
         f"#define QS_POLICY_OBSTACLE_DIM {lay['obstacle_dim']}",
-        f"#define QS_POLICY_NUM_PARAMS {w.num_params}", "",
+        f"#define QS_POLICY_NUM_PARAMS {w.num_params}",
+        f"#define QS_POLICY_CONTROL_HZ {_control_hz(policy)}  /* call it at this rate: one action per period */", "",
         "#ifdef __cplusplus", 'extern "C" {', "#endif", "",
         "/* One quad's observation as the simulator returns it (normalized inside) -> QS_POLICY_ACTION_DIM actions",
         "   in [-1, 1]; motor command k = 0.5 (action[k] + 1) x full scale. Not reentrant (static buffers). */",

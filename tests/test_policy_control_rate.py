@@ -41,3 +41,12 @@ def test_evaluation_flies_the_policy_at_its_recorded_rate(tmp_path):
     r = evaluate(pol, "static_same_goal", episodes=2, num_quads=1, seed=3, env={"episode_seconds": 0.5})
     assert r.episodes == 2 and np.isfinite(r.summary()["mean_distance"])
     assert make_eval_config(_policy_file(tmp_path, EnvConfig()), "static_same_goal").control_hz == 100
+
+
+def test_c_export_states_the_rate_the_firmware_must_call_the_policy_at(tmp_path):
+    from quadswarm_mj.export import generate_c
+
+    _, hdr = generate_c(_policy_file(tmp_path, EnvConfig(num_quads=1, control_hz=50)))
+    assert "#define QS_POLICY_CONTROL_HZ 50" in hdr
+    _, hdr = generate_c(_policy_file(tmp_path, EnvConfig(num_quads=1)))
+    assert "#define QS_POLICY_CONTROL_HZ 100" in hdr
