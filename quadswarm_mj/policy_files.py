@@ -140,6 +140,9 @@ def _check_meta(meta: dict[str, Any], where: str) -> None:
     if env.get("num_neighbors") is not None and not _is_int(env["num_neighbors"]):
         raise ValueError(f"{where}: meta env num_neighbors must be an int >= 0 or null, "
                          f"got {_short(env['num_neighbors'])}")
+    for k in ("control_hz", "sim_hz"):  # the rates a policy was trained at (Hz; the C export writes control_hz)
+        if k in env and not _is_int(env[k], 1):
+            raise ValueError(f"{where}: meta env {k} must be a positive int (Hz), got {_short(env[k])}")
     if "obs_self" in env and env["obs_self"] not in SELF_DIMS:
         raise ValueError(f"{where}: meta env obs_self must be one of {tuple(SELF_DIMS)}, got {_short(env['obs_self'])}")
     rs = env.get("room_size")

@@ -50,3 +50,16 @@ def test_c_export_states_the_rate_the_firmware_must_call_the_policy_at(tmp_path)
     assert "#define QS_POLICY_CONTROL_HZ 50" in hdr
     _, hdr = generate_c(_policy_file(tmp_path, EnvConfig(num_quads=1)))
     assert "#define QS_POLICY_CONTROL_HZ 100" in hdr
+
+
+def test_a_malformed_rate_in_a_policy_file_is_refused_at_load_naming_the_field(tmp_path):
+    import pytest
+
+    d = EnvConfig(num_quads=1).obs_dim
+    ks, bs = [np.zeros((d, 8)), np.zeros((8, 8))], [np.zeros(8), np.zeros(8)]
+    for field, bad in (("control_hz", "fast"), ("control_hz", 50.5), ("control_hz", 0), ("sim_hz", True)):
+        path = tmp_path / f"bad_{field}.npz"
+        meta = {"activation": "tanh", "obs_dim": d, "action_dim": 4, "env": {"num_quads": 1, field: bad}}
+        save_policy(path, ks, bs, np.zeros(d), np.ones(d), meta)
+        with pytest.raises(ValueError, match=f"meta env {field} must be a positive int"):
+            load_policy(str(path))
