@@ -10,7 +10,7 @@ from quadswarm_mj.config_checks import MAX_REWARD_SCALE, _check_range, _is_real
 
 OBSTACLE_DENSITY_VALUES = (0.05, 0.10, 0.15, 0.20)  # SPEC_obstacles A.6: np.arange(0.05, 0.2, 0.05) incl. 0.2
 OBSTACLE_SIZE_VALUES = (0.3, 0.4, 0.5)  # SPEC_obstacles A.6: np.arange(0.3, 0.6, 0.1), 0.6 excluded
-FEATURE_FORMS = ("grid", "slopes")
+FEATURE_FORMS = ("grid", "slopes", "near")
 
 
 @dataclass(frozen=True)
@@ -38,7 +38,9 @@ class ObstacleConfig:
     observation, so a policy must sense the columns, e.g. with ``SensorConfig(multiranger=True)``.
     ``feature_form`` is how the 9 features are observed: ``"grid"`` (default, the original's 3 x 3
     distances) or ``"slopes"`` (the centre distance and the 8 others' differences from it per
-    0.1 m: the same information, decorrelated; :func:`quadswarm_mj.obstacles.observed_features`).
+    0.1 m: the same information, decorrelated) or ``"near"`` (the slopes form made local and bounded: a
+    proximity 0 beyond 1 m of a column's surface and 1 at it, the slopes scaled by it; all 0 in open space;
+    :func:`quadswarm_mj.obstacles.observed_features`).
     """
 
     density: float = 0.2

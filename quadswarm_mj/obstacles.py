@@ -31,6 +31,8 @@ NUM_FEATURES = 9
 CENTRE_FEATURE = 4  # the quad's own point among the 9 (x-major 3 x 3 grid)
 #: distance (m) used when a world has no column (the original's placeholder; the radius is subtracted)
 NO_OBSTACLE_DIST = 100.0
+NEAR_RANGE = 1.0  # m: feature_form="near" sees columns whose surface is closer than this
+NEAR_MAX = 2.0  # its proximity's cap (1 at the surface; a quad's centre is never 1 m inside a column)
 #: normal of a quad exactly on a column axis: divided by this instead of 0 (A.3 step 1)
 NORMAL_EPS = 1e-5
 #: decay range U(low, high) of the obstacle response (A.3 step 4); the inside branch uses 1.0
@@ -203,24 +205,35 @@ def observed_features(features: Any, form: str) -> Any:
     ``"slopes"`` keeps the centre distance (m, index 4) and replaces each other point's distance by its
     difference from the centre divided by the 0.1 m grid step (dimensionless, within +-sqrt(2): the
     distance to the nearest column is 1-Lipschitz). An invertible linear map: the same information,
-    but the direction to the column no longer hides in ~1 % differences of nine nearly equal inputs."""
+    but the direction to the column no longer hides in ~1 % differences of nine nearly equal inputs.
+    ``"near"`` is bounded and local: the centre is the proximity ``w = clip(1 - d / NEAR_RANGE, 0, NEAR_MAX)``
+    (0 from 1 m away, 1 at the surface) and the slopes are multiplied by ``w``, so in open space all 9 are 0
+    and a policy's hover point does not depend on how far the nearest column is."""
     if form == "grid":
         return features
     xp = array_namespace(features)
     centre = features[..., CENTRE_FEATURE:CENTRE_FEATURE + 1]
     slopes = (features - centre) / SDF_RESOLUTION
+    if form == "near":
+        centre = xp.clip(1.0 - centre / NEAR_RANGE, 0.0, NEAR_MAX)
+        slopes = slopes * centre
     return xp.concatenate([slopes[..., :CENTRE_FEATURE], centre, slopes[..., CENTRE_FEATURE + 1:]], axis=-1)
 
 
 def feature_bounds(cfg: EnvConfig) -> tuple[np.ndarray, np.ndarray]:
     """Finite (low, high) float32 bounds (9,) of the observed features: +- max(room diagonal + 1 m,
     100 m) for a distance, so no reachable value (nor the no-column placeholder) is ever clipped, and
-    +-1.5 for a slope (``feature_form="slopes"``, whose slopes lie within +-sqrt(2))."""
+    +-1.5 for a slope (``feature_form="slopes"``, whose slopes lie within +-sqrt(2)); ``"near"``: +-NEAR_MAX
+    for its proximity, +-1.5 NEAR_MAX for a weighted slope."""
     b = max(math.sqrt(sum(x * x for x in cfg.room_size)) + 1.0, NO_OBSTACLE_DIST)
     hi = np.full(NUM_FEATURES, b, dtype=np.float32)
-    if cfg.obstacles is not None and cfg.obstacles.feature_form == "slopes":
+    form = cfg.obstacles.feature_form if cfg.obstacles is not None else "grid"
+    if form == "slopes":
         hi[:] = 1.5
         hi[CENTRE_FEATURE] = b
+    elif form == "near":
+        hi[:] = 1.5 * NEAR_MAX
+        hi[CENTRE_FEATURE] = NEAR_MAX
     return -hi, hi
 
 

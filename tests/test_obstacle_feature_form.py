@@ -1,11 +1,19 @@
-"""``ObstacleConfig.feature_form="slopes"``: the 9 column features as the centre distance and 8 slopes."""
+"""``ObstacleConfig.feature_form``: the 9 column features as the centre distance and 8 slopes ("slopes"), or as a
+bounded local proximity and its weighted slopes ("near")."""
 
 import numpy as np
 import pytest
 
 from quadswarm_mj import QuadSwarmEnv
 from quadswarm_mj.config import EnvConfig, ObstacleConfig
-from quadswarm_mj.obstacles import CENTRE_FEATURE, SDF_RESOLUTION, observed_features, obstacle_features
+from quadswarm_mj.obstacles import (
+    CENTRE_FEATURE,
+    NEAR_MAX,
+    NEAR_RANGE,
+    SDF_RESOLUTION,
+    observed_features,
+    obstacle_features,
+)
 
 OBST = {"density": 0.2, "size": 0.6}
 
@@ -69,5 +77,46 @@ def test_env_observes_slopes_in_place_of_the_grid():
 
 
 def test_unknown_feature_form_names_the_field():
-    with pytest.raises(ValueError, match=r"obstacles.feature_form must be one of \('grid', 'slopes'\)"):
+    with pytest.raises(ValueError, match=r"obstacles.feature_form must be one of \('grid', 'slopes', 'near'\)"):
         ObstacleConfig(feature_form="sdf")
+
+
+def test_near_is_zero_in_open_space_and_the_weighted_slopes_near_a_column():
+    f = _random_features(2)
+    n, s = observed_features(f, "near"), observed_features(f, "slopes")
+    d = f[..., CENTRE_FEATURE]
+    w = np.clip(1.0 - d / NEAR_RANGE, 0.0, NEAR_MAX)
+    np.testing.assert_allclose(n[..., CENTRE_FEATURE], w)
+    others = [k for k in range(9) if k != CENTRE_FEATURE]
+    np.testing.assert_allclose(n[..., others], s[..., others] * w[..., None])
+    far = d >= NEAR_RANGE
+    assert far.any() and (~far).any()
+    assert not n[far].any()  # all 9 exactly 0 beyond 1 m of the nearest surface
+    # one column 0.4 m from the quad's centre to its surface along +x: proximity 0.6, slope towards it negative in x
+    one = obstacle_features(np.array([[0.0, 0.0, 1.0]]), np.array([[0.7, 0.0]]), np.array([True]), np.array(0.3))
+    got = observed_features(one, "near")[0]
+    assert got[CENTRE_FEATURE] == pytest.approx(0.6)
+    assert got[7] == pytest.approx(-0.6) and got[1] == pytest.approx(0.6)  # (x+0.1, y) nearer, (x-0.1, y) farther
+    # no column at all: nothing seen
+    none = obstacle_features(np.zeros((1, 3)), np.zeros((1, 2)), np.array([False]), np.array(0.3))
+    assert not observed_features(none, "near").any()
+
+
+def test_near_numpy_equals_jit():
+    jax = pytest.importorskip("jax")
+    f = _random_features(3).astype(np.float32)
+    got = jax.jit(lambda x: observed_features(x, "near"))(f)
+    np.testing.assert_allclose(np.asarray(got), observed_features(f, "near"), rtol=1e-6, atol=1e-6)
+
+
+def test_env_observes_near_within_its_bounds():
+    env = QuadSwarmEnv(EnvConfig(num_quads=4, obstacles=ObstacleConfig(**OBST, feature_form="near")))
+    obs, _ = env.reset(seed=5)
+    tail = slice(obs.shape[-1] - 9, obs.shape[-1])
+    hi = env.observation_space.high[..., tail]
+    assert np.allclose(hi[..., CENTRE_FEATURE], NEAR_MAX)
+    assert np.allclose(np.delete(hi, CENTRE_FEATURE, axis=-1), 1.5 * NEAR_MAX)
+    for _ in range(30):
+        obs, *_ = env.step(env.action_space.sample())
+        assert env.observation_space.contains(obs)
+        assert (obs[..., tail][..., CENTRE_FEATURE] >= 0).all()
