@@ -333,6 +333,23 @@ def test_resume_continues_step_count_optimizer_and_normalizer(tmp_path):
 
 
 @pytest.mark.slow
+def test_resume_without_a_budget_finishes_the_runs_own_timesteps(tmp_path):
+    """A run stopped before its --timesteps (here by a --minutes cap) resumed with no new budget trains the rest of
+    its steps, so its learning-rate schedule ends where the uninterrupted run's does; once reached, it says so."""
+    out = tmp_path / "run"
+    base = _tiny_argv(out, "--scenario", "static_same_goal", "--policy-hidden", "8", "--env", "episode_seconds=0.1")
+    mod = _train_script()
+    # stopped by the clock (0.06 s) after its first iteration, which compiles for seconds
+    assert mod.main(base + ["--timesteps", "32", "--minutes", "0.001"]) == 0
+    assert json.loads((out / "run.json").read_text())["total_timesteps"] == 32
+    assert [r["env_steps"] for r in json.loads((out / "progress.json").read_text())] == [8]
+    assert mod.main(["--resume", str(out), "--no-progress"]) == 0
+    assert [r["env_steps"] for r in json.loads((out / "progress.json").read_text())] == [8, 16, 24, 32]
+    with pytest.raises(SystemExit, match="already reached its budget of 32 agent-steps"):
+        mod.main(["--resume", str(out), "--no-progress"])
+
+
+@pytest.mark.slow
 def test_jax_engine_training_with_encoder_replay_anneal_and_resume(tmp_path):
     """The JAX engine trainer: one jitted iteration per call; an attention policy file that loads and acts;
     the replay columns in the log; the annealing clock (info["total_steps"]) carried over desync cuts,

@@ -167,7 +167,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timesteps", type=float, help="budget of this run in agent-steps (quad control steps), e.g. 5e7")
     p.add_argument("--init-from", help="start from this policy .npz (e.g. the single-quad policy for swarm8)")
     p.add_argument("--resume", metavar="DIR", help="continue the run in DIR from its last checkpoint (optimizer, "
-                   "normalizer, step counter, RNG); its run.json gives the configuration, the budget is new")
+                   "normalizer, step counter, RNG); its run.json gives the configuration; the budget is new or, "
+                   "without --timesteps and --minutes, the rest of the run's own --timesteps")
     p.add_argument("--checkpoint-minutes", type=float, default=5.0, help="checkpoint period (default 5)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
     p.add_argument("--replay-prob", type=float, help="JAX engine: probability that an episode end restarts from a "
@@ -224,6 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     resume_file = None
+    resume_total = None  # a resumed run's total step budget, when it had one and no new budget is given
     if args.resume:
         rdir = Path(args.resume)
         resume_file = rdir / "checkpoints" / "train_state.npz"
@@ -235,12 +237,14 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
         if args.out is None:
             args.out = str(rdir)
+        if args.timesteps is None and args.minutes is None:  # no new budget: finish the run's own step budget
+            resume_total = old.get("total_timesteps") or build_parser().parse_args(old["argv"]).timesteps
     if args.out is None:
         args.out = "runs/train"
     preset = PRESETS[args.preset]
     if args.timesteps is None and preset.get("timesteps") and not args.resume:
         args.timesteps = float(preset["timesteps"])  # the preset's budget (--minutes, if given, caps it)
-    if args.minutes is None and args.timesteps is None:
+    if args.minutes is None and args.timesteps is None and not resume_total:
         args.minutes = 30.0
     from quadswarm_mj.config import EnvConfig, RewardScales
     from quadswarm_mj.training.ppo import PPOConfig, PPOTrainer
@@ -309,6 +313,11 @@ def main(argv: list[str] | None = None) -> int:
             trainer.resume(resume_file)
     except (TypeError, ValueError) as e:
         raise SystemExit(f"error: {e}") from None
+    if resume_total:  # the rest of the budget: the learning-rate schedule continues where it stopped
+        args.timesteps = float(resume_total) - trainer.env_steps
+        if args.timesteps <= 0:
+            raise SystemExit(f"error: --resume {args.resume}: the run already reached its budget of "
+                             f"{int(resume_total)} agent-steps; give --timesteps or --minutes to train further")
     out = Path(args.out)
     if main_process:
         out.mkdir(parents=True, exist_ok=True)
@@ -318,7 +327,8 @@ def main(argv: list[str] | None = None) -> int:
            "ppo": {k: (list(v) if isinstance(v, tuple) else v) for k, v in ppo.__dict__.items()},
            "replay_prob": replay_prob, "seed": args.seed, "init_from": init_from, "agents": agents, "processes": nproc,
            "obs_dim": trainer.obs_dim, "resumed_from": args.resume,
-           "resumed_at_env_steps": int(trainer.env_steps) if args.resume else None}
+           "resumed_at_env_steps": int(trainer.env_steps) if args.resume else None,
+           "total_timesteps": None if args.timesteps is None else int(trainer.env_steps + args.timesteps)}
     if not main_process:
         pass
     elif not (args.resume and Path(args.resume).resolve() == out.resolve()):
