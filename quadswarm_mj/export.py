@@ -279,6 +279,20 @@ def _layout(policy: MLPPolicy | EncoderPolicy) -> dict[str, int]:
     return dict(lay)
 
 
+#: ObstacleConfig.feature_form -> the header's QS_POLICY_OBSTACLE_FORM
+OBSTACLE_FORMS = {"grid": 0, "slopes": 1, "near": 2}
+
+
+def _obstacle_form_lines(policy: MLPPolicy | EncoderPolicy) -> list[str]:
+    """The header's statement of how the 9 column inputs are formed (none when the policy observes no columns)."""
+    obst = policy.env_kwargs.get("obstacles") or {}
+    if _layout(policy)["obstacle_dim"] != 9 or not obst.get("observe_features", True):
+        return []
+    form = obst.get("feature_form", "grid")
+    return [f"#define QS_POLICY_OBSTACLE_FORM {OBSTACLE_FORMS[form]}  /* the 9 column inputs: 0 grid (distances at"
+            f" 3 x 3 points), 1 slopes, 2 near: {form} (docs/model.md, Obstacles) */"]
+
+
 def _control_hz(policy: MLPPolicy | EncoderPolicy) -> int:
     """The control rate (Hz) the policy was trained at: its file's ``env``, else the EnvConfig default."""
     return int(policy.env_kwargs.get("control_hz", EnvConfig.control_hz))
@@ -307,7 +321,8 @@ def generate_c(policy: MLPPolicy | EncoderPolicy, name: str = "qs_policy") -> tu
         f"#define QS_POLICY_NEIGHBOR_DIM {lay['neighbor_dim']}",
         f"#define QS_POLICY_OBSTACLE_DIM {lay['obstacle_dim']}",
         f"#define QS_POLICY_NUM_PARAMS {w.num_params}",
-        f"#define QS_POLICY_CONTROL_HZ {_control_hz(policy)}  /* call it at this rate: one action per period */", "",
+        f"#define QS_POLICY_CONTROL_HZ {_control_hz(policy)}  /* call it at this rate: one action per period */",
+        *_obstacle_form_lines(policy), "",
         "#ifdef __cplusplus", 'extern "C" {', "#endif", "",
         "/* One quad's observation as the simulator returns it (normalized inside) -> QS_POLICY_ACTION_DIM actions",
         "   in [-1, 1]; motor command k = 0.5 (action[k] + 1) x full scale. Not reentrant (static buffers). */",

@@ -11,14 +11,14 @@ import numpy as np
 from quadswarm_mj import EnvConfig
 from quadswarm_mj.policies import load_policy, save_policy
 from quadswarm_mj.training.evaluation import evaluate, make_eval_config
-from quadswarm_mj.training.learner import env_meta
+from quadswarm_mj.training.learner import env_meta, obs_layout
 
 
 def _policy_file(tmp_path, cfg: EnvConfig):
     d = cfg.obs_dim
     rng = np.random.default_rng(0)
     ks = [rng.normal(0, 1 / np.sqrt(d), (d, 8)), rng.normal(0, 0.1, (8, 8))]  # mean and std parameters
-    meta = {"activation": "tanh", "obs_dim": d, "action_dim": 4, "env": env_meta(cfg)}
+    meta = {"activation": "tanh", "obs_dim": d, "action_dim": 4, "env": env_meta(cfg), "obs_layout": obs_layout(cfg)}
     path = tmp_path / "p.npz"
     save_policy(path, ks, [np.zeros(8), np.zeros(8)], np.zeros(d), np.ones(d), meta)
     return load_policy(str(path))
@@ -63,3 +63,15 @@ def test_a_malformed_rate_in_a_policy_file_is_refused_at_load_naming_the_field(t
         save_policy(path, ks, bs, np.zeros(d), np.ones(d), meta)
         with pytest.raises(ValueError, match=f"meta env {field} must be a positive int"):
             load_policy(str(path))
+
+
+def test_c_export_states_how_the_column_inputs_are_formed(tmp_path):
+    from quadswarm_mj.config import ObstacleConfig
+    from quadswarm_mj.export import generate_c
+
+    for form, code in (("grid", 0), ("slopes", 1), ("near", 2)):
+        cfg = EnvConfig(num_quads=2, obstacles=ObstacleConfig(density=0.2, size=0.6, feature_form=form))
+        _, hdr = generate_c(_policy_file(tmp_path, cfg))
+        assert f"#define QS_POLICY_OBSTACLE_FORM {code}  " in hdr and f": {form} (docs/model.md" in hdr
+    _, hdr = generate_c(_policy_file(tmp_path, EnvConfig(num_quads=1)))
+    assert "QS_POLICY_OBSTACLE_FORM" not in hdr  # no columns observed
