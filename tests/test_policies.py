@@ -307,15 +307,16 @@ def test_pretrained_swarm8_rl_is_ppo_alone_and_reproduces_recorded_metrics():
 
 
 def test_pretrained_swarm8_obstacles_rl_is_ppo_alone_and_reproduces_recorded_metrics():
-    """issue 35: among columns by PPO alone from pretrained:swarm8_rl (below the issue's target, recorded as
-    measured); shipped with the issue's columns (density 0.2, 0.6 m) and the slopes feature form."""
+    """issue 35: among columns by PPO alone from pretrained:single (success below the issue's target, recorded as
+    measured); shipped with the issue's columns (density 0.2, 0.6 m) and the near feature form."""
     pol = load_policy("pretrained:swarm8_obstacles_rl")
     train = pol.meta["manifest"]["train"]
     assert train["method"] == "ppo" and train["teacher"] is None and train["imitation_loss"] is False
     assert train["stages"][0]["command"].startswith("quadswarm-train --preset swarm8_obstacles_rl")
     assert train["budget"]["agent_steps"] == sum(s["checkpoint_env_steps"] for s in train["stages"])
     o = EnvConfig(**pol.env_kwargs).obstacles
-    assert (o.density, o.size, o.density_random, o.size_random, o.feature_form) == (0.2, 0.6, False, False, "slopes")
+    assert (o.density, o.size, o.density_random, o.size_random, o.feature_form) == (0.2, 0.6, False, False, "near")
+    assert train["stages"][0]["init_from"] == "pretrained:single"
     _check_recorded("swarm8_obstacles_rl", ["o_random"])
 
 
