@@ -49,11 +49,12 @@ def test_slopes_stay_within_their_bounds():
         assert np.abs(s[..., others]).max() <= np.sqrt(2) + 1e-9
 
 
-def test_slopes_numpy_equals_jit():
+@pytest.mark.parametrize("form", ["slopes", "near"])
+def test_feature_form_numpy_equals_jit(form):
     jax = pytest.importorskip("jax")
     f = _random_features(1).astype(np.float32)
-    got = jax.jit(lambda x: observed_features(x, "slopes"))(f)
-    np.testing.assert_allclose(np.asarray(got), observed_features(f, "slopes"), rtol=1e-6, atol=1e-6)
+    got = jax.jit(lambda x: observed_features(x, form))(f)
+    np.testing.assert_allclose(np.asarray(got), observed_features(f, form), rtol=1e-6, atol=1e-6)
 
 
 def test_env_observes_slopes_in_place_of_the_grid():
@@ -100,13 +101,6 @@ def test_near_is_zero_in_open_space_and_the_weighted_slopes_near_a_column():
     # no column at all: nothing seen
     none = obstacle_features(np.zeros((1, 3)), np.zeros((1, 2)), np.array([False]), np.array(0.3))
     assert not observed_features(none, "near").any()
-
-
-def test_near_numpy_equals_jit():
-    jax = pytest.importorskip("jax")
-    f = _random_features(3).astype(np.float32)
-    got = jax.jit(lambda x: observed_features(x, "near"))(f)
-    np.testing.assert_allclose(np.asarray(got), observed_features(f, "near"), rtol=1e-6, atol=1e-6)
 
 
 def test_env_observes_near_within_its_bounds():

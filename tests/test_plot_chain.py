@@ -2,20 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
+from script_module import load_script
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("plot_chain", ROOT / "scripts" / "plot_chain.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("plot_chain")
 
 
 def _run(tmp_path, name, steps, wall):

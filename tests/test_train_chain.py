@@ -2,18 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from script_module import load_script
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("train_chain", ROOT / "scripts" / "train_chain.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("train_chain")
 
 
 def _parse(cmd):
