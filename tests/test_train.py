@@ -123,6 +123,43 @@ def test_warm_start_std_sets_a_constant_std_and_keeps_the_means(tmp_path):
         PPOConfig(warm_start_std=0.0)
 
 
+def test_train_inputs_from_trains_only_the_new_inputs_and_the_critic(tmp_path):
+    """--train-inputs-from N: after updates, the warm start's policy is unchanged except the first-layer
+    rows of the inputs >= N (the new neighbours here), so the greedy actions on the old inputs with the new
+    ones at 0 are still the file's; the critic trains; the observation statistics are not updated."""
+    import jax
+
+    from quadswarm_mj.training.learner import _dense_layers
+
+    single = PPOTrainer([EnvConfig(num_quads=1)], PPOConfig(**TINY), seed=1)
+    single.save(tmp_path / "single.npz")
+    ppo = PPOConfig(**TINY, learning_rate=1e-2, train_inputs_from=18)
+    tr = PPOTrainer([EnvConfig(num_quads=4)], ppo, seed=2, init_from=str(tmp_path / "single.npz"))
+    before = jax.tree.map(np.asarray, (tr.state.params, tr.state.normalizer))
+    tr.train(total_steps=TINY["num_worlds"] * 4 * TINY["unroll_length"] * 2, progress=False)
+    (pol0, val0), (pol1, val1) = [(_dense_layers(p.policy), _dense_layers(p.value))
+                                  for p in (before[0], tr.state.params)]
+    assert np.array_equal(pol1[0][0][:18], pol0[0][0][:18]) and not np.array_equal(pol1[0][0][18:], pol0[0][0][18:])
+    assert all(np.array_equal(a, b) for (ka, ba), (kb, bb) in zip(pol0[1:], pol1[1:]) for a, b in ((ka, kb), (ba, bb)))
+    assert np.array_equal(pol1[0][1], pol0[0][1]) and not np.array_equal(val1[0][0], val0[0][0])
+    for a, b in zip(jax.tree.leaves(before[1]), jax.tree.leaves(tr.state.normalizer)):
+        assert np.array_equal(a, np.asarray(b))
+    tr.save(tmp_path / "swarm.npz")
+    obs = np.random.default_rng(0).normal(0, 1, (10, tr.obs_dim)).astype(np.float32)
+    obs[:, 18:] = 0.0
+    np.testing.assert_allclose(load_policy(str(tmp_path / "swarm.npz"))(obs),
+                               load_policy(str(tmp_path / "single.npz"))(obs[:, :18]), atol=1e-6)
+    with pytest.raises(ValueError, match="train_inputs_from > 0 keeps a warm start's policy: it needs init_from"):
+        PPOTrainer([EnvConfig(num_quads=4)], ppo)
+    with pytest.raises(ValueError, match="train_inputs_from must be below the observation size 36"):
+        PPOTrainer([EnvConfig(num_quads=4)], PPOConfig(**TINY, train_inputs_from=36),
+                   init_from=str(tmp_path / "single.npz"))
+    with pytest.raises(ValueError, match="train_inputs_from must be an int >= 0"):
+        PPOConfig(train_inputs_from=-1)
+    with pytest.raises(ValueError, match="train_inputs_from needs arch 'mlp'"):
+        PPOConfig(train_inputs_from=18, arch="deepsets_large")
+
+
 def test_min_action_std_floors_the_std_and_the_warm_start_lands_on_it(tmp_path):
     """--min-action-std: the tanh-normal std is softplus(output) + the floor, so no output takes it below;
     a warm start's --warm-start-std is met exactly above the floor; a floor at or above it is refused."""

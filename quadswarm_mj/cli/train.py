@@ -187,6 +187,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--entropy-cost", type=float)
     g.add_argument("--warm-start-std", type=float,
                    help="with --init-from: the policy's action std (pre-tanh) set to this in every state")
+    g.add_argument("--train-inputs-from", type=int, metavar="N",
+                   help="with --init-from (MLP): train only the policy's first-layer weights of the observation "
+                        "components >= N (e.g. 18, the inputs pretrained:single lacks) and the critic; the rest of "
+                        "the policy and the observation statistics stay as loaded (default 0: train everything)")
     g.add_argument("--min-action-std", type=float,
                    help="floor of the policy's action std (pre-tanh; default 0.001): exploration cannot fall below it")
     g.add_argument("--noise-correlation", type=float,
@@ -276,7 +280,7 @@ def main(argv: list[str] | None = None) -> int:
     for k in ("num_worlds", "unroll_length", "num_minibatches", "num_epochs", "learning_rate", "entropy_cost",
               "discounting", "gae_lambda", "clipping_epsilon", "reward_scaling", "activation", "lr_schedule", "arch",
               "arch_width", "warm_start_std", "min_action_std",
-              "noise_correlation"):
+              "noise_correlation", "train_inputs_from"):
         if getattr(args, k) is not None:
             ppo_kw[k] = getattr(args, k)
     if args.arch == "mlp":

@@ -35,6 +35,7 @@ from quadswarm_mj.training.checkpoints import (
 from quadswarm_mj.training.distributed import broadcast_from_main, gather_worlds, global_array
 from quadswarm_mj.training.learner import (
     TrainState,
+    check_train_inputs_from,
     correlated_noise,
     init_params,
     make_networks,
@@ -105,6 +106,7 @@ class JaxPPOTrainer:
                                  f"{type(e).__name__}: {e}") from e
             check_engine_config(env, c)
             self.envs.append(env)
+        check_train_inputs_from(ppo, d, init_from)
         self.layout = obs_layout(cfgs[0])
         self.networks, self.arch = make_networks(ppo, self.layout)
         self.optimizer = make_optimizer(ppo)

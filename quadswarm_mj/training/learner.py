@@ -259,6 +259,30 @@ class _MeanKL:
         return (jnp.dot(per, jnp.ones_like(per)) / per.shape[0]).reshape(1)
 
 
+def trainable_mask(params: Any, train_inputs_from: int) -> Any:
+    """1.0 where a parameter of ``params`` (PPONetworkParams of an MLP policy) trains under
+    ``PPOConfig.train_inputs_from`` > 0, else 0.0: every critic parameter, and the rows >= ``train_inputs_from``
+    of the policy's first kernel (the weights of the new observation components)."""
+    def policy_leaf(path: tuple, x: jax.Array) -> jax.Array:
+        names = [getattr(k, "key", None) for k in path]
+        if names[-2:] == ["hidden_0", "kernel"]:
+            return (jnp.arange(x.shape[0]) >= train_inputs_from)[:, None].astype(x.dtype) * jnp.ones_like(x)
+        return jnp.zeros_like(x)
+
+    return params.replace(policy=jax.tree_util.tree_map_with_path(policy_leaf, params.policy),
+                          value=jax.tree_util.tree_map(jnp.ones_like, params.value))
+
+
+def check_train_inputs_from(ppo: PPOConfig, obs_dim: int, init_from: str | None) -> None:
+    """Raise ValueError unless ``ppo.train_inputs_from`` fits a run with ``obs_dim`` and ``init_from``."""
+    t = ppo.train_inputs_from
+    if t and init_from is None:
+        raise ValueError("ppo.train_inputs_from > 0 keeps a warm start's policy: it needs init_from")
+    if t and t >= obs_dim:
+        raise ValueError(f"ppo.train_inputs_from must be below the observation size {obs_dim} (some inputs train), "
+                         f"got {t}")
+
+
 def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PPOConfig,
                    axis_name: str | None = None) -> Callable:
     """(TrainState, Transition [T, A], key, lr_scale) -> (TrainState, metrics): normalizer update, then
@@ -271,7 +295,9 @@ def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PP
     (``shard_map``/``pmap``), as Brax's PPO does under ``pmap``: each device holds A / D agents and
     shuffles them into its own minibatch slices, gradients, metrics and the observation statistics are
     averaged over the devices (``pmean``), so every device applies the same update to the same
-    parameters. (The advantage normalization of the loss is per device minibatch.)"""
+    parameters. (The advantage normalization of the loss is per device minibatch.) With
+    ``p.train_inputs_from`` > 0 the gradients are masked by :func:`trainable_mask` and the observation
+    statistics stay as they are."""
     drawn = networks.replace(parametric_action_distribution=DrawnEntropyNormals(
         networks.parametric_action_distribution))
     loss_fn = functools.partial(ppo_losses.compute_ppo_loss, ppo_network=drawn,
@@ -287,6 +313,8 @@ def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PP
         if axis_name is not None:  # one all-reduce of one flat vector (each collective is a rendezvous)
             flat, unravel = jax.flatten_util.ravel_pytree((grads, metrics))
             grads, metrics = unravel(jax.lax.pmean(flat, axis_name))
+        if p.train_inputs_from:
+            grads = jax.tree_util.tree_map(jnp.multiply, grads, trainable_mask(params, p.train_inputs_from))
         upd, opt_state = optimizer.update(grads, opt_state)
         # the metrics are summed in the carry, not stacked per minibatch: XLA:CPU fused the loss
         # metrics' reductions (the KL's logs and divisions over the minibatch) into the stacking's
@@ -314,7 +342,7 @@ def make_update_fn(networks: Any, optimizer: optax.GradientTransformation, p: PP
                lr_scale: jax.Array) -> tuple[TrainState, Any]:
         data = jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), data)  # [T, A] -> [A, T]
         normalizer = state.normalizer
-        if p.normalize_observations:
+        if p.normalize_observations and not p.train_inputs_from:
             normalizer = running_statistics.update(normalizer, data.observation, pmap_axis_name=axis_name)
         # the metrics' structure and types (one minibatch's loss, traced abstractly: no computation)
         first = jax.tree_util.tree_map(lambda x: x[: x.shape[0] // p.num_minibatches], data)  # [A / M, T]

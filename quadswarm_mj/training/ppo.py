@@ -38,6 +38,7 @@ from quadswarm_mj.training.learner import (  # noqa: F401
     DrawnEntropyNormals,
     TrainState,
     _dense_layers,
+    check_train_inputs_from,
     encoder_arch,
     env_meta,
     init_params,
@@ -72,6 +73,7 @@ class PPOTrainer:
             raise ValueError(f"the number of agents ({A} = worlds x quads) must be divisible by "
                              f"ppo.num_minibatches={ppo.num_minibatches}")
         self.obs_dim = self.batch.obs_dim
+        check_train_inputs_from(ppo, self.obs_dim, init_from)
         self.layout = obs_layout(cfgs[0])
         self.networks, self.arch = make_networks(ppo, self.layout)
         self.optimizer = make_optimizer(ppo)

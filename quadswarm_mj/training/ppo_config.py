@@ -59,6 +59,10 @@ class PPOConfig:
     desync_episodes: bool = True  # truncate each world's first episode after a random number of steps
     arch: str = "mlp"  # policy network: "mlp" (policy_hidden) or a quadswarm_mj.policies.ARCH_PRESETS name
     arch_width: int | None = None  # encoders: every hidden width of the preset set to this (heads: 2x); None: as is
+    #: warm starts of an MLP: 0 trains every parameter; N > 0 trains only the policy's first-layer weights of the
+    #: observation components >= N (the inputs the warm start lacks, e.g. the column features) and the critic,
+    #: and freezes the observation statistics, so the warm start's flight is kept exactly where those inputs are 0
+    train_inputs_from: int = 0
 
     def __post_init__(self) -> None:
         for n in ("num_worlds", "unroll_length", "num_minibatches", "num_epochs"):
@@ -99,6 +103,11 @@ class PPOConfig:
         if self.arch_width is not None and (not isinstance(self.arch_width, int) or isinstance(self.arch_width, bool)
                                             or self.arch_width < 1):
             raise ValueError(f"ppo.arch_width must be None or an int >= 1, got {self.arch_width!r}")
+        t = self.train_inputs_from
+        if not isinstance(t, int) or isinstance(t, bool) or t < 0:
+            raise ValueError(f"ppo.train_inputs_from must be an int >= 0, got {t!r}")
+        if t and self.arch != "mlp":
+            raise ValueError(f"ppo.train_inputs_from needs arch 'mlp' (first-layer input rows), got {self.arch!r}")
         for n in ("policy_hidden", "value_hidden"):
             v = tuple(getattr(self, n))
             if not v or any(not isinstance(h, int) or h < 1 for h in v):
