@@ -30,6 +30,7 @@ from quadswarm_mj.config_checks import (  # noqa: F401  (re-exported: the limits
     MIN_ROOM_HEIGHT,
     MIN_ROOM_SIDE,
     MOTOR_STARTS,
+    NEIGHBOR_FORMS,
     NEIGHBOR_SORTS,
     OBS_SELF_VARIANTS,
     OMEGA_LIMIT,
@@ -357,6 +358,8 @@ class EnvConfig:
     obs_self: str = "base"  # "base" (18), "floor" (19: + z), "wall" (24: + wall distances)
     neighbor_sort: str = "distance"  # "distance" or "original" (d + unit(r).dv, d >= 0.01)
     neighbor_vel_clip: float = 6.0  # m/s, clip of neighbour relative velocity
+    neighbor_form: str = "raw"  # "raw" (p_j - p_i, v_j - v_i) or "near" (0 beyond neighbor_near_range; observations)
+    neighbor_near_range: float = 1.0  # m, the reach of neighbor_form="near"
     normalize_obs: bool = False
     formation_center: tuple[float, float, float] = (0.0, 0.0, 2.0)
     grace_period_s: float = 1.5  # s, collisions before this are not counted in the episode metrics (the reward
@@ -411,7 +414,8 @@ class EnvConfig:
         self._check_episode_seconds()
         for n, choices in (("collision_model", COLLISION_MODELS), ("motor_start", MOTOR_STARTS),
                            ("obs_self", OBS_SELF_VARIANTS), ("control_mode", CONTROL_MODES),
-                           ("info_mode", ("nested", "flat")), ("neighbor_sort", NEIGHBOR_SORTS)):
+                           ("info_mode", ("nested", "flat")), ("neighbor_sort", NEIGHBOR_SORTS),
+                           ("neighbor_form", NEIGHBOR_FORMS)):
             if getattr(self, n) not in choices:
                 raise ValueError(f"{n} must be one of {choices}, got {getattr(self, n)!r}")
         # a collision never speeds a quad up (decay multiplies the speed)
@@ -429,6 +433,7 @@ class EnvConfig:
         # two quads at SPEED_LIMIT close at 2 SPEED_LIMIT; a grace period longer than the longest episode means
         # nothing; the formation centre is a point of a room no side of which exceeds MAX_ROOM_SIDE
         _check_range("neighbor_vel_clip", self.neighbor_vel_clip, 0.0, 2 * SPEED_LIMIT, lo_open=True)
+        _check_range("neighbor_near_range", self.neighbor_near_range, 0.0, 10.0, lo_open=True)
         _check_range("grace_period_s", self.grace_period_s, 0.0, MAX_EPISODE_SECONDS)
         fc = _numbers("formation_center", self.formation_center, 3, "3 finite numbers (m)")
         if max(abs(x) for x in fc) > MAX_ROOM_SIDE:

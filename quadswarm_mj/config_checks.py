@@ -11,6 +11,7 @@ COLLISION_MODELS = ("paper", "mujoco", "blend")
 MOTOR_STARTS = ("zero", "hover")
 OBS_SELF_VARIANTS = ("base", "floor", "wall")
 NEIGHBOR_SORTS = ("distance", "original")
+NEIGHBOR_FORMS = ("raw", "near")  # EnvConfig.neighbor_form (quadswarm_mj.observations.near_neighbors)
 #: Spawn rules of ``quadswarm_mj.scenarios.base.spawn_state`` (SPEC §9): quads start at z >= SPAWN_MIN_Z
 #: and SPAWN_MARGIN (m) from the walls and the ceiling; the room must leave that band non-empty.
 SPAWN_MIN_Z = 0.75

@@ -289,8 +289,21 @@ def _obstacle_form_lines(policy: MLPPolicy | EncoderPolicy) -> list[str]:
     if _layout(policy)["obstacle_dim"] != 9 or not obst.get("observe_features", True):
         return []
     form = obst.get("feature_form", "grid")
-    return [f"#define QS_POLICY_OBSTACLE_FORM {OBSTACLE_FORMS[form]}  /* the 9 column inputs: 0 grid (distances at"
-            f" 3 x 3 points), 1 slopes, 2 near: {form} (docs/model.md, Obstacles) */"]
+    lines = [f"#define QS_POLICY_OBSTACLE_FORM {OBSTACLE_FORMS[form]}  /* the 9 column inputs: 0 grid (distances at"
+             f" 3 x 3 points), 1 slopes, 2 near: {form} (docs/model.md, Obstacles) */"]
+    if form == "near":
+        lines.append(f"#define QS_POLICY_OBSTACLE_NEAR_RANGE {float(obst.get('near_range', 1.0))!r}f  /* m */")
+    return lines
+
+
+def _neighbor_form_lines(policy: MLPPolicy | EncoderPolicy) -> list[str]:
+    """The header's statement of the neighbour inputs' form when it is not the raw (rel pos, rel vel)."""
+    env = policy.env_kwargs
+    if _layout(policy)["num_neighbors"] == 0 or env.get("neighbor_form", "raw") == "raw":
+        return []
+    return ["#define QS_POLICY_NEIGHBOR_FORM 1  /* the neighbour inputs: 0 raw (rel pos, rel vel), 1 near:"
+            " (w r / |r|, w v), w = max(1 - |r| / NEAR_RANGE, 0) (docs/model.md, Observations) */",
+            f"#define QS_POLICY_NEIGHBOR_NEAR_RANGE {float(env.get('neighbor_near_range', 1.0))!r}f  /* m */"]
 
 
 def _control_hz(policy: MLPPolicy | EncoderPolicy) -> int:
@@ -322,7 +335,7 @@ def generate_c(policy: MLPPolicy | EncoderPolicy, name: str = "qs_policy") -> tu
         f"#define QS_POLICY_OBSTACLE_DIM {lay['obstacle_dim']}",
         f"#define QS_POLICY_NUM_PARAMS {w.num_params}",
         f"#define QS_POLICY_CONTROL_HZ {_control_hz(policy)}  /* call it at this rate: one action per period */",
-        *_obstacle_form_lines(policy), "",
+        *_obstacle_form_lines(policy), *_neighbor_form_lines(policy), "",
         "#ifdef __cplusplus", 'extern "C" {', "#endif", "",
         "/* One quad's observation as the simulator returns it (normalized inside) -> QS_POLICY_ACTION_DIM actions",
         "   in [-1, 1]; motor command k = 0.5 (action[k] + 1) x full scale. Not reentrant (static buffers). */",

@@ -3,7 +3,8 @@
 Layout per quad (``cfg.obs_dim`` floats; the table with bounds: docs/model.md, "Observations"):
 p - goal (m, world), v (m/s, world), R body-to-world row-major (9), omega (rad/s, body), then z (m,
 ``obs_self="floor"``) or the 6 wall/floor/ceiling distances (m, <= 5, ``obs_self="wall"``), then per
-neighbour p_j - p_i (m) and v_j - v_i (m/s) nearest first, then with obstacles the 9 column distance
+neighbour p_j - p_i (m) and v_j - v_i (m/s) nearest first (``neighbor_form="near"``: the local
+form of :func:`near_neighbors`), then with obstacles the 9 column distance
 features (m; SPEC_obstacles A.2; none when ``obstacles.observe_features`` is False), last with sensors
 the deck readings (``sensors.deck_layout``).
 
@@ -180,6 +181,20 @@ def neighbor_obs(cfg: EnvConfig, pos: Any, vel: Any, dist: Any | None = None, cl
     return g.reshape(pos.shape[:-1] + (6 * k,))
 
 
+def near_neighbors(nb: Any, near_range: float) -> Any:
+    """``neighbor_form="near"``: each neighbour's (r, v) = (p_j - p_i, v_j - v_i) of ``nb`` (..., N, 6 K) becomes
+    (w r / |r|, w v) with the proximity ``w = clip(1 - |r| / near_range, 0, 1)`` (``near_range`` in m): the
+    direction to the neighbour scaled by how near it is (0 at ``near_range`` and beyond, 1 at contact) and the
+    relative velocity (m/s) weighted alike. All 0 when no neighbour is within ``near_range``, so a policy's
+    hover does not depend on where far quads are."""
+    xp = array_namespace(nb)
+    g = nb.reshape(nb.shape[:-1] + (-1, 6))
+    r, v = g[..., :3], g[..., 3:]
+    d = norm_last(r)[..., None]
+    w = xp.clip(1.0 - d / near_range, 0.0, 1.0)
+    return xp.concatenate([r * (w / xp.maximum(d, 1e-6)), v * w], axis=-1).reshape(nb.shape)
+
+
 @functools.lru_cache(maxsize=16)
 def _obs_neighbor_bounds(self_dim: int, k: int, bound: tuple[float, ...],
                          tail: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -214,9 +229,10 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
     parts = _self_parts(xp, cfg, m_pos, m_vel, R, m_omega, goals)
     if cfg.neighbors > 0:
         if cfg.noise.neighbor_obs_noise:
-            parts.append(neighbor_obs(cfg, m_pos, m_vel, clip=False, rank_fn=rank_fn))
+            nb = neighbor_obs(cfg, m_pos, m_vel, clip=False, rank_fn=rank_fn)
         else:
-            parts.append(neighbor_obs(cfg, pos, vel, dist, clip=False, rank_fn=rank_fn))
+            nb = neighbor_obs(cfg, pos, vel, dist, clip=False, rank_fn=rank_fn)
+        parts.append(near_neighbors(nb, cfg.neighbor_near_range) if cfg.neighbor_form == "near" else nb)
         nb_lo, nb_hi = _obs_neighbor_bounds(cfg.self_obs_dim, cfg.neighbors, tuple(_neighbor_bounds(cfg)),
                                       cfg.obs_dim - cfg.self_obs_dim - 6 * cfg.neighbors)
         low = xp.maximum(xp.asarray(low), xp.asarray(nb_lo, dtype=pos.dtype))
@@ -225,7 +241,7 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
         from quadswarm_mj.obstacles import observed_features, obstacle_features
 
         feats = obstacle_feats if obstacle_feats is not None else obstacle_features(pos, *obstacles)
-        parts.append(observed_features(feats, cfg.obstacles.feature_form))
+        parts.append(observed_features(feats, cfg.obstacles.feature_form, cfg.obstacles.near_range))
     if cfg.sensors.any:
         if deck_fn is None:
             from quadswarm_mj.sensors import deck_part as deck_fn

@@ -39,8 +39,8 @@ class ObstacleConfig:
     ``feature_form`` is how the 9 features are observed: ``"grid"`` (default, the original's 3 x 3
     distances) or ``"slopes"`` (the centre distance and the 8 others' differences from it per
     0.1 m: the same information, decorrelated) or ``"near"`` (the slopes form made local and bounded: a
-    proximity 0 beyond 1 m of a column's surface and 1 at it, the slopes scaled by it; all 0 in open space;
-    :func:`quadswarm_mj.obstacles.observed_features`).
+    proximity 0 beyond ``near_range`` (m, default 1) of a column's surface and 1 at it, the slopes scaled by it;
+    all 0 in open space; :func:`quadswarm_mj.obstacles.observed_features`).
     """
 
     density: float = 0.2
@@ -59,6 +59,7 @@ class ObstacleConfig:
     approach_reward: float = 0.0
     pos_around_columns: bool = False
     feature_form: str = "grid"
+    near_range: float = 1.0  # m
 
     def __post_init__(self) -> None:
         _check_range("obstacles.density", self.density, 0.0, 1.0)
@@ -100,6 +101,7 @@ class ObstacleConfig:
         _check_range("obstacles.approach_reward", self.approach_reward, 0.0, MAX_REWARD_SCALE)
         if self.feature_form not in FEATURE_FORMS:
             raise ValueError(f"obstacles.feature_form must be one of {FEATURE_FORMS}, got {self.feature_form!r}")
+        _check_range("obstacles.near_range", self.near_range, 0.0, 10.0, lo_open=True)
         need = self.columns_needed
         if self.max_columns is not None:
             m = self.max_columns

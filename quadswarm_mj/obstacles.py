@@ -200,22 +200,22 @@ def obstacle_features(pos: Any, centres: Any, valid: Any, radius: Any) -> Any:
     return features_from_grid(obstacle_grid(pos, centres, valid), radius)
 
 
-def observed_features(features: Any, form: str) -> Any:
+def observed_features(features: Any, form: str, near_range: float = NEAR_RANGE) -> Any:
     """The features as observed (``ObstacleConfig.feature_form``): ``"grid"`` returns them unchanged;
     ``"slopes"`` keeps the centre distance (m, index 4) and replaces each other point's distance by its
     difference from the centre divided by the 0.1 m grid step (dimensionless, within +-sqrt(2): the
     distance to the nearest column is 1-Lipschitz). An invertible linear map: the same information,
     but the direction to the column no longer hides in ~1 % differences of nine nearly equal inputs.
-    ``"near"`` is bounded and local: the centre is the proximity ``w = clip(1 - d / NEAR_RANGE, 0, NEAR_MAX)``
-    (0 from 1 m away, 1 at the surface) and the slopes are multiplied by ``w``, so in open space all 9 are 0
-    and a policy's hover point does not depend on how far the nearest column is."""
+    ``"near"`` is bounded and local: the centre is the proximity ``w = clip(1 - d / near_range, 0, NEAR_MAX)``
+    (0 from ``near_range`` m away, 1 at the surface) and the slopes are multiplied by ``w``, so in open space all
+    9 are 0 and a policy's hover point does not depend on how far the nearest column is."""
     if form == "grid":
         return features
     xp = array_namespace(features)
     centre = features[..., CENTRE_FEATURE:CENTRE_FEATURE + 1]
     slopes = (features - centre) / SDF_RESOLUTION
     if form == "near":
-        centre = xp.clip(1.0 - centre / NEAR_RANGE, 0.0, NEAR_MAX)
+        centre = xp.clip(1.0 - centre / near_range, 0.0, NEAR_MAX)
         slopes = slopes * centre
     return xp.concatenate([slopes[..., :CENTRE_FEATURE], centre, slopes[..., CENTRE_FEATURE + 1:]], axis=-1)
 

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from quadswarm_mj.config_checks import NEIGHBOR_FORMS
 from quadswarm_mj.encoder_policy import ENCODER_FORMAT, SELF_DIMS, layout_obs_dim, param_shapes, validate_layout
 from quadswarm_mj.policy_common import ACTIVATIONS
 
@@ -143,6 +144,9 @@ def _check_meta(meta: dict[str, Any], where: str) -> None:
     for k in ("control_hz", "sim_hz"):  # the rates a policy was trained at (Hz; the C export writes control_hz)
         if k in env and not _is_int(env[k], 1):
             raise ValueError(f"{where}: meta env {k} must be a positive int (Hz), got {_short(env[k])}")
+    if "neighbor_form" in env and env["neighbor_form"] not in NEIGHBOR_FORMS:
+        raise ValueError(f"{where}: meta env neighbor_form must be one of {NEIGHBOR_FORMS}, "
+                         f"got {_short(env['neighbor_form'])}")
     if "obs_self" in env and env["obs_self"] not in SELF_DIMS:
         raise ValueError(f"{where}: meta env obs_self must be one of {tuple(SELF_DIMS)}, got {_short(env['obs_self'])}")
     rs = env.get("room_size")

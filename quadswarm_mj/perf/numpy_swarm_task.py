@@ -40,7 +40,7 @@ def applies(cfg: Any, B: int, N: int) -> bool:
     """Whether :class:`SwarmTask` covers an engine of B worlds of N quads with ``cfg``."""
     return (B * N > 1 and cfg.control_mode == "rotor" and cfg.obstacles is None and cfg.rewards.vel_limit == 0
             and cfg.obs_self in ("base", "floor") and not cfg.noise.neighbor_obs_noise
-            and (cfg.neighbors == 0 or cfg.neighbor_sort == "distance"))
+            and (cfg.neighbors == 0 or (cfg.neighbor_sort == "distance" and cfg.neighbor_form == "raw")))
 
 
 class SwarmTask:

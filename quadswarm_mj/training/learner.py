@@ -75,12 +75,12 @@ def obs_layout(cfg: EnvConfig) -> dict[str, int]:
 
 def env_meta(cfg: EnvConfig) -> dict[str, Any]:
     """The EnvConfig fields a policy file records (``policy.env_kwargs``): observation layout, the control
-    and simulation rates when not the defaults, downwash when it was on, and the obstacle configuration
-    when obstacles are on."""
+    and simulation rates and the neighbour form when not the defaults, downwash when it was on, and the obstacle
+    configuration when obstacles are on."""
     env = {k: getattr(cfg, k) for k in OBS_ENV_FIELDS}
     env["room_size"] = list(env["room_size"])
-    for k in ("control_hz", "sim_hz"):  # a policy acts at the rate it was trained at (Hz)
-        if getattr(cfg, k) != getattr(EnvConfig, k):
+    for k in ("control_hz", "sim_hz", "neighbor_form", "neighbor_near_range"):  # the rates (Hz) a policy acts
+        if getattr(cfg, k) != getattr(EnvConfig, k):  # at and the neighbour inputs' form, when not the defaults
             env[k] = getattr(cfg, k)
     if cfg.downwash:  # physics the policy was trained with beyond the defaults (the obstacle runs)
         env["downwash"] = True
