@@ -147,6 +147,9 @@ def _check_meta(meta: dict[str, Any], where: str) -> None:
     if "neighbor_form" in env and env["neighbor_form"] not in NEIGHBOR_FORMS:
         raise ValueError(f"{where}: meta env neighbor_form must be one of {NEIGHBOR_FORMS}, "
                          f"got {_short(env['neighbor_form'])}")
+    nr = env.get("neighbor_near_range", 1.0)
+    if not (isinstance(nr, (int, float)) and not isinstance(nr, bool) and 0 < nr <= 10):
+        raise ValueError(f"{where}: meta env neighbor_near_range must be a number in (0, 10] (m), got {_short(nr)}")
     if "obs_self" in env and env["obs_self"] not in SELF_DIMS:
         raise ValueError(f"{where}: meta env obs_self must be one of {tuple(SELF_DIMS)}, got {_short(env['obs_self'])}")
     rs = env.get("room_size")

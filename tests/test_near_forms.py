@@ -121,3 +121,24 @@ def test_policy_file_records_the_forms_and_evaluation_applies_them(tmp_path):
                 np.zeros(cfg.obs_dim), np.ones(cfg.obs_dim), meta)
     with pytest.raises(ValueError, match=r"meta env neighbor_form must be one of \('raw', 'near'\), got 'far'"):
         load_policy(str(path))
+
+
+def test_an_obstacles_override_keeps_the_policys_column_inputs_unless_it_names_them(tmp_path):
+    obst = ObstacleConfig(density=0.1, size=0.4, density_random=True, feature_form="near", near_range=0.85)
+    pol, _, _ = _policy(tmp_path, EnvConfig(num_quads=4, obstacles=obst))
+    ev = make_eval_config(pol, "o_random", env={"obstacles": {"density": 0.2, "size": 0.6}})
+    o = ev.obstacles
+    assert (o.feature_form, o.near_range, o.density, o.size, o.density_random) == ("near", 0.85, 0.2, 0.6, False)
+    ev = make_eval_config(pol, "o_random", env={"obstacles": {"density": 0.2, "near_range": 1.0}})
+    assert ev.obstacles.near_range == 1.0  # named: the override wins
+
+
+@pytest.mark.parametrize("bad", ["far", 0, -1.0, 11.0, True, None])
+def test_a_bad_neighbor_near_range_in_a_policy_file_is_refused(tmp_path, bad):
+    cfg = EnvConfig(num_quads=4, neighbor_form="near", neighbor_near_range=0.8)
+    _, path, meta = _policy(tmp_path, cfg)
+    meta["env"]["neighbor_near_range"] = bad
+    d = cfg.obs_dim
+    save_policy(path, [np.zeros((d, 8)), np.zeros((8, 8))], [np.zeros(8), np.zeros(8)], np.zeros(d), np.ones(d), meta)
+    with pytest.raises(ValueError, match=r"meta env neighbor_near_range must be a number in \(0, 10\] \(m\)"):
+        load_policy(str(path))

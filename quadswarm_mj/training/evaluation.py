@@ -58,14 +58,23 @@ class EvalResult:
         return out
 
 
+#: ObstacleConfig fields that fix how a policy observes the columns
+OBSTACLE_OBS_FIELDS = ("observe_features", "feature_form", "near_range")
+
+
 def make_eval_config(policy: Any, scenario: str, num_quads: int | None = None,
                      env: dict[str, Any] | None = None) -> EnvConfig:
     """The EnvConfig for evaluating ``policy``: defaults, then the policy's observation layout,
-    then ``num_quads`` and ``env`` overrides."""
+    then ``num_quads`` and ``env`` overrides. An ``obstacles`` dict override keeps the policy's column
+    inputs (``OBSTACLE_OBS_FIELDS``) unless it names them: the policy reads what it was trained on."""
     kw = dict(getattr(policy, "env_kwargs", {}) or {})
     if num_quads is not None:
         kw["num_quads"] = num_quads
-    kw.update(env or {})
+    env = dict(env or {})
+    own = kw.get("obstacles")
+    if isinstance(env.get("obstacles"), dict) and isinstance(own, dict):
+        env["obstacles"] = {**{k: own[k] for k in OBSTACLE_OBS_FIELDS if k in own}, **env["obstacles"]}
+    kw.update(env)
     kw["scenario"] = scenario
     fields = {f.name for f in dataclasses.fields(EnvConfig)}
     unknown = sorted(str(k) for k in kw if k not in fields)
