@@ -1,10 +1,10 @@
 """Run a shipped policy's PPO chain: stages of ``quadswarm-train``, each from the one before, with agent-step budgets.
 
-Each stage's learning-rate schedule follows its agent-step budget (``--timesteps``), so a chain is reproducible from
-its seeds on the same machine kind. Re-running the same command continues a stopped chain: finished stages
-(``final.npz``) are skipped, a stopped stage resumes from its last checkpoint (``--resume``) with the rest of its
-budget, which continues its learning-rate schedule where it was. ``OUT/chain.json`` records each stage's command,
-agent-steps and wall time (the training budget)::
+Each stage stops at its agent-step budget (``--timesteps``) and its learning rate decays over a fixed number of
+agent-steps (``--lr-decay-timesteps``), so a chain is reproducible from its seeds on the same machine kind.
+Re-running the same command continues a stopped chain: finished stages (``final.npz``) are skipped, a stopped stage
+resumes from its last checkpoint (``--resume``) with the rest of its budget; its learning-rate schedule continues
+where it was. ``OUT/chain.json`` records each stage's command, agent-steps and wall time (the training budget)::
 
     python scripts/train_chain.py swarm8_rl --out runs/swarm8_rl_chain            # ~2.5 h on one core
     python scripts/train_chain.py swarm8_rl --out runs/swarm8_rl_chain --dry-run  # the commands only
@@ -19,19 +19,22 @@ import sys
 import time
 from pathlib import Path
 
-#: stages: (name, agent-steps, options); each stage starts from the previous stage's final.npz (the first from the
-#: preset's own ``init_from``). TRAINING.md "pretrained:swarm8_rl" gives what each stage is for.
+#: stages: (name, agent-steps, learning-rate horizon, options); each stage starts from the previous stage's final.npz
+#: (the first from the preset's own ``init_from``). The shipped chain ran on wall-clock budgets (``--minutes``) and
+#: kept a checkpoint before the end, so its schedules had not finished decaying: each horizon is the stage's
+#: agent-steps over its wall-time fraction (manifest ``train.stages``: wall_s / minutes), e.g. stage 1's 167.7 M at
+#: 7212 s of 160 min, and ``--lr-decay-timesteps`` gives it. TRAINING.md "pretrained:swarm8_rl" says what each is for.
 _FINE = ["--entropy-cost", "0", "--replay-prob", "0.5"]
-CHAINS: dict[str, list[tuple[str, int, list[str]]]] = {
+CHAINS: dict[str, list[tuple[str, int, int, list[str]]]] = {
     "swarm8_rl": [
-        ("s1", 167_739_392, ["--seed", "0"]),
-        ("s3", 49_741_824, ["--warm-start-std", "0.15", "--entropy-cost", "0", "--seed", "3"]),
-        ("s5", 85_458_944, ["--warm-start-std", "0.1", *_FINE, "--seed", "5"]),
-        ("s6", 72_482_816, ["--warm-start-std", "0.08", *_FINE, "--lr", "3e-5", "--seed", "6"]),
-        ("s8", 32_374_784, ["--warm-start-std", "0.08", *_FINE, "--lr", "3e-5", "--reward", "quad_collision=7.5",
-                            "--reward", "proximity=15", "--seed", "8"]),
-        ("s10", 16_547_840, ["--warm-start-std", "0.08", *_FINE, "--lr", "1.5e-5", "--reward", "quad_collision=8.5",
-                             "--reward", "proximity=17", "--seed", "10"]),
+        ("s1", 167_739_392, 223_296_000, ["--seed", "0"]),
+        ("s3", 49_741_824, 165_734_000, ["--warm-start-std", "0.15", "--entropy-cost", "0", "--seed", "3"]),
+        ("s5", 85_458_944, 427_097_000, ["--warm-start-std", "0.1", *_FINE, "--seed", "5"]),
+        ("s6", 72_482_816, 144_780_000, ["--warm-start-std", "0.08", *_FINE, "--lr", "3e-5", "--seed", "6"]),
+        ("s8", 32_374_784, 107_690_000, ["--warm-start-std", "0.08", *_FINE, "--lr", "3e-5", "--reward",
+                                         "quad_collision=7.5", "--reward", "proximity=15", "--seed", "8"]),
+        ("s10", 16_547_840, 82_603_000, ["--warm-start-std", "0.08", *_FINE, "--lr", "1.5e-5", "--reward",
+                                         "quad_collision=8.5", "--reward", "proximity=17", "--seed", "10"]),
     ],
 }
 PRESET = {"swarm8_rl": "swarm8_rl"}
@@ -47,7 +50,7 @@ def stage_commands(chain: str, out: Path, cpu_devices: str, checkpoint_minutes: 
     """(stage name, train-CLI arguments) of every stage that is not finished, in order."""
     todo = []
     prev: Path | None = None
-    for name, budget, opts in CHAINS[chain]:
+    for name, budget, horizon, opts in CHAINS[chain]:
         sdir = out / name
         common = ["--cpu-devices", cpu_devices, "--checkpoint-minutes", str(checkpoint_minutes), "--no-progress"]
         if not (sdir / "final.npz").is_file():
@@ -57,7 +60,7 @@ def stage_commands(chain: str, out: Path, cpu_devices: str, checkpoint_minutes: 
             else:
                 init = ["--init-from", str(prev / "final.npz")] if prev is not None else []
                 args = ["--preset", PRESET[chain], *init, *opts, *common, "--timesteps", str(budget),
-                        "--out", str(sdir)]
+                        "--lr-decay-timesteps", str(horizon), "--out", str(sdir)]
             todo.append((name, args))
         prev = sdir
     return todo

@@ -513,3 +513,29 @@ def test_learning_rate_is_injected_and_plain_adam_train_states_still_load(tmp_pa
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     for a, b in zip(jax.tree.leaves(back.params), jax.tree.leaves(state.params)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_lr_decay_timesteps_sets_the_schedule_horizon_apart_from_the_budget(tmp_path):
+    """--lr-decay-timesteps N: the linear schedule decays over N agent-steps from the run's first step, whatever
+    the budget, and a resumed run continues it (the schedule of a wall-clock run kept at a checkpoint)."""
+    from quadswarm_mj.training.ppo_config import run_lr_scale
+
+    with pytest.raises(ValueError, match="lr_decay_steps must be None or an int >= 1"):
+        PPOConfig(lr_decay_steps=0)
+    p = PPOConfig(lr_decay_steps=100)
+    assert run_lr_scale(p, 50, budget_frac=0.9, start=1.0) == pytest.approx(0.55)  # the budget plays no part
+    assert run_lr_scale(p, 500, budget_frac=0.1, start=1.0) == pytest.approx(0.1)
+    assert run_lr_scale(PPOConfig(), 50, budget_frac=0.5, start=1.0) == pytest.approx(0.55)
+
+    out = tmp_path / "run"
+    lr = 1e-3
+    base = _tiny_argv(out, "--scenario", "static_same_goal", "--policy-hidden", "8", "--env", "episode_seconds=0.1",
+                      "--lr", str(lr), "--lr-decay-timesteps", "64")
+    mod = _train_script()
+    assert mod.main(base + ["--timesteps", "16"]) == 0
+    assert mod.main(["--resume", str(out), "--timesteps", "16", "--no-progress"]) == 0
+    rows = json.loads((out / "progress.json").read_text())
+    assert [r["env_steps"] for r in rows] == [8, 16, 24, 32]
+    # each update's rate is the schedule's at the agent-steps before it: 0, 8, 16, 24 of 64
+    np.testing.assert_allclose([r["learning_rate"] for r in rows], [lr * (1 - 0.9 * e / 64) for e in (0, 8, 16, 24)],
+                               rtol=1e-5)

@@ -29,6 +29,25 @@ def test_fresh_chain_runs_every_stage_from_the_one_before(tmp_path):
     assert sum(budgets) == 424_345_600  # the shipped chain's agent-steps (the manifest's train.budget)
 
 
+def test_each_stage_decays_its_learning_rate_as_the_shipped_wall_clock_stage_did(tmp_path):
+    """The shipped stages ran on --minutes and kept a checkpoint before the end: the horizon is the stage's
+    agent-steps over the fraction of its minutes it had run (the manifest's train.stages)."""
+    import re
+
+    from quadswarm_mj.policies import read_manifest
+
+    mod = _module()
+    stages = read_manifest()["policies"]["swarm8_rl"]["train"]["stages"]
+    todo = mod.stage_commands("swarm8_rl", tmp_path, "1", 8.0)
+    assert len(stages) == len(todo)
+    for shipped, (_, cmd) in zip(stages, todo):
+        minutes = float(re.search(r"--minutes (\S+)", shipped["command"]).group(1))
+        horizon = shipped["checkpoint_env_steps"] / (shipped["wall_s"] / (60.0 * minutes))
+        a = _parse(cmd)
+        assert a.timesteps == shipped["checkpoint_env_steps"]
+        assert abs(a.lr_decay_steps - horizon) / horizon < 1e-3, (cmd, horizon)
+
+
 def test_finished_stages_are_skipped_and_a_stopped_stage_resumes_with_the_rest_of_its_budget(tmp_path):
     mod = _module()
     (tmp_path / "s1").mkdir()

@@ -196,6 +196,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--noise-correlation", type=float,
                    help="JAX engine: AR(1) correlation of each agent's action noise per step, in [0, 1) (default 0)")
     g.add_argument("--lr-schedule", choices=("constant", "linear"), help="linear (default): decay to 10 %% at the end")
+    g.add_argument("--lr-decay-timesteps", dest="lr_decay_steps", type=float, metavar="N",
+                   help="linear schedule: decay over N agent-steps from the run's first step (default: the budget); a "
+                        "run stopped before N keeps a higher final rate")
     g.add_argument("--discounting", type=float)
     g.add_argument("--gae-lambda", type=float)
     g.add_argument("--clipping-epsilon", type=float)
@@ -280,9 +283,9 @@ def main(argv: list[str] | None = None) -> int:
     for k in ("num_worlds", "unroll_length", "num_minibatches", "num_epochs", "learning_rate", "entropy_cost",
               "discounting", "gae_lambda", "clipping_epsilon", "reward_scaling", "activation", "lr_schedule", "arch",
               "arch_width", "warm_start_std", "min_action_std",
-              "noise_correlation", "train_inputs_from"):
+              "noise_correlation", "train_inputs_from", "lr_decay_steps"):
         if getattr(args, k) is not None:
-            ppo_kw[k] = getattr(args, k)
+            ppo_kw[k] = int(args.lr_decay_steps) if k == "lr_decay_steps" else getattr(args, k)
     if args.arch == "mlp":
         ppo_kw.pop("arch_width", None)
     for k in ("policy_hidden", "value_hidden"):

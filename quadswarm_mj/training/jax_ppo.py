@@ -45,7 +45,7 @@ from quadswarm_mj.training.learner import (
     make_update_fn,
     obs_layout,
 )
-from quadswarm_mj.training.ppo_config import PPOConfig, linear_lr_scale, ppo_meta
+from quadswarm_mj.training.ppo_config import PPOConfig, ppo_meta, run_lr_scale
 from quadswarm_mj.training.replay import ReplayConfig, init_replay, record, restart, tree_where
 from quadswarm_mj.training.run_logs import plot_curves, start_run, write_logs
 
@@ -403,7 +403,7 @@ class JaxPPOTrainer:
             # the learning-rate schedule follows the step budget when there is one (the wall clock then only
             # caps the run, so a run that reaches its budget is reproducible from its seed), else the clock
             frac = (self.env_steps - steps0) / max(total_steps, 1) if total_steps is not None else elapsed / seconds
-            lr_scale = linear_lr_scale(self.ppo, frac, self.lr_start)
+            lr_scale = run_lr_scale(self.ppo, self.env_steps, frac, self.lr_start)
             ckpt = want_ckpt and now - last_ckpt >= checkpoint_every_s
             stop, ckpt, lr_scale = broadcast_from_main(np.array([stop, ckpt, lr_scale], np.float64))
             if ckpt and not stop:

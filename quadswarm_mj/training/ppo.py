@@ -51,7 +51,14 @@ from quadswarm_mj.training.learner import (  # noqa: F401
     obs_layout,
     set_learning_rate,
 )
-from quadswarm_mj.training.ppo_config import ACTIVATIONS, ARCH_NAMES, PPOConfig, linear_lr_scale, ppo_meta  # noqa: F401
+from quadswarm_mj.training.ppo_config import (  # noqa: F401
+    ACTIVATIONS,
+    ARCH_NAMES,
+    PPOConfig,
+    linear_lr_scale,
+    ppo_meta,
+    run_lr_scale,
+)
 from quadswarm_mj.training.run_logs import plot_curves, start_run, write_logs  # noqa: F401
 
 
@@ -183,7 +190,7 @@ class PPOTrainer:
                 frac = max(frac, (self.env_steps - steps0) / max(total_steps, 1))
             if seconds is not None:
                 frac = max(frac, (time.perf_counter() - t0) / seconds)
-            self._lr_scale = linear_lr_scale(self.ppo, frac, self.lr_start)
+            self._lr_scale = run_lr_scale(self.ppo, self.env_steps, frac, self.lr_start)
             self.state, m = self._update(self.state, data, k, jnp.float32(self._lr_scale))
             self.env_steps += per_iter
             self.iteration += 1

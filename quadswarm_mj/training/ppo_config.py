@@ -44,6 +44,10 @@ class PPOConfig:
     normalize_observations: bool = True
     lr_schedule: str = "linear"  # "constant", or "linear": decays to lr_final_fraction at the end of the budget
     lr_final_fraction: float = 0.1
+    #: agent-steps over which the linear schedule decays, counted from the run's first step (a resumed run
+    #: included); None: over the run's budget (its steps, else its minutes). A run stopped before this ends at a
+    #: higher rate, as a wall-clock run stopped at a checkpoint does
+    lr_decay_steps: int | None = None
     init_std: float = 0.6  # initial std of the pre-tanh Gaussian (Brax's default is softplus(0) = 0.69)
     #: warm starts (--init-from): the action std set to this in every state (the std outputs' input weights
     #: zeroed); None keeps the file's state-dependent std
@@ -94,6 +98,9 @@ class PPOConfig:
             raise ValueError("ppo.discounting and ppo.gae_lambda must be <= 1")
         if self.lr_schedule not in ("constant", "linear"):
             raise ValueError(f"ppo.lr_schedule must be 'constant' or 'linear', got {self.lr_schedule!r}")
+        d = self.lr_decay_steps
+        if d is not None and (not isinstance(d, int) or isinstance(d, bool) or d < 1):
+            raise ValueError(f"ppo.lr_decay_steps must be None or an int >= 1 (agent-steps), got {d!r}")
         if not (0 <= self.lr_final_fraction <= 1):
             raise ValueError(f"ppo.lr_final_fraction must be in [0, 1], got {self.lr_final_fraction!r}")
         if self.activation not in ACTIVATIONS:
@@ -118,6 +125,14 @@ class PPOConfig:
 def ppo_meta(ppo: PPOConfig) -> dict[str, Any]:
     """The configuration as JSON-ready values (tuples as lists), as policy files record it."""
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(ppo).items()}
+
+
+def run_lr_scale(ppo: PPOConfig, env_steps: int, budget_frac: float, start: float) -> float:
+    """Learning-rate factor of a run at ``env_steps`` agent-steps (from its first step) and ``budget_frac``
+    of its budget: over ``ppo.lr_decay_steps`` when set, else over the budget from ``start``."""
+    if ppo.lr_decay_steps is not None:
+        return linear_lr_scale(ppo, env_steps / ppo.lr_decay_steps)
+    return linear_lr_scale(ppo, budget_frac, start)
 
 
 def linear_lr_scale(ppo: PPOConfig, frac: float, start: float = 1.0) -> float:
