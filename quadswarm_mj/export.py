@@ -293,6 +293,8 @@ def _obstacle_form_lines(policy: MLPPolicy | EncoderPolicy) -> list[str]:
              f" 3 x 3 points), 1 slopes, 2 near: {form} (docs/model.md, Obstacles) */"]
     if form == "near":
         lines.append(f"#define QS_POLICY_OBSTACLE_NEAR_RANGE {float(obst.get('near_range', 1.0))!r}f  /* m */")
+        if obst.get("near_speed_reach", 0.0):  # the reach grows with the closing speed (docs/model.md)
+            lines.append(f"#define QS_POLICY_OBSTACLE_NEAR_SPEED_REACH {float(obst['near_speed_reach'])!r}f  /* s */")
     return lines
 
 

@@ -241,7 +241,8 @@ def build_obs(cfg: EnvConfig, pos: Any, vel: Any, R: Any, omega: Any, goals: Any
         from quadswarm_mj.obstacles import observed_features, obstacle_features
 
         feats = obstacle_feats if obstacle_feats is not None else obstacle_features(pos, *obstacles)
-        parts.append(observed_features(feats, cfg.obstacles.feature_form, cfg.obstacles.near_range))
+        o = cfg.obstacles
+        parts.append(observed_features(feats, o.feature_form, o.near_range, o.near_speed_reach, m_vel))
     if cfg.sensors.any:
         if deck_fn is None:
             from quadswarm_mj.sensors import deck_part as deck_fn

@@ -40,7 +40,9 @@ class ObstacleConfig:
     distances) or ``"slopes"`` (the centre distance and the 8 others' differences from it per
     0.1 m: the same information, decorrelated) or ``"near"`` (the slopes form made local and bounded: a
     proximity 0 beyond ``near_range`` (m, default 1) of a column's surface and 1 at it, the slopes scaled by it;
-    all 0 in open space; :func:`quadswarm_mj.obstacles.observed_features`).
+    all 0 in open space; :func:`quadswarm_mj.obstacles.observed_features`). ``near_speed_reach`` (s, default 0)
+    lengthens that reach by the quad's closing speed (m/s) towards the nearest column times this: a fast approach
+    is seen from further off, a hover beside a column not at all.
     """
 
     density: float = 0.2
@@ -60,6 +62,7 @@ class ObstacleConfig:
     pos_around_columns: bool = False
     feature_form: str = "grid"
     near_range: float = 1.0  # m
+    near_speed_reach: float = 0.0  # s
 
     def __post_init__(self) -> None:
         _check_range("obstacles.density", self.density, 0.0, 1.0)
@@ -102,6 +105,7 @@ class ObstacleConfig:
         if self.feature_form not in FEATURE_FORMS:
             raise ValueError(f"obstacles.feature_form must be one of {FEATURE_FORMS}, got {self.feature_form!r}")
         _check_range("obstacles.near_range", self.near_range, 0.0, 10.0, lo_open=True)
+        _check_range("obstacles.near_speed_reach", self.near_speed_reach, 0.0, 5.0)
         need = self.columns_needed
         if self.max_columns is not None:
             m = self.max_columns

@@ -200,24 +200,40 @@ def obstacle_features(pos: Any, centres: Any, valid: Any, radius: Any) -> Any:
     return features_from_grid(obstacle_grid(pos, centres, valid), radius)
 
 
-def observed_features(features: Any, form: str, near_range: float = NEAR_RANGE) -> Any:
+def observed_features(features: Any, form: str, near_range: float = NEAR_RANGE, speed_reach: float = 0.0,
+                      vel: Any = None) -> Any:
     """The features as observed (``ObstacleConfig.feature_form``): ``"grid"`` returns them unchanged;
     ``"slopes"`` keeps the centre distance (m, index 4) and replaces each other point's distance by its
     difference from the centre divided by the 0.1 m grid step (dimensionless, within +-sqrt(2): the
     distance to the nearest column is 1-Lipschitz). An invertible linear map: the same information,
     but the direction to the column no longer hides in ~1 % differences of nine nearly equal inputs.
-    ``"near"`` is bounded and local: the centre is the proximity ``w = clip(1 - d / near_range, 0, NEAR_MAX)``
-    (0 from ``near_range`` m away, 1 at the surface) and the slopes are multiplied by ``w``, so in open space all
-    9 are 0 and a policy's hover point does not depend on how far the nearest column is."""
+    ``"near"`` is bounded and local: the centre is the proximity ``w = clip(1 - d / reach, 0, NEAR_MAX)``
+    (0 from ``reach`` m away, 1 at the surface) and the slopes are multiplied by ``w``, so in open space all
+    9 are 0 and a policy's hover point does not depend on how far the nearest column is. The reach (m) is
+    ``near_range + speed_reach * closing``, ``closing`` the speed (m/s) of ``vel`` (..., N, 3) towards the
+    nearest column (:func:`closing_speed`; ``speed_reach`` in s, 0: a fixed reach and ``vel`` unused)."""
     if form == "grid":
         return features
     xp = array_namespace(features)
     centre = features[..., CENTRE_FEATURE:CENTRE_FEATURE + 1]
     slopes = (features - centre) / SDF_RESOLUTION
     if form == "near":
-        centre = xp.clip(1.0 - centre / near_range, 0.0, NEAR_MAX)
+        reach = near_range
+        if speed_reach:
+            reach = near_range + speed_reach * closing_speed(features, vel)[..., None]
+        centre = xp.clip(1.0 - centre / reach, 0.0, NEAR_MAX)
         slopes = slopes * centre
     return xp.concatenate([slopes[..., :CENTRE_FEATURE], centre, slopes[..., CENTRE_FEATURE + 1:]], axis=-1)
+
+
+def closing_speed(features: Any, vel: Any) -> Any:
+    """(..., N) speed (m/s) towards the nearest column, ``max(-v_xy . grad d, 0)``, from the 9 features
+    (..., N, 9) (m) and the velocities (..., N, 3) (m/s); grad d is the features' central differences over the
+    3 x 3 grid (the unit vector away from the nearest column, up to the grid's resolution)."""
+    xp = array_namespace(features, vel)
+    gx = (features[..., 7] - features[..., 1]) / (2.0 * SDF_RESOLUTION)  # x-major: index 3 i + j
+    gy = (features[..., 5] - features[..., 3]) / (2.0 * SDF_RESOLUTION)
+    return xp.maximum(-(vel[..., 0] * gx + vel[..., 1] * gy), 0.0)
 
 
 def feature_bounds(cfg: EnvConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -410,9 +426,7 @@ def obstacle_approach(features: Any, vel: Any, scale: float, falloff: float, con
     the nearest column, up to the grid's resolution): the speed towards the nearest column within the
     falloff; sliding around a column costs nothing (a shaping term; the original has none)."""
     xp = array_namespace(features, vel)
-    gx = (features[..., 7] - features[..., 1]) / (2.0 * SDF_RESOLUTION)  # x-major: index 3 i + j
-    gy = (features[..., 5] - features[..., 3]) / (2.0 * SDF_RESOLUTION)
-    closing = xp.maximum(-(vel[..., 0] * gx + vel[..., 1] * gy), 0.0)
+    closing = closing_speed(features, vel)
     near = xp.maximum(1.0 - features[..., CENTRE_FEATURE] / falloff, 0.0)
     return -(control_dt * scale) * closing * near
 

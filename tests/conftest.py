@@ -4,10 +4,31 @@ import sys
 
 # OpenBLAS picks its kernels by CPU (FMA or not, another summation order), which changes the last bits of
 # the model's small matrix products between machines; the bit-exact tests (the seeded records, the fast
-# forms' same-bits tests) pin the generic x86-64 kernel so that they hold on every x86-64 CPU. Set before
-# NumPy loads OpenBLAS; subprocesses inherit it.
+# forms' same-bits tests) pin the generic x86-64 kernel so that they hold on every x86-64 CPU. NumPy likewise
+# dispatches AVX-512 kernels of some ufuncs (sin, exp, ...) on CPUs that have it (Intel Xeon), with other last
+# bits than its AVX2 ones: the records are of the AVX2 kernels, so the AVX-512 targets are switched off
+# (NPY_DISABLE_CPU_FEATURES). Set before NumPy loads; subprocesses inherit them.
+
+
+def _numpy_avx512_targets() -> str:
+    """NumPy's dispatch targets beyond AVX2 that this CPU has (space-separated; '' if none), asked of a
+    subprocess so that NumPy is not loaded here."""
+    import subprocess
+
+    code = ("from numpy._core._multiarray_umath import __cpu_dispatch__ as d, __cpu_features__ as f\n"
+            "print(' '.join(t for t in d if ('512' in t or t == 'X86_V4') and f.get(t)))")
+    try:
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                             env={**os.environ, "NPY_DISABLE_CPU_FEATURES": ""})
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    return out.stdout.strip() if out.returncode == 0 else ""
+
+
 if platform.machine().lower() in ("x86_64", "amd64") and "OPENBLAS_CORETYPE" not in os.environ:
     os.environ["OPENBLAS_CORETYPE"] = "Prescott"
+    if "NPY_DISABLE_CPU_FEATURES" not in os.environ:
+        os.environ["NPY_DISABLE_CPU_FEATURES"] = _numpy_avx512_targets()
     # a pytest plugin (e.g. jaxtyping's) may have loaded NumPy, and with it OpenBLAS, already: start pytest again
     if "numpy" in sys.modules and os.path.basename(sys.argv[0]) in ("pytest", "py.test", "__main__.py"):
         import gc

@@ -1,5 +1,6 @@
 """Local observation forms: ``EnvConfig.neighbor_form="near"`` (the neighbour inputs are 0 beyond
-``neighbor_near_range``) and ``ObstacleConfig.near_range`` (the reach of ``feature_form="near"``).
+``neighbor_near_range``) and ``ObstacleConfig.near_range`` (the reach of ``feature_form="near"``), lengthened by
+``near_speed_reach`` times the closing speed towards the column.
 
 Both make a policy's inputs exactly 0 where nothing is near, so its hover at a goal does not depend on
 where far quads or columns are."""
@@ -12,7 +13,7 @@ import pytest
 from quadswarm_mj import QuadSwarmEnv
 from quadswarm_mj.config import EnvConfig, ObstacleConfig
 from quadswarm_mj.observations import near_neighbors
-from quadswarm_mj.obstacles import CENTRE_FEATURE, observed_features, obstacle_features
+from quadswarm_mj.obstacles import CENTRE_FEATURE, closing_speed, observed_features, obstacle_features
 from quadswarm_mj.policies import load_policy, save_policy
 from quadswarm_mj.training.evaluation import make_eval_config
 from quadswarm_mj.training.learner import env_meta, obs_layout
@@ -142,3 +143,70 @@ def test_a_bad_neighbor_near_range_in_a_policy_file_is_refused(tmp_path, bad):
     save_policy(path, [np.zeros((d, 8)), np.zeros((8, 8))], [np.zeros(8), np.zeros(8)], np.zeros(d), np.ones(d), meta)
     with pytest.raises(ValueError, match=r"meta env neighbor_near_range must be a number in \(0, 10\] \(m\)"):
         load_policy(str(path))
+
+
+def _one_column(pos, vel):
+    """Features and the true closing speed of quads at ``pos`` (K, 3) moving at ``vel`` beside one 0.6 m column at 0."""
+    f = obstacle_features(pos[None], np.zeros((1, 1, 2)), np.ones((1, 1), bool), np.array([0.3]))
+    away = pos[:, :2] / np.linalg.norm(pos[:, :2], axis=-1, keepdims=True)  # grad of the distance
+    return f, np.maximum(-(vel[:, :2] * away).sum(-1), 0.0)[None]
+
+
+def test_speed_reach_lengthens_the_reach_by_the_closing_speed():
+    rng = np.random.default_rng(3)
+    ang = rng.uniform(0, 2 * np.pi, 256)
+    rad = rng.uniform(0.45, 2.0, 256)
+    pos = np.stack([rad * np.cos(ang), rad * np.sin(ang), np.full(256, 1.5)], axis=-1)
+    vel = rng.uniform(-2, 2, (256, 3))
+    f, closing = _one_column(pos, vel)
+    # the grid's central differences: within 2 % of the true gradient (curvature, 0.15-1.7 m from the surface)
+    np.testing.assert_allclose(closing_speed(f, vel[None]), closing, rtol=0.02, atol=0.01)
+    got = observed_features(f, "near", 0.5, 0.5, vel[None])
+    d = f[..., CENTRE_FEATURE]
+    np.testing.assert_allclose(got[..., CENTRE_FEATURE], np.clip(1.0 - d / (0.5 + 0.5 * closing), 0.0, 2.0),
+                               rtol=0.02, atol=0.01)
+    assert (got[..., CENTRE_FEATURE] > 0).sum() > (observed_features(f, "near", 0.5)[..., CENTRE_FEATURE] > 0).sum()
+    np.testing.assert_array_equal(observed_features(f, "near", 0.5, 0.0, vel[None]), observed_features(f, "near", 0.5))
+    # beside a column at a goal cell's centre (0.7 m from its surface): unseen at rest and moving away or along
+    # it, seen when closing in at 1 m/s (reach 0.5 + 0.5 * 1 = 1 m)
+    at = np.array([[1.0, 0.0, 1.5]] * 4)
+    v = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    f, _ = _one_column(at, v)
+    seen = observed_features(f, "near", 0.5, 0.5, v[None])[0, :, CENTRE_FEATURE]
+    assert (seen[:3] == 0).all() and seen[3] == pytest.approx(1.0 - 0.7 / 1.0, abs=1e-3)
+
+
+def test_speed_reach_numpy_equals_jit_and_runs_on_both_engines():
+    jax = pytest.importorskip("jax")
+    rng = np.random.default_rng(5)
+    f = obstacle_features(rng.uniform(-4, 4, (16, 8, 3)), rng.uniform(-4, 4, (16, 12, 2)),
+                          np.ones((16, 12), bool), np.full(16, 0.3))
+    vel = rng.uniform(-2, 2, (16, 8, 3))
+    want = observed_features(f, "near", 0.5, 0.5, vel)
+    fn = jax.jit(lambda a, b: observed_features(a, "near", 0.5, 0.5, b))
+    got = np.asarray(fn(jax.numpy.asarray(f, jax.numpy.float32), jax.numpy.asarray(vel, jax.numpy.float32)))
+    np.testing.assert_allclose(got, want, atol=1e-4)
+    obst = ObstacleConfig(density=0.2, size=0.6, feature_form="near", near_range=0.5, near_speed_reach=0.5)
+    for engine in ("mujoco", "jax"):
+        env = QuadSwarmEnv(EnvConfig(num_quads=4, scenario="o_random", obstacles=obst), engine=engine)
+        obs, _ = env.reset(seed=2)
+        for _ in range(30):
+            obs = env.step(np.full((4, 4), 0.5))[0]
+        obs = np.asarray(obs)
+        assert np.isfinite(obs).all() and env.observation_space.contains(obs.astype(np.float32))
+        env.close()
+
+
+def test_speed_reach_is_validated_recorded_exported_and_kept_by_evaluation(tmp_path):
+    from quadswarm_mj.export import generate_c
+
+    with pytest.raises(ValueError, match=r"obstacles.near_speed_reach must be a finite number >= 0.0 and <= 5.0"):
+        ObstacleConfig(feature_form="near", near_speed_reach=-0.1)
+    obst = ObstacleConfig(density=0.1, feature_form="near", near_range=0.5, near_speed_reach=0.5)
+    pol, _, _ = _policy(tmp_path, EnvConfig(num_quads=4, obstacles=obst))
+    ev = make_eval_config(pol, "o_random", env={"obstacles": {"density": 0.2, "size": 0.6}})
+    assert (ev.obstacles.near_range, ev.obstacles.near_speed_reach) == (0.5, 0.5)
+    hdr = generate_c(pol)[1]
+    assert "#define QS_POLICY_OBSTACLE_NEAR_SPEED_REACH 0.5f" in hdr
+    fixed, _, _ = _policy(tmp_path, EnvConfig(num_quads=4, obstacles=ObstacleConfig(feature_form="near")))
+    assert "NEAR_SPEED_REACH" not in generate_c(fixed)[1]

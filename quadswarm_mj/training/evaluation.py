@@ -59,7 +59,7 @@ class EvalResult:
 
 
 #: ObstacleConfig fields that fix how a policy observes the columns
-OBSTACLE_OBS_FIELDS = ("observe_features", "feature_form", "near_range")
+OBSTACLE_OBS_FIELDS = ("observe_features", "feature_form", "near_range", "near_speed_reach")
 
 
 def make_eval_config(policy: Any, scenario: str, num_quads: int | None = None,
