@@ -220,6 +220,8 @@ def observed_features(features: Any, form: str, near_range: float = NEAR_RANGE, 
     if form == "near":
         reach = near_range
         if speed_reach:
+            if vel is None:
+                raise ValueError("observed_features: speed_reach > 0 needs the velocities vel (..., N, 3) (m/s)")
             reach = near_range + speed_reach * closing_speed(features, vel)[..., None]
         centre = xp.clip(1.0 - centre / reach, 0.0, NEAR_MAX)
         slopes = slopes * centre

@@ -167,6 +167,8 @@ def test_speed_reach_lengthens_the_reach_by_the_closing_speed():
                                rtol=0.02, atol=0.01)
     assert (got[..., CENTRE_FEATURE] > 0).sum() > (observed_features(f, "near", 0.5)[..., CENTRE_FEATURE] > 0).sum()
     np.testing.assert_array_equal(observed_features(f, "near", 0.5, 0.0, vel[None]), observed_features(f, "near", 0.5))
+    with pytest.raises(ValueError, match="speed_reach > 0 needs the velocities"):
+        observed_features(f, "near", 0.5, 0.5)
     # beside a column at a goal cell's centre (0.7 m from its surface): unseen at rest and moving away or along
     # it, seen when closing in at 1 m/s (reach 0.5 + 0.5 * 1 = 1 m)
     at = np.array([[1.0, 0.0, 1.5]] * 4)
